@@ -1,0 +1,190 @@
+"""Pinhole cameras (OpenCV convention: x right, y down, z forward; pixel centres at +0.5).
+
+``cam_to_world`` is a (4, 4) rigid transform taking camera coordinates to world coordinates.
+Depth everywhere in CropCraft is z-depth: the distance along the optical axis, in metres.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cropcraft_core.errors import ConfigError
+
+#: The paper's row camera: 994 × 738 pixels, 50° vertical field of view.
+ROW_CAMERA_SIZE = (994, 738)
+ROW_CAMERA_VFOV_DEG = 50.0
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeCamera:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    cam_to_world: np.ndarray  # (4, 4) float64
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ConfigError(f"camera size must be positive, got {self.width}×{self.height}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ConfigError(f"camera focal lengths must be positive, got {self.fx}, {self.fy}")
+        m = np.asarray(self.cam_to_world, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ConfigError("cam_to_world must be a finite (4, 4) matrix")
+        object.__setattr__(self, "cam_to_world", m)
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_vfov(
+        cls, width: int, height: int, vfov_deg: float, cam_to_world: np.ndarray
+    ) -> PinholeCamera:
+        """Square pixels, principal point at the image centre."""
+        if not 0 < vfov_deg < 180:
+            raise ConfigError(f"vertical field of view must be in (0, 180) degrees, got {vfov_deg}")
+        f = 0.5 * height / math.tan(math.radians(vfov_deg) / 2)
+        return cls(width, height, f, f, width / 2, height / 2, cam_to_world)
+
+    @classmethod
+    def look_down(
+        cls,
+        center_xy: tuple[float, float] = (0.0, 0.0),
+        height_m: float = 1.0,
+        row_direction: tuple[float, float] = (1.0, 0.0),
+        ground_z: float = 0.0,
+        size: tuple[int, int] = ROW_CAMERA_SIZE,
+        vfov_deg: float = ROW_CAMERA_VFOV_DEG,
+    ) -> PinholeCamera:
+        """The paper's row camera: straight down from ``height_m`` above the ground, image x along
+        the row (``row_direction`` in the world xy plane)."""
+        if height_m <= 0:
+            raise ConfigError(f"camera height must be positive, got {height_m}")
+        d = np.array([row_direction[0], row_direction[1], 0.0], dtype=np.float64)
+        if np.linalg.norm(d) == 0:
+            raise ConfigError("row direction must be non-zero")
+        x = d / np.linalg.norm(d)
+        z = np.array([0.0, 0.0, -1.0])
+        y = np.cross(z, x)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2] = x, y, z
+        m[:3, 3] = [center_xy[0], center_xy[1], ground_z + height_m]
+        return cls.from_vfov(size[0], size[1], vfov_deg, m)
+
+    # ----------------------------------------------------------------- properties
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def world_to_cam(self) -> np.ndarray:
+        r = self.cam_to_world[:3, :3]
+        t = self.cam_to_world[:3, 3]
+        m = np.eye(4)
+        m[:3, :3] = r.T
+        m[:3, 3] = -r.T @ t
+        return m
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.cam_to_world[:3, 3].copy()
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2 * math.atan(0.5 * self.height / self.fy))
+
+    @property
+    def hfov_deg(self) -> float:
+        return math.degrees(2 * math.atan(0.5 * self.width / self.fx))
+
+    def scaled(self, factor: float) -> PinholeCamera:
+        """The same camera with its image resampled by ``factor`` (e.g. 0.5 halves each side)."""
+        w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return PinholeCamera(
+            w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.cam_to_world
+        )
+
+    # ----------------------------------------------------------------- geometry
+    def to_camera(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) world points → (n, 3) camera coordinates."""
+        m = self.world_to_cam
+        return points @ m[:3, :3].T + m[:3, 3]
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) world points → ((n, 2) pixel coordinates, (n,) z-depth). Points behind the
+        camera get non-finite pixel coordinates."""
+        pc = self.to_camera(points)
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.fx * pc[:, 0] / z + self.cx
+            v = self.fy * pc[:, 1] / z + self.cy
+        uv = np.stack([u, v], axis=1)
+        uv[z <= 0] = np.nan
+        return uv, z
+
+    def ray_directions(self, normalized: bool = True) -> np.ndarray:
+        """(height, width, 3) world-frame ray directions through the pixel centres. With
+        ``normalized=False`` each has unit z in camera coordinates, so that t = z-depth."""
+        u = (np.arange(self.width) + 0.5 - self.cx) / self.fx
+        v = (np.arange(self.height) + 0.5 - self.cy) / self.fy
+        uu, vv = np.meshgrid(u, v)
+        d = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+        if normalized:
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return d @ self.cam_to_world[:3, :3].T
+
+    def unproject(self, depth: np.ndarray) -> np.ndarray:
+        """(height, width) z-depth → (height, width, 3) world points (NaN where depth is not
+        finite)."""
+        d = self.ray_directions(normalized=False)
+        return self.center + d * depth[..., None]
+
+    def ground_footprint(self, ground_z: float = 0.0) -> np.ndarray:
+        """(4, 2) xy corners where the image corners' rays meet the plane z = ground_z."""
+        corners = np.array(
+            [[0, 0], [self.width, 0], [self.width, self.height], [0, self.height]], float
+        )
+        d = np.column_stack(
+            [(corners[:, 0] - self.cx) / self.fx, (corners[:, 1] - self.cy) / self.fy, np.ones(4)]
+        )
+        dw = d @ self.cam_to_world[:3, :3].T
+        c = self.center
+        if np.any(dw[:, 2] >= 0):
+            raise ConfigError("camera does not look down onto the ground at every image corner")
+        t = (ground_z - c[2]) / dw[:, 2]
+        return c[:2] + dw[:, :2] * t[:, None]
+
+    # ----------------------------------------------------------------- persistence
+    def to_dict(self) -> dict:
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "cam_to_world": self.cam_to_world.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PinholeCamera:
+        try:
+            return cls(
+                int(d["width"]),
+                int(d["height"]),
+                float(d["fx"]),
+                float(d["fy"]),
+                float(d["cx"]),
+                float(d["cy"]),
+                np.asarray(d["cam_to_world"], dtype=np.float64),
+            )
+        except KeyError as e:
+            raise ConfigError(f"camera record is missing {e}") from None
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Installs everything CropCraft needs on a fresh Debian machine with Python 3.11:
+# system libraries (apt-get), then a virtual environment in .venv with the project in it.
+#   bash deploy/install.sh          runtime only
+#   bash deploy/install.sh --dev    plus the test tools (pytest, ruff, pyhelios3d, moto)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extra=""
+[ "${1:-}" = "--dev" ] && extra="[dev]"
+
+# Open3D's CPU wheel links libusb, libgomp and libGL at import time; venv needs python3-venv.
+need=()
+for pkg in libusb-1.0-0 libgomp1 libgl1 libegl1 python3-venv; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+done
+if [ ${#need[@]} -gt 0 ]; then
+  sudo_cmd=""; [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+  $sudo_cmd apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq "${need[@]}" >/dev/null
+fi
+
+py="${PYTHON:-python3.11}"
+command -v "$py" >/dev/null || py=python3
+[ -x .venv/bin/python ] || "$py" -m venv .venv
+stamp=".venv/.installed${extra}"
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  # torch is pinned first on its own so that nothing pulls a CUDA build.
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q "torch==2.13.0"
+  .venv/bin/python -m pip install -q -e ".${extra}"
+  touch "$stamp"
+fi
