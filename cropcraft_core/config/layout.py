@@ -64,8 +64,9 @@ class CanopyLayout:
 def default_layout(crop: str, **overrides) -> CanopyLayout:
     base = {
         "soybean": CanopyLayout(),
-        "maize": CanopyLayout(plot_length=4.0, plot_width=4.0, density=8.25, margin=3.5,
-                              jitter_along=0.15),
+        "maize": CanopyLayout(
+            plot_length=4.0, plot_width=4.0, density=8.25, margin=3.5, jitter_along=0.15
+        ),
     }
     if crop not in base:
         raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(base)}")

@@ -1,0 +1,159 @@
+"""Canopies: plants of one species planted in rows (``CanopyLayout``), built in one vectorised pass.
+
+``generate_canopy`` is the forward model the optimiser calls thousands of times, so it takes an
+optional ``region`` (row frame: x along the rows) and builds only the plants standing there —
+e.g. ``view_region(camera, ...)``, the plants a row camera can see. Plants are addressed by their
+(row, slot) position and draw their random numbers from that address (``randomness.py``): the
+same seed gives the same plant whatever region is built, and the same random numbers whatever the
+parameters (common random numbers).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from types import ModuleType
+
+import numpy as np
+
+from cropcraft_core.config.layout import CanopyLayout, default_layout
+from cropcraft_core.config.params import check_crop, resolve_params
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.procedural import maize, soybean
+from cropcraft_core.procedural.builder import MeshBuilder
+from cropcraft_core.procedural.randomness import normals_from_uniforms, plant_uniforms
+from cropcraft_core.procedural.structure import Canopy
+
+SPECIES: dict[str, ModuleType] = {"soybean": soybean, "maize": maize}
+
+# slots shared by every species before the species' own: base azimuth, jitter along, jitter
+# across, colour tint
+_COMMON_SLOTS = 4
+
+Region = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax in the row frame (m)
+
+
+def leaflets_per_node(crop: str) -> int:
+    return SPECIES[check_crop(crop)].LEAFLETS_PER_NODE
+
+
+def max_reach(crop: str, params: Mapping[str, float]) -> float:
+    """A bound on how far (m, horizontally) any part of a plant reaches from its stem base."""
+    if check_crop(crop) == "soybean":
+        return (
+            0.235 * params["petiole_length"]
+            + 0.115 * params["leaf_length"] * 1.1
+            + (soybean.BRANCH["internode_m"] * 2 + soybean.BRANCH["petiole_m"]) * 2.0
+        )
+    return 0.99 * params["leaf_length"] + 0.02
+
+
+def plot_region(layout: CanopyLayout, margin: float | None = None) -> Region:
+    m = layout.margin if margin is None else margin
+    hx, hy = layout.plot_length / 2 + m, layout.plot_width / 2 + m
+    return (-hx, hx, -hy, hy)
+
+
+def view_region(camera: PinholeCamera, layout: CanopyLayout, reach: float) -> Region:
+    """The row-frame rectangle of plant bases whose parts can appear in ``camera``'s image: its
+    ground footprint grown by ``reach``."""
+    corners = camera.ground_footprint(0.0)
+    c, s = _rot(layout)
+    x = corners[:, 0] * c + corners[:, 1] * s
+    y = -corners[:, 0] * s + corners[:, 1] * c
+    return (x.min() - reach, x.max() + reach, y.min() - reach, y.max() + reach)
+
+
+def _rot(layout: CanopyLayout) -> tuple[float, float]:
+    a = math.radians(layout.row_azimuth_deg)
+    return math.cos(a), math.sin(a)
+
+
+def _plot_slots(layout: CanopyLayout) -> tuple[range, range]:
+    """Rows k and in-row slots j of the plants in the measured plot."""
+    s, d = layout.row_spacing, layout.in_row_spacing
+    kmax = math.floor(layout.plot_width / 2 / s + 1e-9)
+    j0 = math.ceil(-layout.plot_length / 2 / d - 0.5 - 1e-9)
+    j1 = math.ceil(layout.plot_length / 2 / d - 0.5 - 1e-9)
+    return range(-kmax, kmax + 1), range(j0, j1)
+
+
+def generate_canopy(
+    crop: str,
+    params: Mapping[str, float] | None = None,
+    layout: CanopyLayout | None = None,
+    seed: int = 0,
+    region: Region | None = None,
+) -> Canopy:
+    """Build a canopy of ``crop`` with ``params`` (missing ones take the middle of their range).
+
+    region: row-frame (xmin, xmax, ymin, ymax) of plant bases to build; default: the plot plus the
+    layout's planted margin. The plot's plants are flagged in ``Canopy.plant_in_plot``.
+    """
+    crop = check_crop(crop)
+    species = SPECIES[crop]
+    params = resolve_params(crop, params)
+    layout = layout or default_layout(crop)
+    region = plot_region(layout) if region is None else region
+    xmin, xmax, ymin, ymax = region
+    if not (xmin < xmax and ymin < ymax):
+        raise ConfigError(f"empty region {region}")
+    s, d = layout.row_spacing, layout.in_row_spacing
+    plot_rows, plot_slots = _plot_slots(layout)
+    n_slots = _COMMON_SLOTS + species.N_SLOTS
+
+    rows, slots, us = [], [], []
+    for k in range(math.ceil(ymin / s - 1e-9), math.floor(ymax / s + 1e-9) + 1):
+        j0 = math.ceil(xmin / d - 0.5 - 1e-9)
+        j1 = math.floor(xmax / d - 0.5 + 1e-9)
+        if j1 < j0:
+            continue
+        us.append(plant_uniforms(seed, k, j0, j1 - j0 + 1, n_slots))
+        rows.append(np.full(j1 - j0 + 1, k))
+        slots.append(np.arange(j0, j1 + 1))
+    if not rows:
+        raise ConfigError(f"no plant stands in region {tuple(round(v, 3) for v in region)}")
+    row = np.concatenate(rows)
+    slot = np.concatenate(slots)
+    u = np.concatenate(us)
+    g = normals_from_uniforms(u[:, 1:3])
+    x = (slot + 0.5) * d + layout.jitter_along * d * g[:, 0]
+    y = row * s + layout.jitter_across * g[:, 1]
+    base = np.column_stack([x, y, np.zeros_like(x)])
+    azimuth0 = 2 * np.pi * u[:, 0]
+    in_plot = (
+        (row >= plot_rows.start)
+        & (row < plot_rows.stop)
+        & (slot >= plot_slots.start)
+        & (slot < plot_slots.stop)
+    )
+    plant_ids = np.arange(len(row), dtype=np.int32)
+
+    builder = MeshBuilder()
+    nodes = species.build(params, base, azimuth0, u[:, _COMMON_SLOTS:], plant_ids, builder)
+    mesh = builder.build()
+
+    c, sn = _rot(layout)
+    if sn != 0.0 or c != 1.0:
+        rot = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
+        mesh = type(mesh)(mesh.vertices @ rot.T, mesh.faces, mesh.organ, mesh.plant, mesh.node)
+        base = base @ rot.T
+        nodes.xyz = nodes.xyz @ rot.T
+    ground_area = len(plot_rows) * s * len(plot_slots) * d
+    return Canopy(
+        crop=crop,
+        params=params,
+        layout=layout,
+        seed=int(seed),
+        mesh=mesh,
+        plant_xy=base[:, :2],
+        plant_in_plot=in_plot,
+        ground_area=float(ground_area),
+        node_plant=nodes.plant,
+        node_id=nodes.node_id,
+        node_stem=nodes.stem,
+        node_xyz=nodes.xyz,
+        node_internode=nodes.internode,
+        info={"region": [float(v) for v in region], "plant_tint": u[:, 3]},
+    )
