@@ -72,7 +72,8 @@ def resolve_params(crop: str, given: Mapping[str, float] | None = None) -> dict[
             raise ConfigError(f"{crop} parameter {name}={value!r} is not a number") from None
         if not math.isfinite(value) or not spec.low <= value <= spec.high:
             raise ConfigError(
-                f"{crop} parameter {name}={value:g} is outside its range [{spec.low:g}, {spec.high:g}]"
+                f"{crop} parameter {name}={value:g} is outside its range "
+                f"[{spec.low:g}, {spec.high:g}]"
             )
         out[name] = value
     return out

@@ -108,7 +108,7 @@ class CanopyMesh:
         )
 
     def validate(self) -> None:
-        """Raise ``GeometryError`` unless the mesh is finite, indexed in range and non-degenerate."""
+        """Raise ``GeometryError`` unless finite, indexed in range and non-degenerate."""
         if not np.all(np.isfinite(self.vertices)):
             raise GeometryError("mesh has non-finite vertices")
         if self.n_faces and (self.faces.min() < 0 or self.faces.max() >= len(self.vertices)):
