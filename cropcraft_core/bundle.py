@@ -1,0 +1,98 @@
+"""One canopy → the files a user gets: meshes, Helios XML, parameters, metrics and a preview.
+
+Everything is written into a temporary directory beside ``out_dir`` and moved into place file by
+file only when all of it succeeded, so a failure never leaves a half-written bundle (and an older
+bundle in ``out_dir`` stays intact until the new one is complete).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from cropcraft_core.errors import OutputError
+from cropcraft_core.procedural import Canopy, generate_canopy, plot_region
+
+BUNDLE_FILES = (
+    "canopy.ply",
+    "canopy.obj",
+    "canopy.glb",
+    "canopy.helios.xml",
+    "params.json",
+    "metrics.json",
+    "preview.png",
+)
+
+
+def check_output_dir(out_dir: str | os.PathLike) -> Path:
+    """Fail early (before any work) unless ``out_dir`` can be created and written."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=out, prefix=".probe-", delete=True)
+        probe.close()
+    except OSError as e:
+        raise OutputError(f"cannot write output directory {out}: {e.strerror or e}") from None
+    return out
+
+
+def gap_fraction_canopy(canopy: Canopy) -> Canopy:
+    """The same plants with a border wide enough for gap-fraction rays at 68° zenith to stay
+    inside the canopy (height · tan 68°), capped at 8 m."""
+    height = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.0
+    border = min(8.0, height * math.tan(math.radians(68.0)) + 0.2)
+    region = plot_region(canopy.layout, border)
+    if all(abs(a) >= abs(b) for a, b in zip(canopy.info["region"], region, strict=True)):
+        return canopy
+    return generate_canopy(canopy.crop, canopy.params, canopy.layout, canopy.seed, region=region)
+
+
+def write_bundle(canopy: Canopy, out_dir: str | os.PathLike, extra: dict | None = None) -> dict:
+    """Measure ``canopy`` and write every bundle file into ``out_dir``; returns the metrics."""
+    from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
+
+    out = check_output_dir(out_dir)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    metrics = canopy_metrics(canopy, gap_canopy=gap_fraction_canopy(canopy))
+    timings["metrics_s"] = time.perf_counter() - t
+
+    tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))
+    try:
+        t = time.perf_counter()
+        write_ply(tmp / "canopy.ply", canopy.mesh)
+        write_obj(tmp / "canopy.obj", canopy.mesh)
+        write_glb(tmp / "canopy.glb", canopy.mesh)
+        write_helios_xml(tmp / "canopy.helios.xml", canopy.mesh)
+        timings["export_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        lay = canopy.layout
+        cam = oblique_camera((lay.plot_length, lay.plot_width), canopy.mesh)
+        save_png(tmp / "preview.png", shade_rgb(canopy.mesh, cam))
+        timings["preview_s"] = time.perf_counter() - t
+        params = {
+            "crop": canopy.crop,
+            "params": canopy.params,
+            "seed": canopy.seed,
+            "layout": lay.to_dict(),
+            "plants_in_plot": canopy.n_plants,
+            "plants_total": len(canopy.plant_in_plot),
+            **(extra or {}),
+        }
+        (tmp / "params.json").write_text(json.dumps(params, indent=2, sort_keys=True) + "\n")
+        metrics = {**metrics, "timings": timings}
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+        for name in BUNDLE_FILES:
+            os.replace(tmp / name, out / name)
+    except OSError as e:
+        raise OutputError(f"cannot write {out}: {e}") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return metrics

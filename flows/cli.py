@@ -1,0 +1,135 @@
+"""The ``cropcraft`` command line.
+
+Every sub-command validates its input before doing any work; a ``CropCraftError`` becomes one line
+on stderr (``cropcraft: error: …``) and exit code 2. Heavy modules (Prefect, Open3D, torch) are
+imported only by the sub-commands that need them.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import sys
+from pathlib import Path
+
+from cropcraft_core.errors import ConfigError, CropCraftError
+
+
+def _param_pairs(values: list[str] | None) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in values or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ConfigError(f"--param expects NAME=VALUE, got {item!r}")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise ConfigError(f"--param {name}: {value!r} is not a number") from None
+    return out
+
+
+def _pair(text: str | None, what: str) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        a, b = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(f"{what} expects two numbers W,L in metres, got {text!r}") from None
+    return a, b
+
+
+def _layout(crop: str, args: argparse.Namespace):
+    from cropcraft_core.config import default_layout
+
+    plot = _pair(args.plot, "--plot")
+    return default_layout(
+        crop,
+        plot_width=plot[0] if plot else None,
+        plot_length=plot[1] if plot else None,
+        row_spacing=args.row_spacing,
+        density=args.density,
+    )
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from cropcraft_core.bundle import check_output_dir, write_bundle
+    from cropcraft_core.config import resolve_params
+    from cropcraft_core.procedural import generate_canopy
+
+    params = resolve_params(args.crop, _param_pairs(args.param))
+    layout = _layout(args.crop, args)
+    check_output_dir(args.out)
+    canopy = generate_canopy(args.crop, params, layout, seed=args.seed)
+    metrics = write_bundle(canopy, args.out)
+    _print_summary(args.out, metrics)
+    return 0
+
+
+def _print_summary(out: str, metrics: dict) -> None:
+    keys = ["lai", "lai_gap_fraction", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count",
+            "internode_mean_m", "plant_height_m", "n_plants", "n_faces"]
+    width = max(len(k) for k in keys)
+    for k in keys:
+        v = metrics.get(k)
+        print(f"{k:<{width}}  {v:.3f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    print(f"written to {Path(out).resolve()}")
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "generate":
+        from benchmarks.bench_generate import main as bench
+
+        return bench(json_path=args.json)
+    raise ConfigError(f"unknown benchmark {args.what!r}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cropcraft", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    g = sub.add_parser("generate", help="build a procedural canopy and write meshes, metrics")
+    g.add_argument("crop", help="soybean or maize")
+    g.add_argument("--param", action="append", metavar="NAME=VALUE",
+                   help="model parameter (repeatable); missing ones take the middle of their range")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--plot", metavar="W,L", help="plot width (across rows) and length (m)")
+    g.add_argument("--row-spacing", type=float, metavar="M")
+    g.add_argument("--density", type=float, metavar="PLANTS_PER_M2")
+    g.add_argument("--out", required=True, metavar="DIR")
+    g.set_defaults(func=cmd_generate)
+
+    b = sub.add_parser("bench", help="benchmarks (speed and accuracy targets)")
+    b.add_argument("what", choices=["generate"])
+    b.add_argument("--json", metavar="FILE")
+    b.set_defaults(func=cmd_bench)
+
+    d = sub.add_parser("demo", help="the main job on the built-in demo scene")
+    d.add_argument("--out", default="cropcraft-data/demo", metavar="DIR")
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Until the photo pipeline lands: the forward model on the demo soybean canopy."""
+    ns = argparse.Namespace(crop="soybean", param=None, seed=0, plot=None, row_spacing=None,
+                            density=None, out=args.out)
+    return cmd_generate(ns)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except CropCraftError as e:
+        print(f"cropcraft: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cropcraft: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
