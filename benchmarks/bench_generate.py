@@ -64,34 +64,40 @@ def run(repeats: int = 15) -> list[dict]:
         b = raycast_depth(mesh, cam)
         ha, hb = np.isfinite(a.depth), np.isfinite(b.depth)
         both = ha & hb
-        agree = float(np.mean((ha == hb)))
+        agree = float(np.mean(ha == hb))
         rel = float(np.median(np.abs(a.depth[both] - b.depth[both]) / b.depth[both]))
-        rows.append({
-            "case": f"{crop} {size:g}x{size:g} m, max params",
-            "faces": int(mesh.n_faces),
-            "generate_ms": gen_ms,
-            "depth_ms_ours": ours_ms,
-            "depth_ms_open3d": ref_ms,
-            "open3d_scene_build_ms": build_ms,
-            "hit_agreement": agree,
-            "median_rel_depth_diff": rel,
-            "generate_target_ms": TARGET_GENERATE_MS,
-            "depth_target_ms": TARGET_DEPTH_MS,
-        })
+        rows.append(
+            {
+                "case": f"{crop} {size:g}x{size:g} m, max params",
+                "faces": int(mesh.n_faces),
+                "generate_ms": gen_ms,
+                "depth_ms_ours": ours_ms,
+                "depth_ms_open3d": ref_ms,
+                "open3d_scene_build_ms": build_ms,
+                "hit_agreement": agree,
+                "median_rel_depth_diff": rel,
+                "generate_target_ms": TARGET_GENERATE_MS,
+                "depth_target_ms": TARGET_DEPTH_MS,
+            }
+        )
     return rows
 
 
 def print_table(rows: list[dict]) -> None:
-    head = (f"{'case':<32}{'faces':>9}{'generate ms':>13}{'depth ms':>10}{'Open3D ms':>11}"
-            f"{'(+build)':>10}{'agree':>8}  verdict")
+    head = (
+        f"{'case':<32}{'faces':>9}{'generate ms':>13}{'depth ms':>10}{'Open3D ms':>11}"
+        f"{'(+build)':>10}{'agree':>8}  verdict"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         ok = r["generate_ms"] <= TARGET_GENERATE_MS and r["depth_ms_ours"] <= TARGET_DEPTH_MS
-        print(f"{r['case']:<32}{r['faces']:>9}{r['generate_ms']:>13.1f}{r['depth_ms_ours']:>10.1f}"
-              f"{r['depth_ms_open3d']:>11.1f}{r['open3d_scene_build_ms']:>10.1f}"
-              f"{r['hit_agreement']:>8.4f}  {'meets' if ok else 'MISSES'} "
-              f"≤{TARGET_GENERATE_MS:g}/≤{TARGET_DEPTH_MS:g} ms")
+        print(
+            f"{r['case']:<32}{r['faces']:>9}{r['generate_ms']:>13.1f}{r['depth_ms_ours']:>10.1f}"
+            f"{r['depth_ms_open3d']:>11.1f}{r['open3d_scene_build_ms']:>10.1f}"
+            f"{r['hit_agreement']:>8.4f}  {'meets' if ok else 'MISSES'} "
+            f"≤{TARGET_GENERATE_MS:g}/≤{TARGET_DEPTH_MS:g} ms"
+        )
 
 
 def main(json_path: str | None = None, repeats: int = 15) -> int:

@@ -29,6 +29,12 @@ BUNDLE_FILES = (
 )
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def check_output_dir(out_dir: str | os.PathLike) -> Path:
     """Fail early (before any work) unless ``out_dir`` can be created and written."""
     out = Path(out_dir)
@@ -61,20 +67,28 @@ def write_bundle(canopy: Canopy, out_dir: str | os.PathLike, extra: dict | None 
     out = check_output_dir(out_dir)
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    metrics = canopy_metrics(canopy, gap_canopy=gap_fraction_canopy(canopy))
+    # The wide canopy holds the very same plot plants (plants do not depend on the generated
+    # region), so its plot metrics equal the exported canopy's, and its border is wide enough
+    # for the gap-fraction rays.
+    metrics = canopy_metrics(gap_fraction_canopy(canopy))
     timings["metrics_s"] = time.perf_counter() - t
 
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))
     try:
         t = time.perf_counter()
-        write_ply(tmp / "canopy.ply", canopy.mesh)
-        write_obj(tmp / "canopy.obj", canopy.mesh)
-        write_glb(tmp / "canopy.glb", canopy.mesh)
-        write_helios_xml(tmp / "canopy.helios.xml", canopy.mesh)
+        # The files hold the plot's plants; the planted border (there only so that views and
+        # gap-fraction rays see no edge) is rebuilt from params.json's parameters and seed.
+        plot = canopy.plot_mesh()
+        write_ply(tmp / "canopy.ply", plot)
+        write_obj(tmp / "canopy.obj", plot)
+        write_glb(tmp / "canopy.glb", plot)
+        write_helios_xml(tmp / "canopy.helios.xml", plot)
         timings["export_s"] = time.perf_counter() - t
         t = time.perf_counter()
         lay = canopy.layout
-        cam = oblique_camera((lay.plot_length, lay.plot_width), canopy.mesh)
+        half = 0.5 * max(lay.plot_length, lay.plot_width)
+        top = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.5
+        cam = oblique_camera((-half, half, -half, half), height=top)
         save_png(tmp / "preview.png", shade_rgb(canopy.mesh, cam))
         timings["preview_s"] = time.perf_counter() - t
         params = {
@@ -89,7 +103,9 @@ def write_bundle(canopy: Canopy, out_dir: str | os.PathLike, extra: dict | None 
         (tmp / "params.json").write_text(json.dumps(params, indent=2, sort_keys=True) + "\n")
         metrics = {**metrics, "timings": timings}
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+        mode = 0o666 & ~_umask()
         for name in BUNDLE_FILES:
+            os.chmod(tmp / name, mode)
             os.replace(tmp / name, out / name)
     except OSError as e:
         raise OutputError(f"cannot write {out}: {e}") from None

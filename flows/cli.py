@@ -8,7 +8,6 @@ imported only by the sub-commands that need them.
 from __future__ import annotations
 
 import argparse
-
 import sys
 from pathlib import Path
 
@@ -67,8 +66,17 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _print_summary(out: str, metrics: dict) -> None:
-    keys = ["lai", "lai_gap_fraction", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count",
-            "internode_mean_m", "plant_height_m", "n_plants", "n_faces"]
+    keys = [
+        "lai",
+        "lai_gap_fraction",
+        "leaf_angle_mean_deg",
+        "leaf_angle_std_deg",
+        "node_count",
+        "internode_mean_m",
+        "plant_height_m",
+        "n_plants",
+        "n_faces",
+    ]
     width = max(len(k) for k in keys)
     for k in keys:
         v = metrics.get(k)
@@ -90,8 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="build a procedural canopy and write meshes, metrics")
     g.add_argument("crop", help="soybean or maize")
-    g.add_argument("--param", action="append", metavar="NAME=VALUE",
-                   help="model parameter (repeatable); missing ones take the middle of their range")
+    g.add_argument(
+        "--param",
+        action="append",
+        metavar="NAME=VALUE",
+        help="model parameter (repeatable); missing ones take the middle of their range",
+    )
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--plot", metavar="W,L", help="plot width (across rows) and length (m)")
     g.add_argument("--row-spacing", type=float, metavar="M")
@@ -112,8 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Until the photo pipeline lands: the forward model on the demo soybean canopy."""
-    ns = argparse.Namespace(crop="soybean", param=None, seed=0, plot=None, row_spacing=None,
-                            density=None, out=args.out)
+    ns = argparse.Namespace(
+        crop="soybean", param=None, seed=0, plot=None, row_spacing=None, density=None, out=args.out
+    )
     return cmd_generate(ns)
 
 
@@ -132,4 +145,3 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-
