@@ -21,6 +21,7 @@ from cropcraft_core.procedural import Canopy, generate_canopy, plot_region
 BUNDLE_FILES = (
     "canopy.ply",
     "canopy.obj",
+    "canopy.mtl",
     "canopy.glb",
     "canopy.helios.xml",
     "params.json",

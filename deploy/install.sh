@@ -8,9 +8,10 @@ cd "$(dirname "$0")/.."
 extra=""
 [ "${1:-}" = "--dev" ] && extra="[dev]"
 
-# Open3D's CPU wheel links libusb, libgomp and libGL at import time; venv needs python3-venv.
+# Open3D's CPU wheel links libusb, libgomp and libGL at import time; pyhelios3d (tests) links
+# libSM, libICE, libX11 and libXext; the virtual environment needs python3-venv.
 need=()
-for pkg in libusb-1.0-0 libgomp1 libgl1 libegl1 python3-venv; do
+for pkg in libusb-1.0-0 libgomp1 libgl1 libegl1 libsm6 libice6 libx11-6 libxext6 python3-venv; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if [ ${#need[@]} -gt 0 ]; then

@@ -1,0 +1,203 @@
+"""Fitting a procedural model to an observation: one seed at a time (the unit the orchestrator
+maps), and the paper's whole fit (10 seeds, mean of their best parameters).
+
+Noise. The procedural model is stochastic (plant positions, azimuths, angle noise). With
+``common_random_numbers=True`` (default) every evaluation of a seed uses the same canopy seed, so
+the loss surface a seed explores is a deterministic function of the parameters (plants keep their
+random numbers whatever the parameters: ``procedural/randomness.py``) and the GP models smooth
+structure instead of noise; different optimiser seeds use different canopy seeds, so averaging
+over seeds still averages the model's randomness. ``False`` draws a fresh canopy per evaluation.
+``benchmarks/bench_accuracy.py --crn-ablation`` measures the difference.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cropcraft_core.config import CanopyLayout
+from cropcraft_core.config.params import bounds as param_bounds
+from cropcraft_core.config.params import params_from_vector
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.fit.forward import ForwardModel
+from cropcraft_core.observe import Observation
+from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
+from cropcraft_core.optimize.baselines import run_random, run_trust_region
+
+METHODS = ("bo", "trust-region", "random", "mlp")
+CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How to fit (paper defaults)."""
+
+    method: str = "bo"
+    """bo (Bayesian optimisation), trust-region, random or mlp."""
+    n_seeds: int = 10
+    """Independent optimiser seeds; the final parameters are the mean of their best points
+    (trust-region keeps the single lowest-loss seed, as the paper does)."""
+    n_evals: int = 500
+    """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
+    n_initial: int = 200
+    """Random initial evaluations of a BO seed."""
+    common_random_numbers: bool = True
+    """Same canopy seed for every evaluation of an optimiser seed (see module docstring)."""
+    refit_every: int = 10
+    """GP hyper-parameter refit period of BO."""
+
+    def validate(self) -> FitConfig:
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
+        if self.n_seeds < 1:
+            raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
+        if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
+            raise ConfigError(f"need 2 <= n_initial ({self.n_initial}) <= n_evals ({self.n_evals})")
+        return self
+
+    def bo_config(self) -> BOConfig:
+        return BOConfig(
+            n_evals=self.n_evals, n_initial=self.n_initial, refit_every=self.refit_every
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def canopy_seed(optimiser_seed: int, eval_index: int, crn: bool) -> int:
+    return (
+        CANOPY_SEED_BASE + optimiser_seed
+        if crn
+        else ((CANOPY_SEED_BASE + optimiser_seed) * 1_000_003 + eval_index) % (2**31)
+    )
+
+
+def make_objective(
+    forward: ForwardModel, optimiser_seed: int, crn: bool
+) -> Callable[[np.ndarray, int], float]:
+    crop = forward.crop
+
+    def objective(x: np.ndarray, eval_index: int) -> float:
+        params = params_from_vector(crop, np.clip(x, *param_bounds(crop).T))
+        return forward.loss(params, canopy_seed(optimiser_seed, eval_index, crn))
+
+    return objective
+
+
+def fit_seed(
+    observation: Observation,
+    seed: int,
+    config: FitConfig | None = None,
+    layout: CanopyLayout | None = None,
+    checkpoint: str | Path | None = None,
+    callback: Callable[[int, np.ndarray, float], None] | None = None,
+) -> SeedResult:
+    """One optimiser seed against ``observation``: pure and resumable (``checkpoint``)."""
+    cfg = (config or FitConfig()).validate()
+    if cfg.method == "mlp":
+        raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
+    forward = ForwardModel(observation, layout)
+    objective = make_objective(forward, seed, cfg.common_random_numbers)
+    b = param_bounds(observation.crop)
+    if cfg.method == "bo":
+        res = run_seed(
+            objective, b, cfg.bo_config(), seed=seed, checkpoint=checkpoint, callback=callback
+        )
+    elif cfg.method == "random":
+        res = run_random(
+            objective, b, n_evals=cfg.n_evals, seed=seed, checkpoint=checkpoint, callback=callback
+        )
+    else:
+        res = run_trust_region(
+            objective,
+            b,
+            seed=seed,
+            n_starts=1,
+            maxiter=cfg.n_evals,
+            checkpoint=checkpoint,
+            callback=callback,
+        )
+    res.extra = {**getattr(res, "extra", {}), "forward_timings": dict(forward.timings)}
+    return res
+
+
+@dataclass
+class FitResult:
+    """The fit of one observation: final parameters, their spread over seeds, every seed."""
+
+    crop: str
+    method: str
+    params: dict[str, float]
+    params_std: dict[str, float]
+    seed_params: list[dict[str, float]]
+    seed_losses: list[float]
+    seconds: float
+    config: dict
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def combine(crop: str, results: list[SeedResult], config: FitConfig, seconds: float) -> FitResult:
+    """The paper's final answer from per-seed results: the mean of the seeds' best parameters
+    (BO, random) or the lowest-loss seed's (trust-region)."""
+    if not results:
+        raise ConfigError("no seed results to combine")
+    per_seed = [params_from_vector(crop, r.reported_x) for r in results]
+    losses = [float(r.best_y) for r in results]
+    if config.method == "trust-region":
+        best = int(np.argmin(losses))
+        mean = results[best].reported_x
+        std = np.zeros_like(mean)
+    else:
+        agg = aggregate(results)
+        mean, std = agg.mean_x, agg.std_x
+    return FitResult(
+        crop=crop,
+        method=config.method,
+        params=params_from_vector(crop, mean),
+        params_std=params_from_vector(crop, std),
+        seed_params=per_seed,
+        seed_losses=losses,
+        seconds=seconds,
+        config=config.to_dict(),
+    )
+
+
+def fit_observation(
+    observation: Observation,
+    config: FitConfig | None = None,
+    layout: CanopyLayout | None = None,
+    checkpoint_dir: str | Path | None = None,
+    seeds: list[int] | None = None,
+) -> FitResult:
+    """Every seed in turn in this process (the Prefect flow maps ``fit_seed`` instead)."""
+    cfg = (config or FitConfig()).validate()
+    t = time.perf_counter()
+    if cfg.method == "mlp":
+        from cropcraft_core.fit.mlp import predict_params
+
+        params = predict_params(observation, layout=layout)
+        zero = {k: 0.0 for k in params}
+        return FitResult(
+            observation.crop,
+            "mlp",
+            params,
+            zero,
+            [params],
+            [float("nan")],
+            time.perf_counter() - t,
+            cfg.to_dict(),
+        )
+    seeds = list(range(cfg.n_seeds)) if seeds is None else seeds
+    results = []
+    for s in seeds:
+        ck = Path(checkpoint_dir) / f"seed-{s}.json" if checkpoint_dir else None
+        results.append(fit_seed(observation, s, cfg, layout, ck))
+    return combine(observation.crop, results, cfg, time.perf_counter() - t)

@@ -1,0 +1,96 @@
+"""The forward model of a fit: parameters → procedural canopy → row-camera depth → statistics.
+
+The predicted canopy is planted in the row frame (rows along x, one row under the camera at
+y = 0) and rendered from the observation's row camera moved over the origin; only the plants that
+can appear in the image are built (``view_region``), so one evaluation is one small
+``generate_canopy`` and one raster pass. The predicted mask is every rendered pixel: no
+background is rendered (supplementary "Mask and Histogram Details").
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cropcraft_core.config import CanopyLayout, default_layout, resolve_params
+from cropcraft_core.geometry import PinholeCamera
+from cropcraft_core.observe import HistogramStats, Observation
+from cropcraft_core.procedural import Canopy, generate_canopy, max_reach, view_region
+from cropcraft_core.render.raster import render_depth
+
+
+def row_frame_camera(camera: PinholeCamera) -> PinholeCamera:
+    """``camera``'s intrinsics and height above the ground, over the origin, looking straight
+    down with image x along +x: where the predicted canopy's centre row runs."""
+    pose = PinholeCamera.look_down((0.0, 0.0), float(camera.center[2])).cam_to_world
+    return PinholeCamera(
+        camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, pose
+    )
+
+
+@dataclass
+class ForwardModel:
+    """Renders procedural canopies exactly as ``observation`` was rendered.
+
+    layout: planting (row spacing, density); its row azimuth is ignored (the prediction is built
+    in the row frame) and so is its plot size (the view decides which plants are built).
+    ``timings`` accumulates seconds spent per stage over all calls.
+    """
+
+    observation: Observation
+    layout: CanopyLayout | None = None
+    timings: dict[str, float] = field(
+        default_factory=lambda: {"generate": 0.0, "render": 0.0, "stats": 0.0, "calls": 0}
+    )
+
+    def __post_init__(self) -> None:
+        crop = self.observation.crop
+        self.layout = (self.layout or default_layout(crop)).with_(row_azimuth_deg=0.0)
+        self.camera = row_frame_camera(self.observation.camera)
+
+    @property
+    def crop(self) -> str:
+        return self.observation.crop
+
+    def canopy(self, params: Mapping[str, float], seed: int) -> Canopy:
+        p = resolve_params(self.crop, params)
+        region = view_region(self.camera, self.layout, max_reach(self.crop, p))
+        return generate_canopy(self.crop, p, self.layout, seed=seed, region=region)
+
+    def depth(self, params: Mapping[str, float], seed: int) -> np.ndarray:
+        """(H, W) float32 z-depth of the predicted canopy, NaN where nothing is rendered."""
+        t0 = time.perf_counter()
+        c = self.canopy(params, seed)
+        t1 = time.perf_counter()
+        d = render_depth(c.mesh.vertices, c.mesh.faces, self.camera).depth
+        self.timings["generate"] += t1 - t0
+        self.timings["render"] += time.perf_counter() - t1
+        return d
+
+    def stats(self, params: Mapping[str, float], seed: int) -> HistogramStats:
+        d = self.depth(params, seed)
+        t = time.perf_counter()
+        s = self.observation.predicted_stats(d)
+        self.timings["stats"] += time.perf_counter() - t
+        self.timings["calls"] += 1
+        return s
+
+    def loss(self, params: Mapping[str, float], seed: int) -> float:
+        from cropcraft_core.observe import loss
+
+        return loss(self.observation.stats, self.stats(params, seed), self.observation.preset).total
+
+
+def observe_canopy(
+    canopy: Canopy, observation_preset, camera: PinholeCamera | None = None, meta=None
+) -> Observation:
+    """A synthetic observation: ``canopy`` rendered from the row camera (default: the preset's,
+    over the origin) with no background — the paper's synthetic-scene protocol."""
+    cam = camera or observation_preset.row_camera()
+    d = render_depth(canopy.mesh.vertices, canopy.mesh.faces, cam).depth
+    return Observation(
+        canopy.crop, cam, d, np.isfinite(d), preset=observation_preset, meta=dict(meta or {})
+    )
