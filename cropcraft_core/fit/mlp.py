@@ -1,0 +1,196 @@
+"""The paper's MLP baseline: histogram statistics → parameters, learned from synthetic pairs.
+
+Input: the observation's histograms (depth, lateral, Sobel) concatenated with the render height
+and the mask area; output: the parameters scaled to [0, 1] over their box (sigmoid), then mapped
+back. Training pairs come from the procedural model itself: parameters drawn uniformly, a canopy
+built with its own seed, rendered from the row camera, its statistics computed exactly as a fit's
+prediction is (supplementary "Baseline Implementation Details": soybean 10K pairs at render height
+1.0 m and 10K at 1.25 m, maize 20K at 5 m; two hidden layers of 512; 200 epochs of Adam with
+learning rate 1e-3 and weight decay 1e-5).
+
+A trained network is cached on disk under ``$CROPCRAFT_CACHE`` (default ``~/.cache/cropcraft``)
+keyed by crop and the hash of everything that shapes it (pairs, epochs, presets, layout, code
+version), so it is trained once per configuration, not per run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cropcraft_core import __version__
+from cropcraft_core.config import CanopyLayout, default_layout
+from cropcraft_core.config.params import bounds as param_bounds
+from cropcraft_core.config.params import params_from_vector
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.observe import HistogramStats, Observation, preset
+
+MODEL_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MLPConfig:
+    """Training settings (paper defaults)."""
+
+    n_pairs: int = 20_000
+    """Synthetic (statistics, parameters) pairs, split evenly over ``render_heights``."""
+    render_heights: tuple[float, ...] | None = None
+    """Render heights of the pairs; None: soybean (1.0, 1.25), maize (5.0)."""
+    epochs: int = 200
+    """Training epochs."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    weight_decay: float = 1e-5
+    """Adam weight decay."""
+    hidden: int = 512
+    """Width of each of the two hidden layers."""
+    batch_size: int = 256
+    """Minibatch size."""
+    seed: int = 0
+    """Seed of the parameter draws, canopy seeds and network initialisation."""
+
+    def heights(self, crop: str) -> tuple[float, ...]:
+        if self.render_heights:
+            return tuple(self.render_heights)
+        return (1.0, 1.25) if crop == "soybean" else (5.0,)
+
+
+def features(stats: HistogramStats, render_height: float) -> np.ndarray:
+    """(k,) float32 network input: depth, lateral and Sobel histograms, render height, mask
+    area."""
+    return np.concatenate(
+        [stats.depth, stats.lateral, stats.sobel, [render_height, stats.mask_area]]
+    ).astype(np.float32)
+
+
+def training_pairs(
+    crop: str, cfg: MLPConfig, layout: CanopyLayout | None = None, progress=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n, k) features and (n, d) parameters scaled to [0, 1]."""
+    from cropcraft_core.fit.forward import ForwardModel, observe_canopy
+    from cropcraft_core.procedural import generate_canopy
+
+    rng = np.random.default_rng(cfg.seed)
+    b = param_bounds(crop)
+    layout = (layout or default_layout(crop)).with_(row_azimuth_deg=0.0)
+    heights = cfg.heights(crop)
+    xs, ys = [], []
+    per = int(np.ceil(cfg.n_pairs / len(heights)))
+    for h in heights:
+        p = preset(crop, render_height=h)
+        # any observation fixes the camera and preset of the forward model
+        seed_canopy = generate_canopy(crop, None, layout, seed=0)
+        fm = ForwardModel(observe_canopy(seed_canopy, p), layout)
+        for _ in range(per):
+            u = rng.random(len(b))
+            params = params_from_vector(crop, b[:, 0] + u * (b[:, 1] - b[:, 0]))
+            stats = fm.stats(params, seed=int(rng.integers(2**31)))
+            xs.append(features(stats, h))
+            ys.append(u.astype(np.float32))
+            if progress:
+                progress(len(xs))
+    return np.stack(xs)[: cfg.n_pairs], np.stack(ys)[: cfg.n_pairs]
+
+
+def _network(n_in: int, n_out: int, hidden: int):
+    import torch
+
+    return torch.nn.Sequential(
+        torch.nn.Linear(n_in, hidden),
+        torch.nn.ReLU(),
+        torch.nn.Linear(hidden, hidden),
+        torch.nn.ReLU(),
+        torch.nn.Linear(hidden, n_out),
+        torch.nn.Sigmoid(),
+    )
+
+
+def train(x: np.ndarray, y: np.ndarray, cfg: MLPConfig):
+    """Train the network on features ``x`` (n, k) and scaled parameters ``y`` (n, d); returns
+    (network, input mean, input std)."""
+    import torch
+
+    torch.manual_seed(cfg.seed)
+    mu = x.mean(0)
+    sd = x.std(0) + 1e-6
+    xt = torch.from_numpy((x - mu) / sd)
+    yt = torch.from_numpy(y)
+    net = _network(x.shape[1], y.shape[1], cfg.hidden)
+    opt = torch.optim.Adam(
+        net.parameters(), lr=cfg.lr, betas=(0.9, 0.999), weight_decay=cfg.weight_decay
+    )
+    gen = torch.Generator().manual_seed(cfg.seed)
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(len(xt), generator=gen)
+        for i in range(0, len(xt), cfg.batch_size):
+            idx = perm[i : i + cfg.batch_size]
+            opt.zero_grad()
+            loss = torch.nn.functional.mse_loss(net(xt[idx]), yt[idx])
+            loss.backward()
+            opt.step()
+    net.eval()
+    return net, mu, sd
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("CROPCRAFT_CACHE", Path.home() / ".cache" / "cropcraft")) / "mlp"
+
+
+def config_hash(crop: str, cfg: MLPConfig, layout: CanopyLayout | None) -> str:
+    lay = (layout or default_layout(crop)).with_(row_azimuth_deg=0.0)
+    key = {
+        "crop": crop,
+        "cfg": asdict(cfg),
+        "heights": cfg.heights(crop),
+        "presets": [preset(crop, render_height=h).to_dict() for h in cfg.heights(crop)],
+        "layout": lay.to_dict(),
+        "version": __version__,
+        "model": MODEL_VERSION,
+    }
+    return hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def load_or_train(crop: str, cfg: MLPConfig | None = None, layout: CanopyLayout | None = None):
+    """The cached network for (crop, configuration), trained first if absent."""
+    import torch
+
+    cfg = cfg or MLPConfig()
+    if cfg.n_pairs < 2 or cfg.epochs < 1:
+        raise ConfigError("MLP training needs at least 2 pairs and 1 epoch")
+    path = cache_dir() / f"{crop}-{config_hash(crop, cfg, layout)}.pt"
+    if path.exists():
+        blob = torch.load(path, weights_only=False)
+        net = _network(blob["n_in"], blob["n_out"], cfg.hidden)
+        net.load_state_dict(blob["state"])
+        net.eval()
+        return net, blob["mu"], blob["sd"]
+    x, y = training_pairs(crop, cfg, layout)
+    net, mu, sd = train(x, y, cfg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".tmp-{os.getpid()}")
+    torch.save(
+        {"state": net.state_dict(), "mu": mu, "sd": sd, "n_in": x.shape[1], "n_out": y.shape[1]},
+        tmp,
+    )
+    os.replace(tmp, path)
+    return net, mu, sd
+
+
+def predict_params(
+    observation: Observation, cfg: MLPConfig | None = None, layout: CanopyLayout | None = None
+) -> dict[str, float]:
+    import torch
+
+    net, mu, sd = load_or_train(observation.crop, cfg, layout)
+    x = features(observation.stats, observation.preset.render_height)
+    with torch.no_grad():
+        u = net(torch.from_numpy(((x - mu) / sd)[None].astype(np.float32))).numpy()[0]
+    b = param_bounds(observation.crop)
+    return params_from_vector(
+        observation.crop, b[:, 0] + u.astype(np.float64) * (b[:, 1] - b[:, 0])
+    )

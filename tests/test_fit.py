@@ -1,0 +1,108 @@
+"""The fitting layer on real synthetic observations (real generator, renderer, histograms, GP)."""
+
+import numpy as np
+import pytest
+
+from cropcraft_core.config import default_layout
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.fit import FitConfig, ForwardModel, fit_observation, fit_seed, observe_canopy
+from cropcraft_core.fit.mlp import MLPConfig, predict_params
+from cropcraft_core.metrics import canopy_metrics
+from cropcraft_core.observe import preset
+from cropcraft_core.procedural import generate_canopy
+
+# a quarter of the paper's 994 x 738 keeps the tests fast; the statistics are resolution-free
+SMALL = {"image_width": 248, "image_height": 184}
+
+
+def observation(crop, params, seed=11):
+    canopy = generate_canopy(crop, params, default_layout(crop), seed=seed)
+    return observe_canopy(canopy, preset(crop, **SMALL)), canopy
+
+
+def test_prediction_with_true_parameters_matches_best():
+    """The loss is lowest near the truth: the true parameters beat far-off ones."""
+    truth = {
+        "leaf_length": 1.2,
+        "petiole_length": 1.0,
+        "petiole_angle": 2.0,
+        "internode_length": 1.2,
+        "num_nodes": 8.0,
+    }
+    obs, _ = observation("soybean", truth)
+    fm = ForwardModel(obs)
+    at_truth = np.mean([fm.loss(truth, s) for s in range(3)])
+    far = {**truth, "leaf_length": 0.5, "num_nodes": 3.0}
+    assert at_truth < np.mean([fm.loss(far, s) for s in range(3)])
+    assert fm.timings["calls"] == 6
+
+
+def test_bo_fit_recovers_maize_parameters():
+    """A quick-budget BO fit recovers a maize canopy's LAI and node count."""
+    truth = {
+        "leaf_length": 1.1,
+        "leaf_order_shift": 1.0,
+        "internode_length": 0.9,
+        "num_nodes": 12.0,
+    }
+    obs, canopy = observation("maize", truth)
+    cfg = FitConfig(n_seeds=2, n_evals=60, n_initial=25)
+    res = fit_observation(obs, cfg)
+    assert set(res.params) == set(truth) and len(res.seed_params) == 2
+    fitted = generate_canopy("maize", res.params, default_layout("maize"), seed=11)
+    m_true = canopy_metrics(canopy, gap_fraction=False)
+    m_fit = canopy_metrics(fitted, gap_fraction=False)
+    assert abs(m_fit["lai"] - m_true["lai"]) / m_true["lai"] < 0.35
+    assert abs(m_fit["node_count"] - m_true["node_count"]) <= 3
+
+
+def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
+    obs, _ = observation("soybean", {"num_nodes": 6.0})
+    cfg = FitConfig(n_seeds=1, n_evals=30, n_initial=12)
+    clean = fit_seed(obs, 3, cfg)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_20(i, x, y):
+        if i == 20:
+            raise Killed
+
+    ck = tmp_path / "seed-3.json"
+    with pytest.raises(Killed):
+        fit_seed(obs, 3, cfg, checkpoint=ck, callback=kill_at_20)
+    assert ck.exists()
+    resumed = fit_seed(obs, 3, cfg, checkpoint=ck)
+    assert np.array_equal(resumed.X, clean.X) and np.array_equal(resumed.y, clean.y)
+    assert np.array_equal(resumed.reported_x, clean.reported_x)
+
+
+@pytest.mark.parametrize("method", ["random", "trust-region"])
+def test_baselines_run_end_to_end(method):
+    obs, _ = observation("maize", {"num_nodes": 9.0})
+    res = fit_observation(obs, FitConfig(method=method, n_seeds=2, n_evals=12, n_initial=4))
+    assert res.method == method and len(res.seed_losses) == 2
+    for name, value in res.params.items():
+        assert np.isfinite(value), name
+
+
+def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
+    monkeypatch.setenv("CROPCRAFT_CACHE", str(tmp_path))
+    obs, _ = observation("maize", {"num_nodes": 9.0})
+    cfg = MLPConfig(n_pairs=24, epochs=3, batch_size=8)
+    monkeypatch.setattr(
+        "cropcraft_core.fit.mlp.preset", lambda crop, **kw: preset(crop, **{**SMALL, **kw})
+    )
+    p1 = predict_params(obs, cfg)
+    cached = list((tmp_path / "mlp").glob("maize-*.pt"))
+    assert len(cached) == 1
+    p2 = predict_params(obs, cfg)  # from the cache: same network, same answer
+    assert p1 == p2
+    assert 1.0 <= p1["num_nodes"] <= 18.0
+
+
+def test_bad_fit_config():
+    with pytest.raises(ConfigError, match="unknown method"):
+        FitConfig(method="adam").validate()
+    with pytest.raises(ConfigError, match="n_initial"):
+        FitConfig(n_evals=10, n_initial=20).validate()
