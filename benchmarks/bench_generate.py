@@ -100,18 +100,18 @@ def print_table(rows: list[dict]) -> None:
         )
 
 
-def main(json_path: str | None = None, repeats: int = 15) -> int:
-    rows = run(repeats)
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json")
+    ap.add_argument("--repeats", type=int, default=15)
+    a = ap.parse_args(argv)
+    rows = run(a.repeats)
     print_table(rows)
-    if json_path:
-        with open(json_path, "w") as f:
+    if a.json:
+        with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)
     return 0
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json")
-    ap.add_argument("--repeats", type=int, default=15)
-    a = ap.parse_args()
-    raise SystemExit(main(a.json, a.repeats))
+    raise SystemExit(main())

@@ -84,12 +84,20 @@ def _print_summary(out: str, metrics: dict) -> None:
     print(f"written to {Path(out).resolve()}")
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    if args.what == "generate":
-        from benchmarks.bench_generate import main as bench
+BENCHMARKS = {
+    "generate": "benchmarks.bench_generate",
+    "render": "benchmarks.bench_render",
+    "accuracy": "benchmarks.bench_accuracy",
+    "fit-speed": "benchmarks.bench_fit_speed",
+    "optimizer": "benchmarks.bench_optimizer",
+}
 
-        return bench(json_path=args.json)
-    raise ConfigError(f"unknown benchmark {args.what!r}")
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import importlib
+
+    module = importlib.import_module(BENCHMARKS[args.what])
+    return module.main(args.rest)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,8 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.set_defaults(func=cmd_generate)
 
     b = sub.add_parser("bench", help="benchmarks (speed and accuracy targets)")
-    b.add_argument("what", choices=["generate"])
-    b.add_argument("--json", metavar="FILE")
+    b.add_argument("what", choices=sorted(BENCHMARKS))
+    b.add_argument("rest", nargs=argparse.REMAINDER, help="the benchmark's own options")
     b.set_defaults(func=cmd_bench)
 
     d = sub.add_parser("demo", help="the main job on the built-in demo scene")

@@ -1,0 +1,154 @@
+"""Fit speed, side by side in one run.
+
+    cropcraft bench fit-speed [--json FILE] [--evals N] [--seeds N] [--skopt-seeds N]
+
+(a) a full soybean fit at paper settings (10 seeds × 500 evaluations at 994 × 738), seeds run in
+    parallel processes (one per core) — target ≤ 10 minutes wall on the 2-core machine (the paper
+    reports 16 minutes for each single seed);
+(b) one seed of our optimiser and of scikit-optimize's ``gp_minimize`` (the paper's optimiser:
+    Matérn + EI, 200 initial points) on the same objective and budget: wall time, optimiser
+    overhead per iteration, final loss — target ≥ 10× less optimiser time at equal or lower final
+    loss (mean over ``--skopt-seeds`` seeds);
+(c) where the time goes per evaluation (generate / render / histograms / optimiser).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from cropcraft_core.config import default_layout
+from cropcraft_core.config.params import bounds as param_bounds
+from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
+from cropcraft_core.fit.fitting import make_objective
+from cropcraft_core.observe import preset
+from cropcraft_core.procedural import generate_canopy
+
+TRUTH = {
+    "leaf_length": 1.1,
+    "petiole_length": 1.3,
+    "petiole_angle": 2.0,
+    "internode_length": 1.2,
+    "num_nodes": 9.5,
+}
+
+
+def _observation():
+    canopy = generate_canopy("soybean", TRUTH, default_layout("soybean"), seed=4242)
+    return observe_canopy(canopy, preset("soybean"))
+
+
+def _one_seed(args):
+    seed, n_evals, n_initial = args
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    obs = _observation()
+    t = time.perf_counter()
+    r = fit_seed(obs, seed, FitConfig(n_evals=n_evals, n_initial=n_initial))
+    return {
+        "seed": seed,
+        "wall_s": time.perf_counter() - t,
+        "best": float(r.best_y),
+        "optimizer_s": float(r.seconds_optimizer),
+        "objective_s": float(r.seconds_objective),
+        "forward": r.extra.get("forward_timings", {}) if hasattr(r, "extra") else {},
+    }
+
+
+def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
+    t = time.perf_counter()
+    with ProcessPoolExecutor(workers) as ex:
+        seeds = list(ex.map(_one_seed, [(s, n_evals, n_initial) for s in range(n_seeds)]))
+    return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
+
+
+def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int) -> dict:
+    from cropcraft_core.optimize.skopt_reference import run_skopt
+
+    obs = _observation()
+    rows = {"ours": [], "skopt": []}
+    for s in range(n_seeds):
+        fm = ForwardModel(obs)
+        obj = make_objective(fm, s, True)
+        t = time.perf_counter()
+        r = fit_seed(obs, s, FitConfig(n_evals=n_evals, n_initial=n_initial))
+        rows["ours"].append(
+            {
+                "wall_s": time.perf_counter() - t,
+                "best": float(r.best_y),
+                "optimizer_s": float(r.seconds_optimizer),
+            }
+        )
+        t = time.perf_counter()
+        rs = run_skopt(obj, param_bounds("soybean"), n_evals=n_evals, n_initial=n_initial, seed=s)
+        rows["skopt"].append(
+            {
+                "wall_s": time.perf_counter() - t,
+                "best": float(rs.best_y),
+                "optimizer_s": float(rs.seconds_optimizer),
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json")
+    ap.add_argument("--evals", type=int, default=500)
+    ap.add_argument("--initial", type=int, default=200)
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--skopt-seeds", type=int, default=5)
+    ap.add_argument("--skip-full", action="store_true")
+    a = ap.parse_args(argv)
+    out: dict = {}
+    if not a.skip_full:
+        out["full"] = full_fit(a.seeds, a.evals, a.initial, workers=os.cpu_count() or 2)
+        f = out["full"]
+        per = np.mean([s["wall_s"] for s in f["seeds"]])
+        print(
+            f"(a) full soybean fit: {a.seeds} seeds × {a.evals} evals at 994×738 on "
+            f"{f['workers']} processes: {f['wall_s'] / 60:.1f} min wall (target ≤ 10 min); "
+            f"{per:.0f} s per seed (paper: 16 min per seed)"
+        )
+        fw = {
+            k: np.sum([s["forward"].get(k, 0.0) for s in f["seeds"]])
+            for k in ("generate", "render", "stats", "calls")
+        }
+        opt = np.sum([s["optimizer_s"] for s in f["seeds"]])
+        n = max(fw["calls"], 1)
+        print(
+            "(c) per evaluation: generate {:.1f} ms, render {:.1f} ms, histograms {:.1f} ms, "
+            "optimiser {:.1f} ms".format(
+                1e3 * fw["generate"] / n,
+                1e3 * fw["render"] / n,
+                1e3 * fw["stats"] / n,
+                1e3 * opt / n,
+            )
+        )
+    if a.skopt_seeds:
+        out["compare"] = rows = skopt_vs_ours(a.evals, a.initial, a.skopt_seeds)
+        print(f"(b) one seed, {a.evals} evals ({a.initial} initial), mean of {a.skopt_seeds}:")
+        print(
+            f"    {'optimiser':<12}{'wall s':>10}{'optimiser s':>14}{'s/iter':>10}{'best loss':>12}"
+        )
+        for k, rs in rows.items():
+            w = np.mean([r["wall_s"] for r in rs])
+            o = np.mean([r["optimizer_s"] for r in rs])
+            b = np.mean([r["best"] for r in rs])
+            print(f"    {k:<12}{w:>10.1f}{o:>14.1f}{o / (a.evals - a.initial):>10.3f}{b:>12.4f}")
+        ratio = np.mean([r["optimizer_s"] for r in rows["skopt"]]) / max(
+            np.mean([r["optimizer_s"] for r in rows["ours"]]), 1e-9
+        )
+        print(f"    optimiser time ratio skopt/ours: {ratio:.1f}× (target ≥ 10×)")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(out, fh, indent=2, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
