@@ -1,0 +1,1270 @@
+"""The scene store: every artefact of every scene, keyed by site, crop, date and stage.
+
+One store is a root URI understood by fsspec:
+
+* ``./cropcraft-data`` (the default, or ``$CROPCRAFT_STORE``): a local folder, no server;
+* ``s3://bucket/prefix``: S3 or any S3-compatible server (MinIO, Ceph, moto). The endpoint comes
+  from ``storage_options["endpoint_url"]`` (or ``client_kwargs``), else ``$FSSPEC_S3_ENDPOINT_URL``,
+  ``$AWS_ENDPOINT_URL_S3`` or ``$AWS_ENDPOINT_URL``; credentials from ``storage_options``
+  (``key``/``secret``) or botocore's usual chain (``$AWS_ACCESS_KEY_ID``, profiles, roles);
+* any other fsspec URL (``memory://``, ``gs://``, ...).
+
+Layout under the root::
+
+    {site}/{crop}/{date}/manifest.json        inputs, config, code version, stage records
+    {site}/{crop}/{date}/images/...           ingested photos
+    {site}/{crop}/{date}/{stage}/...          one folder per pipeline stage
+
+Keys are relative POSIX paths under the root (``"plotA/soybean/2024-07-01/sfm/cameras.json"``);
+build them with :func:`scene_prefix`, :func:`stage_prefix` and :func:`artefact_key`. Open a store
+with ``SceneStore.connect(root)``, which fails fast with :class:`StoreError` (URI redacted) when
+the bucket or folder cannot be reached or written, before any work starts. Path segments that
+start with a dot are reserved for the store itself (temporary objects, locks) and never appear
+in :meth:`SceneStore.list`.
+
+Atomicity guarantee: every ``put_*`` writes to a sibling temporary key
+``.../.tmp-<uuid>-<name>`` and moves it into place only after the last byte was written. On a
+local folder the move is ``os.replace`` (atomic rename on the same filesystem, after ``fsync``);
+on S3 it is a server-side copy followed by a delete, and S3 never exposes a partially copied
+object. Either way a reader of the final key sees the previous complete object or the new
+complete object, never a partial one; a writer that fails leaves the old value untouched and
+removes its temporary object (a writer killed outright may leave a ``.tmp-`` object behind,
+invisible to ``list`` and removed by :meth:`SceneStore.sweep_tmp`).
+
+Large arrays never travel through Prefect or Dask: a task writes its arrays here and returns the
+keys and the sha256 that every ``put_*`` returns; the next task reads them back by key.
+:class:`SceneStore` pickles to its root and options, so it can be shipped to workers, but flows
+should pass the (credential-free) ``store.root`` and let workers take credentials from their own
+environment, so no secret ends up in Prefect's parameter records.
+
+Credentials never appear in ``repr``, log lines, error messages or manifests: everything shown
+goes through :func:`redact`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import hashlib
+import io
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator, Mapping
+from functools import lru_cache
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO, Literal
+
+import fsspec
+import numpy as np
+from fsspec.core import url_to_fs
+from fsspec.implementations.local import LocalFileSystem
+from fsspec.spec import AbstractBufferedFile
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cropcraft_core import __version__
+from cropcraft_core.config.params import CROPS
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+
+__all__ = [
+    "DEFAULT_ROOT",
+    "STAGE_STATUSES",
+    "DiscoveredScene",
+    "Manifest",
+    "SceneKey",
+    "SceneStore",
+    "StageRecord",
+    "StoreError",
+    "artefact_key",
+    "canonical_json",
+    "code_version",
+    "config_hash",
+    "redact",
+    "scene_prefix",
+    "sha256_bytes",
+    "sha256_file",
+    "stage_prefix",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ROOT = "./cropcraft-data"
+"""Store root when neither an argument nor ``$CROPCRAFT_STORE`` names one."""
+
+TMP_PREFIX = ".tmp-"
+"""Basename prefix of in-flight objects; hidden from :meth:`SceneStore.list`."""
+
+MANIFEST_NAME = "manifest.json"
+IMAGES_STAGE = "images"
+_CHUNK = 1 << 20
+
+
+class StoreError(CropCraftError, OSError):
+    """The scene store cannot be reached, read or written (network, bucket, permissions)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Names and keys
+# --------------------------------------------------------------------------------------------
+
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*\Z")
+_DATE_RE = re.compile(r"\d{4}-\d{2}-\d{2}\Z")
+_CONTROL_RE = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def _check_name(value: object, what: str) -> str:
+    """Return ``value`` if it is a safe single path segment, else raise ConfigError."""
+    if not isinstance(value, str) or not _NAME_RE.match(value) or ".." in value:
+        raise ConfigError(
+            f"invalid {what} name {value!r}: use letters, digits, '_', '.' and '-', starting "
+            "with a letter or digit, with no '..', no '/' and no absolute path"
+        )
+    return value
+
+
+def _check_date(value: object) -> str:
+    """Return an ISO ``YYYY-MM-DD`` string for ``value`` (str or ``datetime.date``)."""
+    if isinstance(value, _dt.datetime):
+        raise ConfigError(f"invalid scene date {value!r}: give a date, not a datetime")
+    if isinstance(value, _dt.date):
+        return value.isoformat()
+    if isinstance(value, str) and _DATE_RE.match(value):
+        try:
+            _dt.date.fromisoformat(value)
+        except ValueError:
+            pass
+        else:
+            return value
+    raise ConfigError(f"invalid scene date {value!r}: use an ISO date YYYY-MM-DD, e.g. 2024-07-01")
+
+
+def _check_key(key: object, *, allow_empty: bool = False) -> str:
+    """Validate a store key (relative POSIX path) and return it without a trailing slash."""
+    if not isinstance(key, str):
+        raise ConfigError(f"store key must be a string, got {type(key).__name__}")
+    stripped = key.rstrip("/")
+    if not stripped:
+        if allow_empty:
+            return ""
+        raise ConfigError("empty store key: name an object such as 'site/crop/date/stage/file'")
+    if stripped.startswith("/") or "\\" in stripped or "://" in stripped:
+        raise ConfigError(
+            f"invalid store key {key!r}: keys are relative paths under the store root "
+            "(no leading '/', no '\\', no URL scheme)"
+        )
+    if _CONTROL_RE.search(stripped):
+        raise ConfigError(f"invalid store key {key!r}: control characters are not allowed")
+    for part in stripped.split("/"):
+        if part in ("", ".", ".."):
+            raise ConfigError(
+                f"invalid store key {key!r}: empty, '.' and '..' path segments are not allowed"
+            )
+        if part.startswith("."):
+            raise ConfigError(
+                f"invalid store key {key!r}: segments starting with '.' are reserved for the "
+                "store's temporary objects"
+            )
+    return stripped
+
+
+@dataclasses.dataclass(frozen=True, order=True)
+class SceneKey:
+    """One scene: a plot (``site``) of one ``crop`` photographed on one ``date``.
+
+    ``site`` matches ``[A-Za-z0-9][A-Za-z0-9_.-]*`` without ``..``; ``crop`` is one of the crops
+    CropCraft models (``soybean``, ``maize``); ``date`` is ISO ``YYYY-MM-DD`` (a
+    ``datetime.date`` is accepted and stored as its ISO string). Invalid values raise
+    :class:`~cropcraft_core.errors.ConfigError` at construction, before any work starts.
+    """
+
+    site: str
+    crop: str
+    date: str
+
+    def __post_init__(self) -> None:
+        _check_name(self.site, "site")
+        if self.crop not in CROPS:
+            raise ConfigError(
+                f"unknown crop {self.crop!r} for site {self.site!r}: choose one of "
+                f"{', '.join(sorted(CROPS))}"
+            )
+        object.__setattr__(self, "date", _check_date(self.date))
+
+    @property
+    def prefix(self) -> str:
+        """The scene's folder key, ``{site}/{crop}/{date}``."""
+        return f"{self.site}/{self.crop}/{self.date}"
+
+    def __str__(self) -> str:
+        return self.prefix
+
+    @classmethod
+    def parse(cls, prefix: str) -> SceneKey:
+        """Inverse of :attr:`prefix`: ``SceneKey.parse("plotA/soybean/2024-07-01")``."""
+        parts = str(prefix).strip("/").split("/")
+        if len(parts) != 3:
+            raise ConfigError(f"invalid scene {prefix!r}: expected 'site/crop/YYYY-MM-DD'")
+        return cls(*parts)
+
+
+def scene_prefix(scene: SceneKey) -> str:
+    """Key of a scene's folder: ``{site}/{crop}/{date}``."""
+    if not isinstance(scene, SceneKey):
+        raise ConfigError(f"expected a SceneKey, got {type(scene).__name__}")
+    return scene.prefix
+
+
+def stage_prefix(scene: SceneKey, stage: str) -> str:
+    """Key of one stage's folder: ``{site}/{crop}/{date}/{stage}``."""
+    return f"{scene_prefix(scene)}/{_check_name(stage, 'stage')}"
+
+
+def artefact_key(scene: SceneKey, stage: str, name: str) -> str:
+    """Key of one artefact: ``{site}/{crop}/{date}/{stage}/{name}`` (``name`` may contain '/')."""
+    return _check_key(f"{stage_prefix(scene, stage)}/{_check_key(name)}")
+
+
+def manifest_key(scene: SceneKey) -> str:
+    """Key of a scene's manifest: ``{site}/{crop}/{date}/manifest.json``."""
+    return f"{scene_prefix(scene)}/{MANIFEST_NAME}"
+
+
+# --------------------------------------------------------------------------------------------
+# Hashing and canonical JSON
+# --------------------------------------------------------------------------------------------
+
+
+def sha256_bytes(data: bytes | bytearray | memoryview) -> str:
+    """Hex sha256 of a bytes-like object."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike[str]) -> str:
+    """Hex sha256 of a local file, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(_CHUNK), b""):
+                digest.update(chunk)
+    except FileNotFoundError as exc:
+        raise InputError(f"cannot hash {os.fspath(path)!r}: no such file") from exc
+    return digest.hexdigest()
+
+
+def _json_default(obj: Any) -> Any:
+    """JSON encoder for the small records CropCraft stores (numpy, pydantic, dataclasses...)."""
+    if isinstance(obj, BaseModel):
+        return obj.model_dump(mode="json")
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        if obj.size > 10_000:
+            raise TypeError(
+                f"refusing to JSON-encode an array of {obj.size} elements: store it with put_npz"
+            )
+        return obj.tolist()
+    if isinstance(obj, (_dt.date, _dt.datetime)):
+        return obj.isoformat()
+    if isinstance(obj, PurePosixPath | Path):
+        return obj.as_posix()
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def canonical_json(obj: Any) -> bytes:
+    """UTF-8 canonical JSON: sorted keys, no whitespace, no NaN/Infinity.
+
+    Equal data always gives equal bytes, so the sha256 of this is a stable identity (used for
+    :func:`config_hash`).
+    """
+    try:
+        text = json.dumps(
+            obj,
+            sort_keys=True,
+            separators=(",", ":"),
+            ensure_ascii=False,
+            allow_nan=False,
+            default=_json_default,
+        )
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"cannot encode value as canonical JSON ({exc}); use plain numbers, strings, lists "
+            "and dicts, and None instead of NaN"
+        ) from exc
+    return text.encode("utf-8")
+
+
+def config_hash(config: Any) -> str:
+    """sha256 of :func:`canonical_json` of a config (dict, pydantic model or dataclass)."""
+    return sha256_bytes(canonical_json(config))
+
+
+@lru_cache(maxsize=1)
+def code_version() -> str:
+    """``cropcraft_core.__version__``, plus ``+<git describe>`` when run from a git checkout."""
+    repo = Path(__file__).resolve().parent.parent
+    if not (repo / ".git").exists():
+        return __version__
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(repo), "describe", "--always", "--dirty", "--tags"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+    described = out.stdout.strip()
+    return f"{__version__}+{described}" if described else __version__
+
+
+# --------------------------------------------------------------------------------------------
+# Redaction
+# --------------------------------------------------------------------------------------------
+
+_USERINFO_RE = re.compile(r"(?P<scheme>\b[A-Za-z][A-Za-z0-9+.-]*://)[^/@\s?#]+@")
+_QUERY_SECRET_RE = re.compile(
+    r"(?P<k>[?&](?:x-amz-signature|x-amz-credential|x-amz-security-token|sig|signature|"
+    r"token|access_token|key|secret|password|sv|se)=)[^&#\s]*",
+    re.IGNORECASE,
+)
+_SECRET_KEY_RE = re.compile(
+    r"key|secret|token|passw|pwd|credential|signature|auth|session|sas", re.IGNORECASE
+)
+
+
+def redact(value: Any) -> Any:
+    """Return ``value`` with credentials removed, safe to log or store.
+
+    * a string (URI or message): ``user:pass@`` after a scheme is stripped and secret query
+      parameters (``X-Amz-Signature``, ``sig``, ``token``...) are replaced by ``***``;
+    * a mapping (fsspec ``storage_options``): values under secret-looking keys (``key``,
+      ``secret``, ``token``, ``password``, ``aws_access_key_id``...) become ``"***"``; other
+      values are redacted recursively;
+    * lists and tuples element-wise; anything else unchanged.
+    """
+    if isinstance(value, str):
+        text = _USERINFO_RE.sub(lambda m: m.group("scheme"), value)
+        return _QUERY_SECRET_RE.sub(lambda m: m.group("k") + "***", text)
+    if isinstance(value, Mapping):
+        out: dict[Any, Any] = {}
+        for k, v in value.items():
+            secret = isinstance(k, str) and _SECRET_KEY_RE.search(k) and not isinstance(v, bool)
+            out[k] = "***" if secret and v is not None else redact(v)
+        return out
+    if isinstance(value, list | tuple):
+        return type(value)(redact(v) for v in value)
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Manifest
+# --------------------------------------------------------------------------------------------
+
+StageStatus = Literal["pending", "running", "done", "failed"]
+STAGE_STATUSES: tuple[str, ...] = ("pending", "running", "done", "failed")
+
+
+def _now() -> _dt.datetime:
+    return _dt.datetime.now(_dt.UTC)
+
+
+class StageRecord(BaseModel):
+    """What the manifest remembers about one stage of one scene."""
+
+    model_config = ConfigDict(extra="allow")
+
+    status: StageStatus = "pending"
+    """pending | running | done | failed."""
+    config_hash: str | None = None
+    """sha256 of the canonical JSON of the config this stage ran with."""
+    inputs: dict[str, str] = Field(default_factory=dict)
+    """Upstream artefacts this stage read: {store key: sha256}."""
+    artefacts: dict[str, str] = Field(default_factory=dict)
+    """What this stage wrote: {store key: sha256}."""
+    started: _dt.datetime | None = None
+    """UTC time the current attempt started."""
+    finished: _dt.datetime | None = None
+    """UTC time it finished (done or failed)."""
+    seconds: float | None = None
+    """Wall-clock seconds of the attempt."""
+    error: str | None = None
+    """One-line error of a failed attempt (credentials redacted)."""
+
+
+class Manifest(BaseModel):
+    """A scene's ``manifest.json``: what went in, with which config and code, and what came out.
+
+    Unknown fields written by newer versions are kept on read-modify-write (``extra="allow"``).
+    """
+
+    model_config = ConfigDict(extra="allow")
+
+    schema_version: int = 1
+    """Version of this layout."""
+    site: str
+    crop: str
+    date: str
+    inputs: dict[str, str] = Field(default_factory=dict)
+    """Scene inputs (images, imported poses): {name or key: sha256}."""
+    config: dict[str, Any] = Field(default_factory=dict)
+    """The resolved scene config, as canonical JSON data."""
+    config_hash: str = ""
+    """sha256 of :func:`canonical_json` of ``config``."""
+    code_version: str = ""
+    """``cropcraft_core.__version__`` plus ``git describe`` where available."""
+    stages: dict[str, StageRecord] = Field(default_factory=dict)
+    """Per-stage records, by stage name."""
+    created: _dt.datetime | None = None
+    updated: _dt.datetime | None = None
+
+    @property
+    def scene(self) -> SceneKey:
+        """The scene this manifest describes."""
+        return SceneKey(self.site, self.crop, self.date)
+
+    def done_stages(self) -> list[str]:
+        """Names of stages whose status is ``done``, sorted."""
+        return sorted(name for name, rec in self.stages.items() if rec.status == "done")
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveredScene:
+    """A small record for the season flow: one dated scene found in the store."""
+
+    scene: SceneKey
+    n_images: int
+    """Objects under ``{scene}/images/``."""
+    has_manifest: bool
+    stages: dict[str, str]
+    """{stage: status} from the manifest (empty when there is none)."""
+
+    @property
+    def done(self) -> tuple[str, ...]:
+        """Stages whose status is ``done``, sorted."""
+        return tuple(sorted(s for s, status in self.stages.items() if status == "done"))
+
+
+# --------------------------------------------------------------------------------------------
+# The store
+# --------------------------------------------------------------------------------------------
+
+
+def _backend_errors() -> tuple[type[BaseException], ...]:
+    """Exception types raised by fsspec backends for I/O trouble (not programming errors).
+
+    Evaluated only when an exception is being handled; botocore and aiohttp are looked up only
+    if already imported (an exception of theirs implies they are), so importing this module
+    stays cheap.
+    """
+    errors: list[type[BaseException]] = [OSError, TimeoutError]
+    botocore_exceptions = sys.modules.get("botocore.exceptions")
+    if botocore_exceptions is not None:
+        errors.append(botocore_exceptions.BotoCoreError)
+    aiohttp = sys.modules.get("aiohttp")
+    if aiohttp is not None:
+        errors.append(aiohttp.ClientError)
+    return tuple(errors)
+
+
+_S3_PROTOCOLS = {"s3", "s3a"}
+_manifest_locks: dict[str, threading.Lock] = {}
+_manifest_locks_guard = threading.Lock()
+
+
+def _protocol_of(root: str) -> str:
+    return root.split("://", 1)[0].lower() if "://" in root else "file"
+
+
+def _resolve_s3_options(options: dict[str, Any]) -> dict[str, Any]:
+    """Fill the S3 endpoint from the environment when ``storage_options`` do not name one."""
+    client_kwargs = options.get("client_kwargs") or {}
+    if not options.get("endpoint_url") and not client_kwargs.get("endpoint_url"):
+        for var in ("FSSPEC_S3_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL"):
+            if os.environ.get(var):
+                options["endpoint_url"] = os.environ[var]
+                break
+    return options
+
+
+class _HashingWriter:
+    """File-like wrapper that hashes and counts every byte written (no seek: stream only).
+
+    Backend errors while writing become StoreError naming the key.
+    """
+
+    def __init__(self, raw: BinaryIO, store: SceneStore, key: str) -> None:
+        self._raw = raw
+        self._store = store
+        self._key = key
+        self._digest = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data).cast("B")
+        with self._store._io("write", self._key, reading=False):
+            self._raw.write(view)
+        self._digest.update(view)
+        self.size += view.nbytes
+        return view.nbytes
+
+    def tell(self) -> int:
+        return self.size
+
+    def flush(self) -> None:
+        if getattr(self._raw, "closed", False):
+            return
+        with self._store._io("write", self._key, reading=False):
+            self._raw.flush()
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return False
+
+    @property
+    def sha256(self) -> str:
+        return self._digest.hexdigest()
+
+
+class AtomicWrite(io.RawIOBase):
+    """What :meth:`SceneStore.open_write` yields: a write-only, non-seekable binary stream
+    (``write``, ``tell``, ``flush``) plus, after commit, the object's ``sha256`` and ``size``."""
+
+    def __init__(self, key: str, writer: _HashingWriter) -> None:
+        super().__init__()
+        self.key = key
+        self._writer = writer
+        self.sha256: str | None = None
+        """Hex sha256 of the committed object; None until the ``with`` block succeeded."""
+        self.size: int | None = None
+        """Bytes committed; None until the ``with`` block succeeded."""
+
+    def write(self, data) -> int:
+        """Append bytes."""
+        return self._writer.write(data)
+
+    def tell(self) -> int:
+        """Bytes written so far."""
+        return self._writer.tell()
+
+    def flush(self) -> None:
+        """Flush buffered bytes to the temporary object."""
+        self._writer.flush()
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return False
+
+
+class SceneStore:
+    """Artefact store over any fsspec filesystem; see the module docstring for layout and
+    guarantees.
+
+    Parameters
+    ----------
+    root:
+        Root URI; default ``$CROPCRAFT_STORE`` or ``./cropcraft-data`` (resolved to an absolute
+        path at construction). Credentials in the URI (``s3://user:pass@...``) are refused: give
+        them through ``storage_options`` or the environment.
+    storage_options:
+        Passed to the fsspec filesystem (e.g. ``{"endpoint_url": ..., "key": ..., "secret":
+        ...}`` for S3). For ``s3://`` roots without an endpoint, ``$FSSPEC_S3_ENDPOINT_URL``,
+        ``$AWS_ENDPOINT_URL_S3`` or ``$AWS_ENDPOINT_URL`` is used.
+
+    Construction never touches the network; call :meth:`check_reachable` before starting work.
+    """
+
+    def __init__(self, root: str | os.PathLike[str] | None = None, storage_options=None) -> None:
+        raw_root = os.fspath(root) if root is not None else None
+        raw_root = raw_root or os.environ.get("CROPCRAFT_STORE") or DEFAULT_ROOT
+        self._raw_root = raw_root
+        self._storage_options: dict[str, Any] = dict(storage_options or {})
+        self.protocol = _protocol_of(raw_root)
+        if self.protocol in _S3_PROTOCOLS:
+            if _USERINFO_RE.match(raw_root):
+                raise ConfigError(
+                    f"store URI {redact(raw_root)!r} carries credentials: remove 'user:pass@' "
+                    "and give them via storage_options or AWS_ACCESS_KEY_ID/AWS_SECRET_ACCESS_KEY"
+                )
+            self._storage_options = _resolve_s3_options(self._storage_options)
+        try:
+            self.fs, path = url_to_fs(raw_root, **self._storage_options)
+        except (ValueError, ImportError, TypeError) as exc:
+            raise ConfigError(
+                f"cannot open store {redact(raw_root)!r}: {redact(str(exc))}; check the URI "
+                "scheme and storage_options"
+            ) from exc
+        self._root_path = path.rstrip("/") or path
+        self._local = isinstance(self.fs, LocalFileSystem)
+        self.root: str = redact(self.fs.unstrip_protocol(self._root_path))
+        """Credential-free URI of the root (safe to log, pass to Prefect, store in records)."""
+
+    @classmethod
+    def connect(
+        cls,
+        root: str | os.PathLike[str] | None = None,
+        storage_options=None,
+        *,
+        timeout_s: float = 5.0,
+    ) -> SceneStore:
+        """Open a store and :meth:`check_reachable` it: the call flows make before any work."""
+        store = cls(root, storage_options)
+        store.check_reachable(timeout_s=timeout_s)
+        return store
+
+    # ---- plumbing -------------------------------------------------------------------------
+
+    def __repr__(self) -> str:
+        return f"SceneStore({self.root!r})"
+
+    def __reduce__(self):
+        return (SceneStore, (self._raw_root, self._storage_options))
+
+    def describe(self) -> dict[str, Any]:
+        """Root and storage options with secrets redacted (for logs and reports)."""
+        return {"root": self.root, "storage_options": redact(self._storage_options)}
+
+    def _full(self, key: str) -> str:
+        return f"{self._root_path}/{key}" if key else self._root_path
+
+    def _rel(self, path: str) -> str | None:
+        """Key of a backend path, or None when it is not under the root."""
+        path = path.rstrip("/")
+        base = self._root_path.rstrip("/") + "/"
+        return path[len(base) :] if path.startswith(base) else None
+
+    def url(self, key: str) -> str:
+        """Full, credential-free fsspec URL of a key (``s3://bucket/prefix/key``,
+        ``file:///abs/path``)."""
+        key = _check_key(key, allow_empty=True)
+        return redact(self.fs.unstrip_protocol(self._full(key)))
+
+    @contextlib.contextmanager
+    def _io(self, action: str, key: str, *, reading: bool) -> Iterator[None]:
+        """Turn backend exceptions into InputError (missing object on read) or StoreError."""
+        try:
+            yield
+        except CropCraftError:
+            raise
+        except FileNotFoundError as exc:
+            where = self.url(key)
+            if reading:
+                raise InputError(
+                    f"cannot {action} {where}: no such object; run the stage that writes it "
+                    "first (or check the scene, stage and name)"
+                ) from exc
+            raise StoreError(
+                f"cannot {action} {where}: {redact(str(exc))}; check that the bucket/folder "
+                "of the store root exists"
+            ) from exc
+        except _backend_errors() as exc:
+            raise StoreError(
+                f"cannot {action} {self.url(key)}: {type(exc).__name__}: {redact(str(exc))}; "
+                "check the store URI, endpoint, credentials and permissions"
+            ) from exc
+
+    def _tmp_path(self, final: str) -> str:
+        parent, _, name = final.rpartition("/")
+        return f"{parent}/{TMP_PREFIX}{uuid.uuid4().hex}-{name}"
+
+    def _rm_quiet(self, path: str) -> None:
+        try:
+            if self._local:
+                os.unlink(path)
+            else:
+                self.fs.rm_file(path)
+        except FileNotFoundError:
+            pass
+        except Exception:  # best effort: cleanup must not mask the real error
+            log.warning("could not remove temporary object %s", redact(path))
+
+    def _invalidate(self, path: str) -> None:
+        with contextlib.suppress(Exception):
+            self.fs.invalidate_cache(path)
+
+    # ---- writing --------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def open_write(self, key: str) -> Iterator[AtomicWrite]:
+        """Atomic binary writer: ``with store.open_write(key) as f: f.write(...)``.
+
+        Bytes go to a temporary sibling key and are moved onto ``key`` only when the block exits
+        without an exception; on an exception the temporary object is removed and the previous
+        value of ``key`` (if any) is left intact. After the block ``f.sha256`` and ``f.size``
+        describe the committed object.
+        """
+        key = _check_key(key)
+        final = self._full(key)
+        tmp = self._tmp_path(final)
+        with self._io("write", key, reading=False):
+            if self._local:
+                os.makedirs(os.path.dirname(final), exist_ok=True)
+                raw: Any = open(tmp, "wb")  # closed below on every path
+            else:
+                raw = self.fs.open(tmp, "wb")
+        writer = _HashingWriter(raw, self, key)
+        handle = AtomicWrite(key, writer)
+        try:
+            yield handle
+            with self._io("write", key, reading=False):
+                raw.flush()
+                if self._local:
+                    os.fsync(raw.fileno())
+                raw.close()
+                self._commit(tmp, final)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                if isinstance(raw, AbstractBufferedFile) and not raw.closed:
+                    raw.discard()  # s3fs: abort a multipart upload instead of completing it
+                    raw.closed = True
+                else:
+                    raw.close()
+            self._rm_quiet(tmp)
+            handle.close()
+            raise
+        handle.close()
+        handle.sha256 = writer.sha256
+        handle.size = writer.size
+
+    def _commit(self, tmp: str, final: str) -> None:
+        """Move a finished temporary object onto its final key."""
+        if self._local:
+            os.replace(tmp, final)
+            return
+        try:
+            self.fs.cp_file(tmp, final)  # S3: server-side CopyObject, atomic for readers
+        except BaseException:
+            self._rm_quiet(tmp)
+            raise
+        finally:
+            self._invalidate(final)
+        self._rm_quiet(tmp)  # if this fails the leftover is hidden and swept later
+
+    def put_bytes(self, key: str, data: bytes | bytearray | memoryview) -> str:
+        """Store bytes atomically under ``key``; return their sha256."""
+        with self.open_write(key) as f:
+            f.write(data)
+        assert f.sha256 is not None
+        return f.sha256
+
+    def put_json(self, key: str, obj: Any) -> str:
+        """Store ``obj`` as stable JSON (sorted keys, 2-space indent, UTF-8, trailing newline).
+
+        Accepts dicts, lists, numbers, strings, pydantic models, dataclasses and small numpy
+        values; NaN/Infinity are refused (use None). Returns the sha256 of the stored bytes.
+        """
+        try:
+            text = json.dumps(
+                obj,
+                sort_keys=True,
+                indent=2,
+                ensure_ascii=False,
+                allow_nan=False,
+                default=_json_default,
+            )
+        except (TypeError, ValueError) as exc:
+            raise InputError(
+                f"cannot write {key!r} as JSON ({exc}); use plain numbers, strings, lists and "
+                "dicts, None instead of NaN, and put_npz for arrays"
+            ) from exc
+        return self.put_bytes(key, (text + "\n").encode("utf-8"))
+
+    def put_npz(self, key: str, arrays: Mapping[str, Any], *, compress: bool = True) -> str:
+        """Store named numpy arrays as one ``.npz`` (compressed by default, no pickles).
+
+        ``arrays`` maps names (no '/') to array-likes; object arrays are refused. The arrays are
+        streamed into the temporary object, so a failure halfway leaves the old value intact.
+        Returns the sha256 of the stored bytes.
+        """
+        if not isinstance(arrays, Mapping) or not arrays:
+            raise InputError(f"put_npz({key!r}) needs a non-empty mapping of name -> array")
+        for name in arrays:
+            if not isinstance(name, str) or not name or "/" in name:
+                raise InputError(f"put_npz({key!r}): invalid array name {name!r}")
+        save = np.savez_compressed if compress else np.savez
+        with self.open_write(key) as f:
+            try:
+                save(f, allow_pickle=False, **dict(arrays))
+            except ValueError as exc:
+                if "allow_pickle" in str(exc) or "Object arrays" in str(exc):
+                    raise InputError(
+                        f"cannot write {key!r}: an array has dtype object, which the store "
+                        "refuses (no pickles); convert it to a numeric or string dtype"
+                    ) from exc
+                raise
+        assert f.sha256 is not None
+        return f.sha256
+
+    def put_file(self, local_path: str | os.PathLike[str], key: str) -> str:
+        """Copy a local file into the store atomically; return its sha256."""
+        local_path = os.fspath(local_path)
+        try:
+            src = open(local_path, "rb")
+        except FileNotFoundError as exc:
+            raise InputError(f"cannot store {local_path!r}: no such local file") from exc
+        with src, self.open_write(key) as f:
+            shutil.copyfileobj(src, f, _CHUNK)
+        assert f.sha256 is not None
+        return f.sha256
+
+    def put_tree(self, local_dir: str | os.PathLike[str], prefix: str) -> dict[str, str]:
+        """Copy every file under a local folder to ``prefix/...`` (each file atomically).
+
+        Returns ``{key: sha256}``. Hidden files (names starting with '.') are skipped.
+        """
+        root = Path(local_dir)
+        if not root.is_dir():
+            raise InputError(f"cannot store folder {os.fspath(local_dir)!r}: not a directory")
+        prefix = _check_key(prefix)
+        out: dict[str, str] = {}
+        for path in sorted(root.rglob("*")):
+            rel = path.relative_to(root).as_posix()
+            if path.is_file() and not any(p.startswith(".") for p in rel.split("/")):
+                out[f"{prefix}/{rel}"] = self.put_file(path, f"{prefix}/{rel}")
+        return out
+
+    # ---- reading --------------------------------------------------------------------------
+
+    def get_bytes(self, key: str) -> bytes:
+        """Bytes stored under ``key``; InputError if there is none."""
+        key = _check_key(key)
+        with self._io("read", key, reading=True):
+            return self.fs.cat_file(self._full(key))
+
+    def get_json(self, key: str) -> Any:
+        """Parsed JSON stored under ``key``."""
+        data = self.get_bytes(key)
+        try:
+            return json.loads(data)
+        except ValueError as exc:
+            raise InputError(f"{self.url(key)} is not valid JSON ({exc})") from exc
+
+    def get_npz(self, key: str) -> dict[str, np.ndarray]:
+        """Arrays stored with :meth:`put_npz`, fully loaded (``allow_pickle=False``)."""
+        data = self.get_bytes(key)
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                return {name: npz[name] for name in npz.files}
+        except (ValueError, OSError, EOFError) as exc:
+            raise InputError(f"{self.url(key)} is not a readable pickle-free .npz ({exc})") from exc
+
+    def get_file(self, key: str, local_path: str | os.PathLike[str]) -> Path:
+        """Copy ``key`` to a local file (written via a temporary sibling); return its path."""
+        key = _check_key(key)
+        dest = Path(local_path)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(f"{TMP_PREFIX}{uuid.uuid4().hex}-{dest.name}")
+        try:
+            with self._io("read", key, reading=True):
+                self.fs.get_file(self._full(key), str(tmp))
+            os.replace(tmp, dest)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        return dest
+
+    @contextlib.contextmanager
+    def open_local(self, key: str) -> Iterator[Path]:
+        """A local path holding ``key``'s content, for tools that need real files.
+
+        On a local store this is the stored file (or folder) itself: treat it as read-only. On a
+        remote store the object, or every object under the prefix ``key``, is downloaded into a
+        temporary folder that is deleted when the block exits.
+        """
+        key = _check_key(key)
+        full = self._full(key)
+        if self._local:
+            if not os.path.exists(full):
+                raise InputError(f"cannot open {self.url(key)}: no such object or folder")
+            yield Path(full)
+            return
+        with tempfile.TemporaryDirectory(prefix="cropcraft-") as tmpdir:
+            name = key.rsplit("/", 1)[-1]
+            target = Path(tmpdir) / name
+            if self.isfile(key):
+                self.get_file(key, target)
+            else:
+                keys = self.list(key)
+                if not keys:
+                    raise InputError(f"cannot open {self.url(key)}: no such object or folder")
+                for k in keys:
+                    self.get_file(k, target / k[len(key) + 1 :])
+            yield target
+
+    def sha256(self, key: str) -> str:
+        """sha256 of the stored object, streamed in 1 MiB chunks."""
+        key = _check_key(key)
+        digest = hashlib.sha256()
+        with self._io("hash", key, reading=True), self.fs.open(self._full(key), "rb") as f:
+            for chunk in iter(lambda: f.read(_CHUNK), b""):
+                digest.update(chunk)
+        return digest.hexdigest()
+
+    # ---- listing and deleting ---------------------------------------------------------------
+
+    def exists(self, key: str) -> bool:
+        """True if an object (or a non-empty folder) exists at ``key``."""
+        key = _check_key(key)
+        full = self._full(key)
+        self._invalidate(full)
+        with self._io("check", key, reading=True):
+            return bool(self.fs.exists(full))
+
+    def isfile(self, key: str) -> bool:
+        """True if an object (not a folder) exists at ``key``."""
+        key = _check_key(key)
+        full = self._full(key)
+        self._invalidate(full)
+        with self._io("check", key, reading=True):
+            return bool(self.fs.isfile(full))
+
+    def list(self, prefix: str = "") -> list[str]:
+        """Sorted keys of every object under the folder ``prefix`` (recursive).
+
+        ``prefix`` is a folder key (``"site/soybean"`` does not match ``"site/soybean2"``);
+        ``""`` lists the whole store. Temporary and other reserved dot-objects are never listed.
+        """
+        prefix = _check_key(prefix, allow_empty=True)
+        full = self._full(prefix)
+        self._invalidate(full)
+        with self._io("list", prefix, reading=True):
+            try:
+                if not self.fs.isdir(full):
+                    return [prefix] if prefix and self.fs.isfile(full) else []
+                paths = self.fs.find(full)
+            except FileNotFoundError:
+                return []
+        keys = []
+        for path in paths:
+            rel = self._rel(path)
+            if rel is None or (prefix and not rel.startswith(prefix + "/")):
+                continue
+            if any(part.startswith(".") for part in rel.split("/")):
+                continue
+            keys.append(rel)
+        return sorted(keys)
+
+    def _children(self, prefix: str) -> list[str]:
+        """Names of the immediate children (objects or folders) of a folder key."""
+        full = self._full(prefix)
+        self._invalidate(full)
+        with self._io("list", prefix, reading=True):
+            try:
+                entries = self.fs.ls(full, detail=False)
+            except FileNotFoundError:
+                return []
+        names = {e.rstrip("/").rsplit("/", 1)[-1] for e in entries}
+        return sorted(n for n in names if n and not n.startswith("."))
+
+    def delete(self, key: str, *, recursive: bool = False) -> None:
+        """Delete an object (or, with ``recursive=True``, everything under a folder key).
+
+        Deleting a missing key is not an error.
+        """
+        key = _check_key(key)
+        full = self._full(key)
+        with self._io("delete", key, reading=False):
+            try:
+                if recursive and self.fs.isdir(full):
+                    self.fs.rm(full, recursive=True)
+                else:
+                    self.fs.rm_file(full)
+            except FileNotFoundError:
+                pass
+        self._invalidate(full)
+
+    def sweep_tmp(self, prefix: str = "", older_than_s: float = 3600.0) -> list[str]:
+        """Remove temporary objects left by killed writers, older than ``older_than_s``.
+
+        Returns the (relative) paths removed. Safe to run while writers are active as long as no
+        single write takes longer than ``older_than_s``.
+        """
+        prefix = _check_key(prefix, allow_empty=True)
+        full = self._full(prefix)
+        self._invalidate(full)
+        removed = []
+        now = time.time()
+        with self._io("sweep", prefix, reading=False):
+            try:
+                paths = self.fs.find(full)
+            except FileNotFoundError:
+                return []
+            for path in paths:
+                if not path.rsplit("/", 1)[-1].startswith(TMP_PREFIX):
+                    continue
+                try:
+                    age = now - self.fs.modified(path).timestamp()
+                except (NotImplementedError, FileNotFoundError):
+                    continue
+                if age >= older_than_s:
+                    self._rm_quiet(path)
+                    removed.append(self._rel(path) or path)
+        return removed
+
+    # ---- reachability -----------------------------------------------------------------------
+
+    def check_reachable(self, timeout_s: float = 5.0) -> None:
+        """Fail fast with :class:`StoreError` unless the root can be listed, written and read.
+
+        Writes and deletes a small probe object under the root. For S3 a separate client with
+        ``timeout_s`` connect/read timeouts and a single retry is used, so a dead endpoint fails
+        in about ``timeout_s`` instead of botocore's default minute. Buckets are never created.
+        """
+        fs = self.fs
+        if self.protocol in _S3_PROTOCOLS:
+            opts = dict(self._storage_options)
+            config_kwargs = dict(opts.get("config_kwargs") or {})
+            config_kwargs.update(
+                connect_timeout=timeout_s,
+                read_timeout=timeout_s,
+                retries={"total_max_attempts": 2, "mode": "standard"},
+            )
+            opts["config_kwargs"] = config_kwargs
+            fs = fsspec.filesystem(self.protocol, skip_instance_cache=True, **opts)
+            fs.retries = 1  # s3fs' own retry loop around botocore's
+        probe = self._full(f"{TMP_PREFIX}probe-{uuid.uuid4().hex}")
+        payload = b"cropcraft-probe"
+        start = time.monotonic()
+        try:
+            if self._local:
+                os.makedirs(self._root_path, exist_ok=True)
+            fs.pipe_file(probe, payload)
+            back = fs.cat_file(probe)
+            fs.rm_file(probe)
+            if back != payload:
+                raise OSError("probe object read back differs from what was written")
+        except _backend_errors() as exc:
+            hint = (
+                "the bucket does not exist (create it, or fix the bucket name)"
+                if isinstance(exc, FileNotFoundError)
+                else "check the endpoint, network, credentials and write permission"
+            )
+            raise StoreError(
+                f"scene store {self.root} is not reachable or not writable "
+                f"({type(exc).__name__}: {redact(str(exc))}); {hint}"
+            ) from exc
+        log.debug("store %s reachable in %.3f s", self.root, time.monotonic() - start)
+
+    # ---- manifests ------------------------------------------------------------------------
+
+    def load_manifest(self, scene: SceneKey) -> Manifest:
+        """The scene's manifest; InputError if the scene has none (run ingest first)."""
+        key = manifest_key(scene)
+        data = self.get_json(key)
+        try:
+            return Manifest.model_validate(data)
+        except ValidationError as exc:
+            raise InputError(f"{self.url(key)} is not a valid manifest: {exc}") from exc
+
+    def save_manifest(self, manifest: Manifest) -> str:
+        """Write a manifest atomically (``updated`` set to now); return its sha256."""
+        manifest.updated = _now()
+        if manifest.created is None:
+            manifest.created = manifest.updated
+        return self.put_json(manifest_key(manifest.scene), manifest.model_dump(mode="json"))
+
+    def init_manifest(
+        self,
+        scene: SceneKey,
+        inputs: Mapping[str, str],
+        config: Any,
+        *,
+        version: str | None = None,
+    ) -> Manifest:
+        """Create (or refresh) a scene's manifest from its inputs and resolved config.
+
+        ``config`` is stored as canonical JSON data with its :func:`config_hash`. If a manifest
+        already exists with the same inputs and config hash, its stage records are kept;
+        otherwise they are reset, since every downstream artefact is stale.
+        """
+        data = json.loads(canonical_json(config))
+        if not isinstance(data, dict):
+            raise InputError(f"scene config for {scene} must be a mapping, got {type(config)}")
+        chash = config_hash(data)
+        with self._manifest_lock(scene):
+            try:
+                old = self.load_manifest(scene)
+            except InputError:
+                old = None
+            manifest = Manifest(
+                site=scene.site,
+                crop=scene.crop,
+                date=scene.date,
+                inputs=dict(inputs),
+                config=data,
+                config_hash=chash,
+                code_version=version or code_version(),
+            )
+            if old is not None:
+                manifest.created = old.created
+                if old.inputs == manifest.inputs and old.config_hash == chash:
+                    manifest.stages = old.stages
+            self.save_manifest(manifest)
+        return manifest
+
+    @contextlib.contextmanager
+    def _manifest_lock(self, scene: SceneKey) -> Iterator[None]:
+        """Serialise read-modify-write of one manifest: a thread lock always, plus an
+        ``flock`` on ``{scene}/.manifest.lock`` on a local store (processes on one machine)."""
+        ident = f"{self.root}/{manifest_key(scene)}"
+        with _manifest_locks_guard:
+            lock = _manifest_locks.setdefault(ident, threading.Lock())
+        with lock:
+            if not self._local:
+                yield
+                return
+            try:
+                import fcntl
+            except ImportError:  # pragma: no cover - Windows
+                yield
+                return
+            folder = self._full(scene_prefix(scene))
+            os.makedirs(folder, exist_ok=True)
+            with open(os.path.join(folder, ".manifest.lock"), "a+b") as fh:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+                try:
+                    yield
+                finally:
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+    def update_stage(
+        self,
+        scene: SceneKey,
+        stage: str,
+        *,
+        status: StageStatus | None = None,
+        config_hash: str | None = None,
+        inputs: Mapping[str, str] | None = None,
+        artefacts: Mapping[str, str] | None = None,
+        error: str | BaseException | None = None,
+        seconds: float | None = None,
+    ) -> Manifest:
+        """Read-modify-write one stage record of a scene's manifest, replaced atomically.
+
+        * ``status="running"`` starts a new attempt: ``started`` = now; ``artefacts``,
+          ``finished``, ``seconds`` and ``error`` are cleared.
+        * ``status="done"`` or ``"failed"`` sets ``finished`` = now and ``seconds`` (from
+          ``started`` unless given); ``error`` is redacted and cut to one line.
+        * ``artefacts`` and ``inputs`` are merged into the record; ``config_hash`` replaces it.
+
+        Updates are serialised within a process (and across processes on a local store); on
+        object storage two processes must not update the same scene's manifest at the same time
+        (the scene flow owns it; mapped seeds write their own artefacts). Returns the new
+        manifest.
+        """
+        _check_name(stage, "stage")
+        if status is not None and status not in STAGE_STATUSES:
+            raise ConfigError(
+                f"invalid status {status!r} for stage {stage!r}: one of {STAGE_STATUSES}"
+            )
+        with self._manifest_lock(scene):
+            manifest = self.load_manifest(scene)
+            rec = manifest.stages.get(stage) or StageRecord()
+            now = _now()
+            if status == "running":  # a new attempt: forget the previous one
+                rec = StageRecord(status="running", started=now)
+            elif status in ("done", "failed"):
+                rec.status = status
+                rec.finished = now
+                if seconds is None and rec.started is not None:
+                    seconds = (now - rec.started).total_seconds()
+            elif status is not None:
+                rec.status = status
+            if config_hash is not None:
+                rec.config_hash = config_hash
+            if inputs:
+                rec.inputs.update({_check_key(k): str(v) for k, v in inputs.items()})
+            if artefacts:
+                rec.artefacts.update({_check_key(k): str(v) for k, v in artefacts.items()})
+            if seconds is not None:
+                rec.seconds = float(seconds)
+            if error is not None:
+                if isinstance(error, BaseException):
+                    error = f"{type(error).__name__}: {error}"
+                rec.error = redact(" ".join(str(error).split()))[:2000]
+            manifest.stages[stage] = rec
+            self.save_manifest(manifest)
+        return manifest
+
+    def stage_is_current(
+        self,
+        scene: SceneKey,
+        stage: str,
+        *,
+        config_hash: str | None = None,
+        inputs: Mapping[str, str] | None = None,
+        verify: bool = False,
+    ) -> bool:
+        """True if ``stage`` is done with this config hash and these upstream hashes, and its
+        artefacts exist (with ``verify=True``: and still hash to what the manifest records).
+
+        A rerun uses this to skip a stage; anything missing or different means run it again.
+        """
+        try:
+            rec = self.load_manifest(scene).stages.get(stage)
+        except InputError:
+            return False
+        if rec is None or rec.status != "done":
+            return False
+        if config_hash is not None and rec.config_hash != config_hash:
+            return False
+        if inputs is not None and dict(inputs) != rec.inputs:
+            return False
+        for key, digest in rec.artefacts.items():
+            if not self.isfile(key):
+                return False
+            if verify and self.sha256(key) != digest:
+                return False
+        return True
+
+    # ---- season helpers ---------------------------------------------------------------------
+
+    def list_dates(self, site: str, crop: str) -> list[str]:
+        """Sorted ISO dates of ``site``/``crop`` that have at least one object in ``images/``."""
+        _check_name(site, "site")
+        if crop not in CROPS:
+            raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(sorted(CROPS))}")
+        prefix = f"{site}/{crop}"
+        dates = []
+        for name in self._children(prefix):
+            if not _DATE_RE.match(name):
+                continue
+            try:
+                _check_date(name)
+            except ConfigError:
+                continue
+            if self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
+                dates.append(name)
+        return dates
+
+    def discover(self, site: str, crop: str) -> list[DiscoveredScene]:
+        """Every dated scene of ``site``/``crop`` with images, with its stage statuses."""
+        found = []
+        for date in self.list_dates(site, crop):
+            scene = SceneKey(site, crop, date)
+            n_images = len(self.list(stage_prefix(scene, IMAGES_STAGE)))
+            try:
+                manifest = self.load_manifest(scene)
+            except InputError:
+                found.append(DiscoveredScene(scene, n_images, False, {}))
+                continue
+            stages = {name: rec.status for name, rec in sorted(manifest.stages.items())}
+            found.append(DiscoveredScene(scene, n_images, True, stages))
+        return found

@@ -1,0 +1,460 @@
+"""Scene store: the same suite on a local folder and on a real S3-compatible server (moto)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import pickle
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from cropcraft_core import __version__
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+from cropcraft_core.store import (
+    TMP_PREFIX,
+    Manifest,
+    SceneKey,
+    SceneStore,
+    StoreError,
+    artefact_key,
+    canonical_json,
+    code_version,
+    config_hash,
+    redact,
+    scene_prefix,
+    sha256_bytes,
+    sha256_file,
+    stage_prefix,
+)
+from tests import conftest_s3
+from tests.conftest_s3 import S3Server, free_port
+
+s3_server = conftest_s3.s3_server  # the session fixture, made visible to this module
+
+SCENE = SceneKey("plotA", "soybean", "2024-07-01")
+BACKENDS = ["local", "s3-options", "s3-env"]
+
+
+@pytest.fixture(params=BACKENDS)
+def store(request, tmp_path, monkeypatch) -> SceneStore:
+    """A fresh, empty store on each backend (S3 tests get their own prefix in one bucket)."""
+    if request.param == "local":
+        return SceneStore(str(tmp_path / "store"))
+    server: S3Server = request.getfixturevalue("s3_server")
+    root = f"s3://{server.bucket}/{uuid.uuid4().hex}"
+    if request.param == "s3-options":
+        return SceneStore(root, storage_options=server.storage_options())
+    # endpoint, credentials and root entirely from the environment
+    for var in ("FSSPEC_S3_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("CROPCRAFT_STORE", root)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", server.endpoint)
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", server.key)
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", server.secret)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", server.region)
+    return SceneStore()
+
+
+def backend_paths(store: SceneStore) -> list[str]:
+    """Every path the backend holds under the root, dot-objects included."""
+    store.fs.invalidate_cache()
+    try:
+        return store.fs.find(store._root_path)
+    except FileNotFoundError:
+        return []
+
+
+# ---- put/get of every kind ----------------------------------------------------------------
+
+
+def test_bytes_json_exists_list_delete_url(store):
+    key = artefact_key(SCENE, "sfm", "raw.bin")
+    digest = store.put_bytes(key, b"\x00\x01hello")
+    assert digest == sha256_bytes(b"\x00\x01hello") == store.sha256(key)
+    assert store.get_bytes(key) == b"\x00\x01hello"
+    assert store.exists(key) and store.isfile(key)
+    assert not store.exists(artefact_key(SCENE, "sfm", "nope.bin"))
+
+    jkey = artefact_key(SCENE, "sfm", "cameras.json")
+    h1 = store.put_json(jkey, {"b": [1, 2.5, None], "a": {"z": 1, "y": "é"}})
+    assert store.get_json(jkey) == {"a": {"y": "é", "z": 1}, "b": [1, 2.5, None]}
+    text = store.get_bytes(jkey).decode()
+    assert text.index('"a"') < text.index('"b"') and text.endswith("\n")
+    # same content in another key order: byte-identical
+    assert store.put_json(jkey, {"a": {"y": "é", "z": 1}, "b": [1, 2.5, None]}) == h1
+    with pytest.raises(InputError, match="NaN"):
+        store.put_json(jkey, {"x": float("nan")})
+
+    other = "plotA/soybean2/2024-07-01/images/x.jpg"
+    store.put_bytes(other, b"x")
+    assert store.list(stage_prefix(SCENE, "sfm")) == sorted([key, jkey])
+    assert store.list("plotA/soybean") == sorted([key, jkey])  # folder, not string, prefix
+    assert store.list() == sorted([key, jkey, other])
+    assert store.list("nothing/here") == []
+
+    assert store.url(key).endswith("/plotA/soybean/2024-07-01/sfm/raw.bin")
+    assert store.url(key).startswith(("s3://", "file://"))
+
+    store.delete(key)
+    assert not store.exists(key)
+    store.delete(key)  # idempotent
+    store.delete("plotA/soybean2", recursive=True)
+    assert store.list() == [jkey]
+    with pytest.raises(InputError, match="no such object"):
+        store.get_bytes(key)
+
+
+def test_npz_roundtrip(store):
+    key = artefact_key(SCENE, "observe", "obs.npz")
+    arrays = {
+        "depth": np.linspace(0, 1, 4 * 6, dtype=np.float32).reshape(4, 6),
+        "mask": np.arange(24).reshape(4, 6) % 3 == 0,
+        "ids": np.arange(5, dtype=np.int64),
+        "scalar": np.float64(3.5),
+        "names": np.array(["leaf", "stem"]),
+    }
+    for compress in (True, False):
+        digest = store.put_npz(key, arrays, compress=compress)
+        assert digest == store.sha256(key) == sha256_bytes(store.get_bytes(key))
+        back = store.get_npz(key)
+        assert set(back) == set(arrays)
+        for name, value in arrays.items():
+            np.testing.assert_array_equal(back[name], value)
+            assert back[name].dtype == np.asarray(value).dtype
+
+
+def test_files_and_open_local(store, tmp_path):
+    src = tmp_path / "in.bin"
+    payload = bytes(range(256)) * 5000
+    src.write_bytes(payload)
+    key = artefact_key(SCENE, "images", "IMG_0001.JPG")
+    assert store.put_file(src, key) == sha256_file(src)
+    out = store.get_file(key, tmp_path / "out" / "copy.bin")
+    assert out.read_bytes() == payload
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(TMP_PREFIX)]
+    with pytest.raises(InputError):
+        store.put_file(tmp_path / "missing.bin", key)
+
+    with store.open_local(key) as path:
+        assert path.read_bytes() == payload
+
+    tree = tmp_path / "colmap"
+    (tree / "sparse" / "0").mkdir(parents=True)
+    (tree / "sparse" / "0" / "cameras.txt").write_text("cams")
+    (tree / "database.db").write_bytes(b"db")
+    (tree / ".hidden").write_text("skip me")
+    prefix = stage_prefix(SCENE, "sfm") + "/colmap"
+    written = store.put_tree(tree, prefix)
+    assert sorted(written) == [f"{prefix}/database.db", f"{prefix}/sparse/0/cameras.txt"]
+    with store.open_local(prefix) as path:
+        assert (path / "sparse" / "0" / "cameras.txt").read_text() == "cams"
+        assert (path / "database.db").read_bytes() == b"db"
+    with pytest.raises(InputError), store.open_local("plotA/none"):
+        pass
+
+
+# ---- atomicity ----------------------------------------------------------------------------
+
+
+class Exploding:
+    """Array-like whose conversion fails: numpy has already written earlier arrays by then."""
+
+    def __array__(self, dtype=None, copy=None):
+        raise RuntimeError("disk on fire")
+
+
+def test_failed_writes_leave_old_value_and_no_tmp(store):
+    key = artefact_key(SCENE, "surfaces", "points.npz")
+    old = {"xyz": np.arange(30, dtype=np.float64).reshape(10, 3)}
+    old_hash = store.put_npz(key, old)
+    big = np.random.default_rng(0).random((200, 200))
+
+    # numpy refuses the object array after writing "big" into the zip stream
+    with pytest.raises(InputError, match="dtype object"):
+        store.put_npz(key, {"big": big, "bad": np.array([{}, None], dtype=object)})
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        store.put_npz(key, {"big": big, "boom": Exploding()})
+    # a raw writer dying halfway; meanwhile readers still see the old object
+    with pytest.raises(ZeroDivisionError), store.open_write(key) as f:
+        f.write(b"PK\x03\x04 half a zip" * 1000)
+        assert store.sha256(key) == old_hash
+        _ = 1 / 0
+
+    assert store.sha256(key) == old_hash
+    np.testing.assert_array_equal(store.get_npz(key)["xyz"], old["xyz"])
+    assert store.list() == [key]
+    assert not [p for p in backend_paths(store) if TMP_PREFIX in p]
+
+
+def test_tmp_objects_are_hidden_and_swept(store):
+    key = artefact_key(SCENE, "rowfit", "rows.json")
+    store.put_json(key, {"rows": 4})
+    stale = f"{store._root_path}/{stage_prefix(SCENE, 'rowfit')}/{TMP_PREFIX}dead-rows.json"
+    store.fs.pipe_file(stale, b"partial")
+    assert store.list() == [key]
+    assert store.sweep_tmp(older_than_s=3600) == []  # too young
+    removed = store.sweep_tmp(older_than_s=0)
+    assert removed == [f"{stage_prefix(SCENE, 'rowfit')}/{TMP_PREFIX}dead-rows.json"]
+    assert not [p for p in backend_paths(store) if TMP_PREFIX in p]
+
+
+# ---- manifest -----------------------------------------------------------------------------
+
+
+def test_manifest_roundtrip_and_stage_updates(store):
+    with pytest.raises(InputError, match="manifest.json"):
+        store.load_manifest(SCENE)
+    img = artefact_key(SCENE, "images", "a.jpg")
+    inputs = {img: store.put_bytes(img, b"jpeg")}
+    config = {"crop": "soybean", "seeds": 10, "fit": {"iters": 50, "lr": 0.1}}
+    m = store.init_manifest(SCENE, inputs, config)
+    assert m.config_hash == config_hash(config) == config_hash({"fit": config["fit"], **config})
+    assert m.code_version.startswith(__version__)
+    loaded = store.load_manifest(SCENE)
+    assert loaded == store.load_manifest(SCENE)
+    assert loaded.inputs == inputs and loaded.config == config and loaded.scene == SCENE
+
+    cameras = artefact_key(SCENE, "sfm", "cameras.json")
+    store.update_stage(SCENE, "sfm", status="running", config_hash="c1", inputs=inputs)
+    rec = store.load_manifest(SCENE).stages["sfm"]
+    assert rec.status == "running" and rec.started is not None and rec.finished is None
+    digest = store.put_json(cameras, {"n": 1})
+    m = store.update_stage(SCENE, "sfm", status="done", artefacts={cameras: digest})
+    rec = store.load_manifest(SCENE).stages["sfm"]
+    assert m.stages["sfm"] == rec
+    assert rec.status == "done" and rec.artefacts == {cameras: digest}
+    assert rec.inputs == inputs and rec.config_hash == "c1"
+    assert rec.seconds is not None and rec.seconds >= 0 and rec.finished >= rec.started
+    assert store.stage_is_current(SCENE, "sfm", config_hash="c1", inputs=inputs, verify=True)
+    assert not store.stage_is_current(SCENE, "sfm", config_hash="c2")
+    assert not store.stage_is_current(SCENE, "rowfit")
+
+    store.put_json(cameras, {"n": 2})  # tampered behind the manifest's back
+    assert store.stage_is_current(SCENE, "sfm", config_hash="c1")
+    assert not store.stage_is_current(SCENE, "sfm", config_hash="c1", verify=True)
+
+    secret = "hunter2-secret"
+    store.update_stage(
+        SCENE,
+        "rowfit",
+        status="failed",
+        error=RuntimeError(f"cannot read s3://admin:{secret}@bucket/x\nsecond line"),
+    )
+    rec = store.load_manifest(SCENE).stages["rowfit"]
+    assert rec.status == "failed" and rec.error.startswith("RuntimeError: cannot read s3://bucket")
+    assert "\n" not in rec.error
+    assert secret not in store.get_bytes(f"{scene_prefix(SCENE)}/manifest.json").decode()
+    assert store.load_manifest(SCENE).done_stages() == ["sfm"]
+
+    # same inputs and config: stage records survive re-ingest; a new config resets them
+    assert set(store.init_manifest(SCENE, inputs, dict(config)).stages) == {"sfm", "rowfit"}
+    assert store.init_manifest(SCENE, inputs, {**config, "seeds": 3}).stages == {}
+    with pytest.raises(ConfigError, match="status"):
+        store.update_stage(SCENE, "sfm", status="finished")
+    with pytest.raises(InputError):
+        store.update_stage(SceneKey("plotB", "maize", "2024-07-01"), "sfm", status="running")
+    assert store.list(scene_prefix(SCENE)) == sorted(
+        [cameras, img, f"{scene_prefix(SCENE)}/manifest.json"]
+    )
+
+
+def test_concurrent_stage_updates_are_not_lost(store):
+    store.init_manifest(SCENE, {}, {"seeds": 8})
+    stages = [f"fit_seed_{i}" for i in range(8)]
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        list(pool.map(lambda s: store.update_stage(SCENE, s, status="done"), stages))
+    assert store.load_manifest(SCENE).done_stages() == sorted(stages)
+
+
+def test_list_dates_and_discover(store):
+    for date in ("2024-07-15", "2024-06-01"):
+        store.put_bytes(artefact_key(SceneKey("plotA", "maize", date), "images", "1.jpg"), b"1")
+    store.put_bytes("plotA/maize/2024-06-01/images/2.jpg", b"2")
+    store.put_bytes("plotA/maize/2024-08-01/sfm/x.json", b"{}")  # no images
+    store.put_bytes("plotA/maize/notes/images/readme.txt", b"not a date")
+    store.put_bytes("plotA/maize/2024-02-30/images/1.jpg", b"impossible date")
+    assert store.list_dates("plotA", "maize") == ["2024-06-01", "2024-07-15"]
+    assert store.list_dates("plotA", "soybean") == []
+
+    june = SceneKey("plotA", "maize", "2024-06-01")
+    store.init_manifest(june, {}, {"seeds": 1})
+    store.update_stage(june, "sfm", status="running")
+    store.update_stage(june, "sfm", status="done")
+    store.update_stage(june, "rowfit", status="running")
+    found = store.discover("plotA", "maize")
+    assert [d.scene for d in found] == [june, SceneKey("plotA", "maize", "2024-07-15")]
+    assert found[0].n_images == 2 and found[0].has_manifest
+    assert found[0].stages == {"rowfit": "running", "sfm": "done"} and found[0].done == ("sfm",)
+    assert found[1].n_images == 1 and not found[1].has_manifest and found[1].done == ()
+    with pytest.raises(ConfigError):
+        store.list_dates("../etc", "maize")
+
+
+def test_reachable_and_pickle(store):
+    store.check_reachable()
+    clone = pickle.loads(pickle.dumps(store))
+    assert clone.root == store.root
+    clone.put_bytes("plotA/x.bin", b"via clone")
+    assert store.get_bytes("plotA/x.bin") == b"via clone"
+    assert store.list() == ["plotA/x.bin"]  # the reachability probe left nothing behind
+
+
+# ---- names and keys -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("site", "crop", "date", "match"),
+    [
+        ("..", "soybean", "2024-07-01", "site"),
+        ("a..b", "soybean", "2024-07-01", "site"),
+        ("a/b", "soybean", "2024-07-01", "site"),
+        ("/abs", "soybean", "2024-07-01", "site"),
+        ("", "soybean", "2024-07-01", "site"),
+        (".hidden", "soybean", "2024-07-01", "site"),
+        ("plot A", "soybean", "2024-07-01", "site"),
+        ("plotA", "wheat", "2024-07-01", "unknown crop"),
+        ("plotA", "soybean", "2024-13-01", "date"),
+        ("plotA", "soybean", "2024-7-1", "date"),
+        ("plotA", "soybean", "20240701", "date"),
+        ("plotA", "soybean", "2024-02-30", "date"),
+    ],
+)
+def test_scene_key_validation(site, crop, date, match):
+    with pytest.raises(ConfigError, match=match):
+        SceneKey(site, crop, date)
+
+
+def test_scene_key_accepts_dates_and_parses():
+    key = SceneKey("plot_A-1.north", "maize", dt.date(2024, 7, 1))
+    assert key.date == "2024-07-01" and str(key) == "plot_A-1.north/maize/2024-07-01"
+    assert SceneKey.parse(key.prefix) == key
+    assert stage_prefix(key, "fit_seed") == "plot_A-1.north/maize/2024-07-01/fit_seed"
+    with pytest.raises(ConfigError):
+        stage_prefix(key, "../images")
+    with pytest.raises(ConfigError):
+        SceneKey("plotA", "maize", dt.datetime(2024, 7, 1, 12))
+
+
+@pytest.mark.parametrize(
+    "key", ["../x", "/abs/x", "a//b", "a/../b", "a/./b", "a\\b", "a/.tmp-x", "s3://b/x", ""]
+)
+def test_bad_keys_are_refused(tmp_path, key):
+    store = SceneStore(str(tmp_path / "s"))
+    with pytest.raises(ConfigError):
+        store.put_bytes(key, b"x")
+    assert not (tmp_path / "x").exists()
+
+
+def test_errors_are_one_family():
+    assert issubclass(StoreError, CropCraftError) and issubclass(StoreError, OSError)
+
+
+# ---- hashing, redaction, code version -------------------------------------------------------
+
+
+def test_canonical_json_and_hash():
+    a = {"b": 1, "a": [1.5, {"y": np.float32(2.0), "x": np.int64(3)}]}
+    b = {"a": [1.5, {"x": 3, "y": 2.0}], "b": 1}
+    assert canonical_json(a) == canonical_json(b) == b'{"a":[1.5,{"x":3,"y":2.0}],"b":1}'
+    assert config_hash(a) == config_hash(b) == sha256_bytes(canonical_json(b))
+    with pytest.raises(InputError):
+        canonical_json({"x": float("inf")})
+    assert code_version().startswith(__version__)
+
+
+def test_redact():
+    assert redact("s3://AKIA:sEcReT@bucket/prefix") == "s3://bucket/prefix"
+    assert "sEcReT" not in redact("see https://u:sEcReT@host/x?X-Amz-Signature=abc&n=1")
+    assert redact("https://h/x?X-Amz-Signature=abc&n=1") == "https://h/x?X-Amz-Signature=***&n=1"
+    opts = {
+        "key": "AKIA",
+        "secret": "sEcReT",
+        "endpoint_url": "http://u:pw@127.0.0.1:9000",
+        "client_kwargs": {"aws_session_token": "tok", "region_name": "us-east-1"},
+        "anon": False,
+    }
+    out = redact(opts)
+    assert out == {
+        "key": "***",
+        "secret": "***",
+        "endpoint_url": "http://127.0.0.1:9000",
+        "client_kwargs": {"aws_session_token": "***", "region_name": "us-east-1"},
+        "anon": False,
+    }
+    assert opts["secret"] == "sEcReT"  # input untouched
+
+
+def test_credentials_in_uri_are_refused():
+    with pytest.raises(ConfigError) as info:
+        SceneStore("s3://AKIA:sEcReT@bucket/prefix")
+    assert "sEcReT" not in str(info.value) and "s3://bucket/prefix" in str(info.value)
+
+
+# ---- reachability -------------------------------------------------------------------------
+
+
+def test_unreachable_endpoint_fails_fast_and_redacted(caplog):
+    secret = "very-secret-value"
+    store = SceneStore(
+        "s3://some-bucket/prefix",
+        storage_options={
+            "endpoint_url": f"http://127.0.0.1:{free_port()}",  # nothing listens there
+            "key": "AKIDEXAMPLE",
+            "secret": secret,
+        },
+    )
+    assert secret not in repr(store) and secret not in json.dumps(store.describe())
+    start = time.monotonic()
+    with caplog.at_level("DEBUG", logger="cropcraft_core"), pytest.raises(StoreError) as info:
+        store.check_reachable(timeout_s=2.0)
+    elapsed = time.monotonic() - start
+    assert elapsed < 5.0, elapsed
+    message = str(info.value)
+    assert "s3://some-bucket/prefix" in message
+    assert secret not in message and "AKIDEXAMPLE" not in message
+    assert secret not in caplog.text
+
+
+def test_missing_bucket_is_a_store_error(s3_server):
+    store = SceneStore("s3://no-such-bucket/p", storage_options=s3_server.storage_options())
+    with pytest.raises(StoreError, match="bucket"):
+        store.check_reachable()
+    with pytest.raises(StoreError):
+        store.put_bytes("a/b.bin", b"x")
+
+
+def test_unwritable_local_root(tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("not a folder")
+    store = SceneStore(str(blocker / "store"))
+    with pytest.raises(StoreError, match="file.txt"):
+        store.check_reachable()
+
+
+def test_fsspec_endpoint_env(s3_server, monkeypatch):
+    monkeypatch.setenv("FSSPEC_S3_ENDPOINT_URL", s3_server.endpoint)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:1")  # lower priority
+    opts = {"key": s3_server.key, "secret": s3_server.secret}
+    store = SceneStore(f"s3://{s3_server.bucket}/{uuid.uuid4().hex}", storage_options=opts)
+    assert store.describe()["storage_options"]["endpoint_url"] == s3_server.endpoint
+    store.check_reachable()
+    store.put_json("x/y.json", {"ok": True})
+    assert store.get_json("x/y.json") == {"ok": True}
+
+
+def test_default_root_is_local_folder(tmp_path, monkeypatch):
+    monkeypatch.delenv("CROPCRAFT_STORE", raising=False)
+    monkeypatch.chdir(tmp_path)
+    store = SceneStore()
+    assert store.root == (tmp_path / "cropcraft-data").as_uri()
+    store.check_reachable()
+    assert (tmp_path / "cropcraft-data").is_dir()
+
+
+def test_manifest_model_is_plain_json():
+    m = Manifest(site="p", crop="maize", date="2024-07-01")
+    assert Manifest.model_validate_json(m.model_dump_json()) == m
