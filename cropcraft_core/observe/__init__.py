@@ -1,0 +1,43 @@
+"""Row observations, their histogram statistics and the CropCraft histogram loss.
+
+An :class:`Observation` holds a row-camera depth map, foreground mask, optional RGB render, the
+row camera and the :class:`HistogramStats` of the foreground (z-depth, lateral |y| and
+depth-derivative histograms, mask area). :func:`loss` compares an observation's statistics with
+a procedural render's (``Observation.loss_of(depth)`` does both steps). All settings live in
+per-crop presets: ``preset("soybean", **overrides)``.
+"""
+
+from cropcraft_core.observe.histograms import HistogramStats, bin_edges, compute_stats
+from cropcraft_core.observe.loss import LossBreakdown, loss
+from cropcraft_core.observe.observation import (
+    Observation,
+    check_row_camera,
+    observation_mask,
+    predicted_mask,
+)
+from cropcraft_core.observe.presets import (
+    CROPS,
+    LossPreset,
+    ObservePreset,
+    preset,
+    soybean_render_height,
+    with_overrides,
+)
+
+__all__ = [
+    "CROPS",
+    "HistogramStats",
+    "LossBreakdown",
+    "LossPreset",
+    "Observation",
+    "ObservePreset",
+    "bin_edges",
+    "check_row_camera",
+    "compute_stats",
+    "loss",
+    "observation_mask",
+    "predicted_mask",
+    "preset",
+    "soybean_render_height",
+    "with_overrides",
+]

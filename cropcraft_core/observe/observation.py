@@ -1,0 +1,439 @@
+"""The observation a scene fit matches: a row-camera depth map, its foreground mask, optional RGB,
+the row camera and the histogram statistics, persistable as npz + json.
+
+Masks (supplementary "Mask and Histogram Details"):
+
+* :func:`observation_mask` — for the NeRF render. With height above the ground
+  ``h = render_height - depth`` (ground at height 0 in the row frame; the camera looks straight
+  down from ``render_height``) and lateral offset ``|y|`` from the row line (the unprojected
+  pixel's camera-frame y, metres), a pixel is background if
+
+  - soybean: (a* < −8 and h > render_height − 0.25 m) or h < 0.1 m or |y| ≥ 0.5 m;
+  - maize: (a* < −8 and L* > 40 and h > render_height − 2 m) or h < 0.1 m or |y| ≥ 3 m;
+
+  or if its depth is not finite and positive. The "z-coordinate" of the supplementary is read as
+  height above the ground, as the phrase "0.25 m short of the render height" suggests; L*, a* are
+  OpenCV's CIELAB of the RGB render (L* ∈ [0, 100], a* ∈ about [−127, 127]). Without RGB the
+  colour clause is skipped (never true). All thresholds are preset fields.
+* :func:`predicted_mask` — for the procedural render, which has no background: finite depth.
+  Given the camera and preset it also applies the geometric clauses (h ≥ 0.1 m, |y| below the
+  lateral limit), so that both sides are cut by the same box; the paper uses finite depth alone.
+
+Persistence: ``obs.save("dir/")`` writes ``dir/observation.npz`` (arrays ``depth``, ``mask`` and
+``rgb`` if any) and ``dir/observation.json`` (crop, camera, preset, statistics, meta);
+``obs.save("x.npz")`` or ``obs.save(fileobj)`` writes one npz with the JSON record stored as the
+string array ``record``. :meth:`Observation.load` reads either.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import cv2
+import numpy as np
+
+from cropcraft_core.errors import ConfigError, InputError, OutputError
+from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.observe.histograms import (
+    HistogramStats,
+    check_depth,
+    check_mask,
+    compute_stats,
+    lateral_factor,
+)
+from cropcraft_core.observe.loss import LossBreakdown, loss
+from cropcraft_core.observe.presets import CROPS, ObservePreset, preset
+
+FORMAT = "cropcraft-observation"
+VERSION = 1
+NPZ_NAME = "observation.npz"
+JSON_NAME = "observation.json"
+
+
+# --------------------------------------------------------------------------- masks
+def _valid(depth: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(depth) & (depth > 0)
+
+
+def _height_and_lateral(
+    depth: np.ndarray, camera: PinholeCamera, p: ObservePreset
+) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) height above the ground and (H, W) |y| from the row line, metres (NaN where the
+    depth is NaN)."""
+    h = p.render_height - depth
+    y = np.abs(lateral_factor(camera))[:, None] * depth
+    return h, y
+
+
+def rgb_to_lab(rgb: Any, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) RGB (uint8 0–255 or float 0–1) → (H, W, 3) float32 CIELAB (L*, a*, b*)."""
+    c = np.asarray(rgb)
+    if c.shape != (*shape, 3):
+        raise InputError(f"rgb must have shape {(*shape, 3)} (H, W, 3), got {c.shape}")
+    if c.dtype == np.uint8:
+        f = c.astype(np.float32) / 255.0
+    elif np.issubdtype(c.dtype, np.floating):
+        f = c.astype(np.float32)
+        if not np.all(np.isfinite(f)) or f.min() < 0 or f.max() > 1:
+            raise InputError("float rgb must be finite and within [0, 1] (or pass uint8 0–255)")
+    else:
+        raise InputError(f"rgb must be uint8 or float, got dtype {c.dtype}")
+    return cv2.cvtColor(f, cv2.COLOR_RGB2Lab)
+
+
+def observation_mask(
+    depth: np.ndarray,
+    rgb: np.ndarray | None,
+    camera: PinholeCamera,
+    preset: ObservePreset,
+) -> np.ndarray:
+    """Foreground mask of an observed (NeRF) render by the supplementary's colour and box rules
+    (module docstring).
+
+    depth: (H, W) z-depth in metres, ``camera.height × camera.width``.
+    rgb: (H, W, 3) uint8 or float [0, 1] RGB render, or ``None`` (colour clause skipped).
+    Returns (H, W) bool, true for foreground (plant).
+    """
+    d = check_depth(depth, camera).astype(np.float64, copy=False)
+    p = preset
+    valid = _valid(d)
+    with np.errstate(invalid="ignore"):
+        h, y = _height_and_lateral(d, camera, p)
+        bg = ~valid | (h < p.mask_min_height) | (y >= p.mask_max_lateral)
+        if rgb is not None:
+            lab = rgb_to_lab(rgb, d.shape)
+            colour = lab[..., 1] < p.mask_a_max
+            if p.mask_l_min is not None:
+                colour &= lab[..., 0] > p.mask_l_min
+            bg |= colour & (h > p.render_height - p.mask_top_band)
+    return ~bg
+
+
+def predicted_mask(
+    depth: np.ndarray,
+    camera: PinholeCamera | None = None,
+    preset: ObservePreset | None = None,
+) -> np.ndarray:
+    """Foreground mask of a procedural render (no background rendered): (H, W) bool, true where
+    the depth is finite and positive. With ``camera`` and ``preset`` also require height
+    ``>= mask_min_height`` and ``|y| < mask_max_lateral`` (the observation's box clauses)."""
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise InputError(f"depth must be a 2-D (H, W) array, got shape {d.shape}")
+    m = _valid(d)
+    if (camera is None) != (preset is None):
+        raise ConfigError("predicted_mask needs both camera and preset, or neither")
+    if camera is not None and preset is not None:
+        d = check_depth(d, camera).astype(np.float64, copy=False)
+        with np.errstate(invalid="ignore"):
+            h, y = _height_and_lateral(d, camera, preset)
+            m &= (h >= preset.mask_min_height) & (y < preset.mask_max_lateral)
+    return m
+
+
+def check_row_camera(camera: PinholeCamera, p: ObservePreset) -> None:
+    """``ConfigError`` unless ``camera`` is the preset's row camera: looking straight down
+    (optical axis = world −z), ``render_height`` above the ground z = 0, vertical field of view
+    ``vfov_deg`` (any resolution, e.g. ``camera.scaled(0.5)``)."""
+    if not isinstance(camera, PinholeCamera):
+        raise ConfigError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    axis = camera.cam_to_world[:3, 2]
+    if not np.allclose(axis, [0.0, 0.0, -1.0], atol=1e-6):
+        raise ConfigError(
+            f"the row camera must look straight down (optical axis (0, 0, -1)), got {axis.round(6)}"
+        )
+    z = float(camera.center[2])
+    if abs(z - p.render_height) > 1e-6:
+        raise ConfigError(
+            f"the camera is {z:g} m above the ground but the {p.crop} preset's render height is "
+            f"{p.render_height:g} m: build the preset with render_height={z:g} or use "
+            "preset.row_camera()"
+        )
+    if abs(camera.vfov_deg - p.vfov_deg) > 0.05:
+        raise ConfigError(
+            f"the camera's vertical field of view is {camera.vfov_deg:.3f}° but the preset's is "
+            f"{p.vfov_deg:g}°"
+        )
+
+
+# --------------------------------------------------------------------------- observation
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, copy=True)
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """A row observation and its histogram statistics.
+
+    crop: "soybean" or "maize".
+    camera: the row camera (straight down from the preset's render height, x along the row).
+    depth: (H, W) float32 or float64 (as given; other dtypes become float64) z-depth in metres,
+    a read-only copy; non-finite where nothing is seen.
+    mask: (H, W) bool foreground (read-only copy); every masked pixel has a finite positive depth.
+    rgb: (H, W, 3) uint8 or float [0, 1] RGB render, or ``None``.
+    stats: the :class:`HistogramStats` of (depth, mask); computed (derivative histogram
+    included, whatever λ_sobel) when ``None``.
+    preset: the :class:`ObservePreset`; ``preset(crop)`` when ``None``.
+    meta: JSON-serialisable provenance (scene, source, render-height choice, ...).
+
+    Raises ``InputError`` for an all-NaN depth map, an empty mask, shape mismatches or masked
+    pixels without depth; ``ConfigError`` for an unknown crop, a preset of another crop, a camera
+    that is not the preset's row camera, or statistics computed with another preset.
+    """
+
+    crop: str
+    camera: PinholeCamera
+    depth: np.ndarray
+    mask: np.ndarray
+    rgb: np.ndarray | None = None
+    stats: HistogramStats | None = None
+    preset: ObservePreset | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.crop, str) or self.crop not in CROPS:
+            raise ConfigError(f"unknown crop {self.crop!r}: choose one of {', '.join(CROPS)}")
+        p = self.preset if self.preset is not None else preset(self.crop)
+        if not isinstance(p, ObservePreset):
+            raise ConfigError(f"preset must be an ObservePreset, got {type(p).__name__}")
+        if p.crop != self.crop:
+            raise ConfigError(f"a {p.crop} preset was given for a {self.crop} observation")
+        check_row_camera(self.camera, p)
+        d = check_depth(self.depth, self.camera)
+        valid = _valid(d)
+        if not valid.any():
+            raise InputError("depth map has no finite positive values (all NaN, inf or <= 0)")
+        m = check_mask(self.mask, d.shape)
+        if not m.any():
+            raise InputError(
+                "foreground mask is empty: no plant pixels in the observation (check the mask "
+                "thresholds, the render height and the row camera)"
+            )
+        n_bad = int(np.count_nonzero(m & ~valid))
+        if n_bad:
+            raise InputError(f"mask marks {n_bad} pixel(s) whose depth is not finite and positive")
+        rgb = self.rgb
+        if rgb is not None:
+            rgb_to_lab(rgb, d.shape)  # validates shape, dtype and range
+            rgb = _readonly(rgb)
+        try:
+            meta = json.loads(json.dumps(dict(self.meta), allow_nan=False))
+        except (TypeError, ValueError) as e:
+            raise InputError(f"meta must be a JSON-serialisable mapping: {e}") from None
+        d, m = _readonly(d), _readonly(m)
+        stats = self.stats
+        if stats is None:  # always with the derivative histogram (computed once, for reports)
+            stats = compute_stats(d, self.camera, m, p, sobel=True)
+        elif not isinstance(stats, HistogramStats):
+            raise InputError(f"stats must be HistogramStats, got {type(stats).__name__}")
+        elif stats.spec != p.stats_spec():
+            raise ConfigError("stats were computed with a different preset than this observation's")
+        for name, value in (
+            ("preset", p),
+            ("depth", d),
+            ("mask", m),
+            ("rgb", rgb),
+            ("meta", meta),
+            ("stats", stats),
+        ):
+            object.__setattr__(self, name, value)
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_depth(
+        cls,
+        crop: str,
+        depth: np.ndarray,
+        camera: PinholeCamera | None = None,
+        rgb: np.ndarray | None = None,
+        mask: np.ndarray | None = None,
+        preset: ObservePreset | None = None,
+        meta: dict | None = None,
+    ) -> Observation:
+        """Build an observation from a row-camera depth map (and RGB render).
+
+        ``camera`` defaults to ``preset.row_camera()``; ``preset`` to the crop's paper settings;
+        ``mask`` to :func:`observation_mask` (colour clause only when ``rgb`` is given).
+        """
+        p = preset if preset is not None else _preset_for(crop)
+        cam = camera if camera is not None else p.row_camera()
+        if mask is None:
+            check_row_camera(cam, p)
+            mask = observation_mask(depth, rgb, cam, p)
+        return cls(crop, cam, depth, mask, rgb=rgb, preset=p, meta=dict(meta or {}))
+
+    # ----------------------------------------------------------------- comparison
+    def predicted_stats(self, depth: np.ndarray, mask: np.ndarray | None = None) -> HistogramStats:
+        """Statistics of a procedural render from this observation's camera: (H, W) z-depth,
+        NaN where nothing is seen; ``mask`` defaults to :func:`predicted_mask` (finite depth)."""
+        m = predicted_mask(depth) if mask is None else mask
+        return compute_stats(depth, self.camera, m, self.preset)
+
+    def loss_of(self, depth: np.ndarray, mask: np.ndarray | None = None) -> LossBreakdown:
+        """The loss of a procedural render (see :meth:`predicted_stats`) against this
+        observation."""
+        return loss(self.stats, self.predicted_stats(depth, mask), self.preset)
+
+    # ----------------------------------------------------------------- persistence
+    def record(self) -> dict[str, Any]:
+        """The JSON part of the saved form."""
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "crop": self.crop,
+            "camera": self.camera.to_dict(),
+            "preset": self.preset.to_dict(),
+            "stats": self.stats.to_dict(),
+            "meta": self.meta,
+            "has_rgb": self.rgb is not None,
+        }
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        arrays = {"depth": self.depth, "mask": self.mask}
+        if self.rgb is not None:
+            arrays["rgb"] = self.rgb
+        return arrays
+
+    def save(self, target: str | os.PathLike | BinaryIO) -> Path | None:
+        """Write the observation.
+
+        target: a directory (created; gets ``observation.npz`` + ``observation.json``), a path
+        ending in ``.npz`` (one file, JSON record inside), or a binary file object (one npz).
+        Returns the path written, ``None`` for a file object. ``OutputError`` if it cannot be
+        written.
+        """
+        text = json.dumps(self.record(), indent=1, allow_nan=False)
+        if hasattr(target, "write"):
+            np.savez_compressed(target, record=np.array(text), **self._arrays())
+            return None
+        path = Path(target)
+        try:
+            if path.suffix == ".npz":
+                path.parent.mkdir(parents=True, exist_ok=True)
+                _atomic_npz(path, {"record": np.array(text), **self._arrays()})
+            else:
+                path.mkdir(parents=True, exist_ok=True)
+                _atomic_npz(path / NPZ_NAME, self._arrays())
+                tmp = path / (JSON_NAME + ".tmp")
+                tmp.write_text(text + "\n")
+                os.replace(tmp, path / JSON_NAME)
+        except OSError as e:
+            raise OutputError(f"cannot write observation to {path}: {e}") from None
+        return path
+
+    @classmethod
+    def load(cls, source: str | os.PathLike | BinaryIO) -> Observation:
+        """Read what :meth:`save` wrote (directory, ``.npz`` path or file object). Stored
+        statistics are reused when their spec matches the stored preset, else recomputed.
+        ``InputError`` if missing or malformed."""
+        if hasattr(source, "read"):
+            arrays, text = _read_npz(source, "file object")
+        else:
+            path = Path(source)
+            if path.is_dir():
+                arrays, _ = _read_npz(path / NPZ_NAME, str(path / NPZ_NAME))
+                try:
+                    text = (path / JSON_NAME).read_text()
+                except OSError as e:
+                    raise InputError(f"cannot read {path / JSON_NAME}: {e}") from None
+            elif path.is_file():
+                arrays, text = _read_npz(path, str(path))
+            else:
+                raise InputError(f"no observation at {path}")
+        if text is None:
+            raise InputError("observation npz has no JSON 'record' entry")
+        try:
+            rec = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"observation record is not valid JSON: {e}") from None
+        if not isinstance(rec, dict) or rec.get("format") != FORMAT:
+            raise InputError(f"not a {FORMAT} record")
+        if rec.get("version") != VERSION:
+            raise InputError(f"unsupported observation version {rec.get('version')!r}")
+        for key in ("crop", "camera", "preset"):
+            if key not in rec:
+                raise InputError(f"observation record is missing {key!r}")
+        for key in ("depth", "mask"):
+            if key not in arrays:
+                raise InputError(f"observation arrays are missing {key!r}")
+        if rec.get("has_rgb") and "rgb" not in arrays:
+            raise InputError("observation record says it has rgb but the npz holds none")
+        p = ObservePreset.from_dict(rec["preset"])
+        camera = PinholeCamera.from_dict(rec["camera"])
+        stats = None
+        if isinstance(rec.get("stats"), dict):
+            stats = HistogramStats.from_dict(rec["stats"])
+            if stats.spec != p.stats_spec():
+                stats = None
+        return cls(
+            rec["crop"],
+            camera,
+            arrays["depth"],
+            arrays["mask"],
+            rgb=arrays.get("rgb"),
+            stats=stats,
+            preset=p,
+            meta=rec.get("meta") or {},
+        )
+
+    def equals(self, other: Observation) -> bool:
+        """Exact equality of arrays, camera, preset, statistics and meta."""
+        return (
+            self.crop == other.crop
+            and self.camera.to_dict() == other.camera.to_dict()
+            and self.preset == other.preset
+            and np.array_equal(self.depth, other.depth, equal_nan=True)
+            and self.depth.dtype == other.depth.dtype
+            and np.array_equal(self.mask, other.mask)
+            and (
+                (self.rgb is None and other.rgb is None)
+                or (
+                    self.rgb is not None
+                    and other.rgb is not None
+                    and self.rgb.dtype == other.rgb.dtype
+                    and np.array_equal(self.rgb, other.rgb)
+                )
+            )
+            and self.stats.equals(other.stats)
+            and self.meta == other.meta
+        )
+
+
+def _preset_for(crop: str) -> ObservePreset:
+    return preset(crop)
+
+
+def _atomic_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    os.replace(tmp, path)
+
+
+def _read_npz(src: Any, label: str) -> tuple[dict[str, np.ndarray], str | None]:
+    try:
+        with np.load(src, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputError(f"no observation file {label}") from None
+    except (OSError, ValueError, EOFError, io.UnsupportedOperation) as e:
+        raise InputError(f"cannot read observation npz {label}: {e}") from None
+    text = arrays.pop("record", None)
+    return arrays, (str(text[()]) if text is not None else None)
+
+
+__all__ = [
+    "Observation",
+    "check_row_camera",
+    "observation_mask",
+    "predicted_mask",
+    "rgb_to_lab",
+]

@@ -1,0 +1,474 @@
+"""Observation, histogram statistics and loss: hand-computed cases on analytic depth maps.
+
+The row camera looks straight down from the render height H, so a horizontal plane at height h
+has z-depth H - h at every pixel, and pixel row v sees the lateral offset
+|y| = |v + 0.5 - cy| / fy * depth.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from cropcraft_core.config.params import resolve_params
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.observe import (
+    HistogramStats,
+    LossPreset,
+    Observation,
+    bin_edges,
+    compute_stats,
+    loss,
+    observation_mask,
+    predicted_mask,
+    preset,
+    soybean_render_height,
+    with_overrides,
+)
+from cropcraft_core.observe.histograms import sobel_magnitude
+
+SOY = preset("soybean")
+MAIZE = preset("maize")
+CAM = SOY.row_camera()  # 994 × 738, 50°, 1 m
+N = CAM.width * CAM.height
+F = 0.5 * 738 / math.tan(math.radians(25))  # focal length in pixels
+
+
+def plane(depth: float, cam: PinholeCamera = CAM, dtype=np.float64) -> np.ndarray:
+    return np.full((cam.height, cam.width), depth, dtype=dtype)
+
+
+def full(cam: PinholeCamera = CAM) -> np.ndarray:
+    return np.ones((cam.height, cam.width), bool)
+
+
+def canopy(h_render: float = 1.0, cam: PinholeCamera = CAM, seed: int = 0) -> np.ndarray:
+    """Tilted elliptical 'leaves' over a NaN background (float32, like a render)."""
+    return _canopy(h_render, cam, seed).copy()
+
+
+@functools.lru_cache(maxsize=4)
+def _canopy(h_render: float, cam: PinholeCamera, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    depth = np.full((cam.height, cam.width), np.nan, np.float32)
+    vv, uu = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+    s = cam.width / 994
+    for _ in range(120):
+        cx, cy = rng.uniform(0, cam.width), rng.normal(cam.height / 2, cam.height / 5)
+        m = np.zeros(depth.shape, np.uint8)
+        axes = (int(rng.uniform(15, 60) * s) + 1, int(rng.uniform(8, 30) * s) + 1)
+        cv2.ellipse(m, (int(cx), int(cy)), axes, rng.uniform(0, 180), 0, 360, 1, -1)
+        gx, gy = rng.normal(0, 4e-4 / s, 2)
+        dz = h_render - rng.uniform(0.1, 0.7) * h_render + gx * (uu - cx) + gy * (vv - cy)
+        sel = (m > 0) & ~(depth < dz)
+        depth[sel] = dz[sel]
+    return depth
+
+
+# --------------------------------------------------------------------------- presets
+def test_paper_presets():
+    assert SOY.render_height == 1.0 and MAIZE.render_height == 5.0
+    assert (SOY.image_width, SOY.image_height, SOY.vfov_deg) == (994, 738, 50.0)
+    assert SOY.depth_range == (0.1, 1.0, 20) and MAIZE.depth_range == (2.0, 5.0, 10)
+    assert SOY.lateral_range == (0.0, 0.5, 10) and MAIZE.lateral_range == (0.0, 2.5, 10)
+    assert SOY.sobel_range == (0.0, 0.004, 10) == MAIZE.sobel_range
+    assert (SOY.loss.blur_kernel, MAIZE.loss.blur_kernel) == (25, 55)
+    lam = lambda p: (p.loss.lambda_lateral, p.loss.lambda_sobel, p.loss.lambda_mask)  # noqa: E731
+    assert lam(SOY) == (2.0, 4.0, 1.0) and lam(MAIZE) == (1.0, 0.0, 1.0)
+    assert (SOY.mask_top_band, SOY.mask_max_lateral, SOY.mask_l_min) == (0.25, 0.5, None)
+    assert (MAIZE.mask_top_band, MAIZE.mask_max_lateral, MAIZE.mask_l_min) == (2.0, 3.0, 40.0)
+    assert SOY.mask_a_max == MAIZE.mask_a_max == -8.0
+    assert SOY.mask_min_height == MAIZE.mask_min_height == 0.1
+    assert soybean_render_height(0.8) == 1.25 and soybean_render_height(0.75) == 1.0
+
+
+def test_preset_overrides_move_derived_ranges_and_round_trip():
+    p = preset("soybean", render_height=1.25, lambda_sobel=0, depth_bins="40")
+    assert p.depth_range == (0.1, 1.25, 40) and p.lateral_range == (0.0, 0.625, 10)
+    assert p.loss.lambda_sobel == 0.0 and p.loss.lambda_lateral == 2.0
+    assert type(p.loss.depth_bins) is int
+    assert preset("soybean", depth_max=0.9).depth_range == (0.1, 0.9, 20)
+    assert type(p).from_dict(json.loads(json.dumps(p.to_dict()))) == p
+    assert with_overrides(p, lambda_mask=3).loss.lambda_mask == 3.0
+
+
+@pytest.mark.parametrize(
+    "crop, kw, words",
+    [
+        ("wheat", {}, "unknown crop"),
+        ("soybean", {"lamda_sobel": 1}, "lamda_sobel"),
+        ("soybean", {"blur_kernel": 24}, "odd"),
+        ("soybean", {"lambda_mask": -1}, "lambda_mask"),
+        ("soybean", {"normalisation": "pixels"}, "normalisation"),
+        ("soybean", {"depth_min": 2.0}, "empty"),
+        ("maize", {"render_height": 0}, "render_height"),
+        ("maize", {"sobel_bins": 2.5}, "integer"),
+        ("maize", {"vfov_deg": float("nan")}, "vfov_deg"),
+    ],
+)
+def test_bad_presets_raise_config_error(crop, kw, words):
+    with pytest.raises(ConfigError, match=words):
+        preset(crop, **kw)
+
+
+def test_parameter_box_violation_is_a_config_error():
+    with pytest.raises(ConfigError, match="outside its range"):
+        resolve_params("soybean", {"num_nodes": 30})
+
+
+# --------------------------------------------------------------------------- depth histogram
+def test_flat_plane_fills_exactly_one_depth_bin():
+    # plane 0.3 m above the ground: z-depth 0.7 m, bin (0.7 - 0.1) / 0.045 = 13.3 → bin 13
+    s = compute_stats(plane(0.7), CAM, full(), SOY)
+    expected = np.zeros(20)
+    expected[13] = 1.0
+    np.testing.assert_array_equal(s.depth, expected)
+    assert s.mask_area == 1.0 and s.n_foreground == N and s.n_pixels == N
+    # half the image masked: image normalisation halves the bin, foreground normalisation not
+    m = full()
+    m[:, : CAM.width // 2] = False
+    assert compute_stats(plane(0.7), CAM, m, SOY).depth[13] == 0.5
+    fg = preset("soybean", normalisation="foreground")
+    assert compute_stats(plane(0.7), CAM, m, fg).depth[13] == 1.0
+
+
+def test_maize_plane_and_numpy_edge_rules():
+    cam = MAIZE.row_camera().scaled(0.25)
+    s = compute_stats(plane(3.5, cam), cam, full(cam), MAIZE)  # (3.5 - 2) / 0.3 = 5.0 → bin 5
+    assert s.depth[5] == 1.0 and s.depth.sum() == 1.0
+    # exact edges: the render height lands in the last bin, 0.1 m in the first, 0.0999 nowhere
+    for d, k in ((1.0, 19), (0.1, 0), (0.0999, None), (1.0001, None)):
+        h = compute_stats(plane(d), CAM, full(), SOY).depth
+        assert (h.sum() == 0.0) if k is None else (h[k] == 1.0), d
+
+
+def test_depth_histogram_matches_numpy_on_a_canopy():
+    d = canopy()
+    m = predicted_mask(d)
+    s = compute_stats(d, CAM, m, SOY)
+    ref, _ = np.histogram(d[m].astype(np.float64), bins=20, range=(0.1, 1.0))
+    np.testing.assert_array_equal(s.depth, ref / N)
+    assert s.mask_area == m.mean()
+
+
+# --------------------------------------------------------------------------- lateral histogram
+def test_lateral_histogram_of_a_known_strip():
+    # plane at depth 0.8: row v sees |y| = |v + 0.5 - 369| * 0.8 / F, F = 791.32 px. The strip
+    # |y| in [0.11, 0.14] m is |v + 0.5 - 369| in [108.77, 138.48] px: offsets 109.5 ... 137.5,
+    # 29 rows each side, all in lateral bin 2 = [0.10, 0.15) m.
+    t = np.abs(np.arange(738) + 0.5 - 369.0)
+    rows = (t * 0.8 / F >= 0.11) & (t * 0.8 / F <= 0.14)
+    assert rows.sum() == 58
+    m = np.zeros((738, 994), bool)
+    m[rows] = True
+    s = compute_stats(plane(0.8), CAM, m, SOY)
+    expected = np.zeros(10)
+    expected[2] = 58 * 994 / N
+    np.testing.assert_allclose(s.lateral, expected, rtol=0, atol=1e-15)
+
+
+def test_lateral_is_metres_from_the_row_line():
+    # ground-level plane (depth 1 m): |y| reaches tan(25°) = 0.466 m at the image edge; the last
+    # bin [0.45, 0.5] holds rows with |v + 0.5 - 369| >= 0.45 F = 356.1 → 13 rows per side
+    s = compute_stats(plane(1.0), CAM, full(), SOY)
+    assert s.lateral.sum() == pytest.approx(1.0)
+    assert s.lateral[9] == 26 * 994 / N
+    # the same through camera.unproject → camera coordinates, on a canopy
+    d = canopy()
+    m = predicted_mask(d)
+    pts = CAM.unproject(d.astype(np.float64))[m]
+    y_cam = np.abs(CAM.to_camera(pts)[:, 1])
+    ref, _ = np.histogram(y_cam, bins=10, range=(0.0, 0.5))
+    got = compute_stats(d, CAM, m, SOY).lateral * N
+    assert np.abs(got - ref).sum() <= 2  # identical up to rounding exactly at an edge
+
+
+# --------------------------------------------------------------------------- sobel histogram
+def test_sobel_of_a_flat_plane_is_zero():
+    s = compute_stats(plane(0.7), CAM, full(), SOY)
+    assert s.sobel[0] == 1.0 and s.sobel[1:].sum() == 0.0
+    # exactly zero up to float32 rounding in OpenCV's blur (a few ulps of the depth)
+    assert sobel_magnitude(plane(0.7), full(), SOY).max() < 1e-6
+
+
+@pytest.mark.parametrize("axis", ["x", "y", "xy"])
+def test_sobel_of_a_ramp_lands_in_the_known_bin(axis):
+    # depth changes by s metres per pixel; the unnormalised 3×3 Sobel gives 8 s per axis and
+    # the Gaussian blur leaves a linear ramp unchanged (away from the image border):
+    # 8 s = 0.0014 → bin 3 = [0.0012, 0.0016)
+    s = 0.0014 / 8 / (2 if axis == "xy" else 1)
+    vv, uu = np.mgrid[0:738, 0:994].astype(np.float64)
+    d = 0.6 + s * ((uu - 497) * ("x" in axis) + (vv - 369) * ("y" in axis))
+    mag = sobel_magnitude(d, full(), SOY)
+    r = SOY.loss.blur_kernel // 2 + 2
+    np.testing.assert_allclose(mag[r:-r, r:-r], 0.0014, atol=1e-6)
+    st = compute_stats(d, CAM, full(), SOY)
+    interior = (738 - 2 * r) * (994 - 2 * r)
+    assert st.sobel[3] * N >= interior
+    assert st.sobel[4:].sum() == 0.0  # the border, where the ramp flattens, only goes lower
+    assert st.sobel.sum() == pytest.approx(1.0)
+
+
+def test_sobel_background_is_filled_with_the_ground():
+    # a square leaf at depth 0.5 over no background: inside, far from the edge, derivatives
+    # vanish; at its edge the blurred step to the ground depth (1 m) is steep (> 0.004)
+    d = plane(np.nan)
+    d[200:500, 300:700] = 0.5
+    m = predicted_mask(d)
+    mag = sobel_magnitude(d, m, SOY)
+    assert mag[350, 500] < 1e-6 and mag[200, 500] > 0.004 and np.isfinite(mag).all()
+    s = compute_stats(d, CAM, m, SOY)
+    assert s.sobel[0] > 0 and s.sobel.sum() < s.mask_area  # steep edge pixels fall outside
+
+
+def test_sobel_matches_an_independent_cv2_reference():
+    d = canopy()
+    m = predicted_mask(d)
+    filled = np.where(m, d.astype(np.float64) - 1.0, 0.0).astype(np.float32)
+    b = cv2.GaussianBlur(filled, (25, 25), 0, borderType=cv2.BORDER_REPLICATE)
+    dx = cv2.Sobel(b, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    dy = cv2.Sobel(b, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    mag = np.abs(dx[m].astype(np.float64)) + np.abs(dy[m].astype(np.float64))
+    ref, _ = np.histogram(mag, bins=10, range=(0.0, 0.004))
+    np.testing.assert_array_equal(compute_stats(d, CAM, m, SOY).sobel, ref / N)
+
+
+def test_maize_skips_sobel_by_default_because_its_weight_is_zero():
+    cam = MAIZE.row_camera().scaled(0.25)
+    d = plane(3.5, cam)
+    s = compute_stats(d, cam, full(cam), MAIZE)
+    assert not s.has_sobel and s.sobel.sum() == 0.0
+    assert compute_stats(d, cam, full(cam), MAIZE, sobel=True).sobel[0] == 1.0
+    # an observation always keeps it; a prediction without it still compares (λ_sobel = 0)
+    obs = Observation.from_depth("maize", d, cam)
+    assert obs.stats.has_sobel and obs.mask.all()
+    got = obs.loss_of(plane(3.8, cam))  # (3.8 - 2) / 0.3 = 6.0 → bin 6
+    assert got.depth == 2.0 and got.sobel == 0.0 and got.mask == 0.0
+
+
+def test_empty_prediction_gives_zero_histograms():
+    d = plane(np.nan)
+    s = compute_stats(d, CAM, predicted_mask(d), SOY)
+    assert s.mask_area == 0.0 and s.depth.sum() == s.lateral.sum() == s.sobel.sum() == 0.0
+    fg = compute_stats(d, CAM, predicted_mask(d), preset("soybean", normalisation="foreground"))
+    assert fg.depth.sum() == 0.0
+
+
+def test_bin_edges_are_numpy_linspace():
+    e = bin_edges(SOY)
+    np.testing.assert_array_equal(e["depth"], np.linspace(0.1, 1.0, 21))
+    np.testing.assert_array_equal(e["lateral"], np.linspace(0.0, 0.5, 11))
+    np.testing.assert_array_equal(e["sobel"], np.linspace(0.0, 0.004, 11))
+
+
+# --------------------------------------------------------------------------- loss
+def test_identical_depth_maps_give_zero_loss():
+    d = canopy()
+    a = compute_stats(d, CAM, predicted_mask(d), SOY)
+    b = compute_stats(d.copy(), CAM, predicted_mask(d), SOY)
+    assert loss(a, b, SOY) == type(loss(a, b, SOY))(0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _stats(depth, lateral, sobel, area, p=SOY):
+    return HistogramStats(
+        np.asarray(depth, float),
+        np.asarray(lateral, float),
+        np.asarray(sobel, float),
+        area,
+        0,
+        N,
+        p.stats_spec(),
+    )
+
+
+def test_loss_weights_are_applied_as_documented():
+    z20, z10 = np.zeros(20), np.zeros(10)
+    obs = _stats(np.r_[0.5, 0.1, z20[2:]], z10, z10, 0.6)
+    pred = _stats(np.r_[0.2, 0.3, z20[2:]], np.r_[0.1, z10[1:]], np.r_[0.0, 0.2, z10[2:]], 0.5)
+    l_depth = 0.3**2 + 0.2**2  # 0.13
+    l_lateral = 0.1**2  # 0.01
+    l_sobel = 0.2**2  # 0.04
+    l_mask = 0.1**2  # 0.01
+    got = loss(obs, pred, SOY)
+    assert got.depth == pytest.approx(l_depth) and got.lateral == pytest.approx(l_lateral)
+    assert got.sobel == pytest.approx(l_sobel) and got.mask == pytest.approx(l_mask)
+    assert got.total == pytest.approx(l_depth + 2 * l_lateral + 4 * l_sobel + 1 * l_mask)
+    lp = LossPreset(depth_bins=20, depth_min=0.1, lambda_lateral=1, lambda_sobel=0)
+    assert loss(obs, pred, lp).total == pytest.approx(l_depth + l_lateral + l_mask)
+    assert set(got.to_dict()) == {"total", "depth", "lateral", "sobel", "mask"}
+
+
+def test_loss_of_two_planes_by_hand():
+    # obs plane depth 0.7 (bin 13), pred plane depth 0.8 (bin 15), both fill the image:
+    # L_depth = 1² + 1² = 2; mask areas equal; both flat → sobel identical
+    a = compute_stats(plane(0.7), CAM, full(), SOY)
+    b = compute_stats(plane(0.8), CAM, full(), SOY)
+    got = loss(a, b, SOY)
+    assert got.depth == 2.0 and got.mask == 0.0 and got.sobel == 0.0
+    assert got.total == pytest.approx(2.0 + 2 * got.lateral)
+
+
+def test_loss_rejects_statistics_of_another_preset():
+    cam = MAIZE.row_camera().scaled(0.25)
+    soy = compute_stats(plane(0.7), CAM, full(), SOY)
+    maize = compute_stats(plane(3.5, cam), cam, full(cam), MAIZE)
+    with pytest.raises(ConfigError, match="different presets"):
+        loss(soy, maize, SOY.loss)
+    with pytest.raises(ConfigError, match="different preset"):
+        loss(maize, maize, SOY)
+    no_sobel = compute_stats(plane(0.7), CAM, full(), SOY, sobel=False)
+    with pytest.raises(ConfigError, match="lambda_sobel"):
+        loss(soy, no_sobel, SOY)
+    assert loss(maize, maize, MAIZE).total == 0.0
+
+
+# --------------------------------------------------------------------------- masks
+def _img(cam, depth):
+    d = np.full((cam.height, cam.width), depth, np.float64)
+    rgb = np.zeros((cam.height, cam.width, 3), np.uint8)
+    rgb[:] = (150, 100, 60)  # soil brown: a* = +16
+    return d, rgb
+
+
+def test_soybean_observation_mask_rules():
+    cam = SOY.row_camera().scaled(0.25)
+    d, rgb = _img(cam, 0.5)  # height 0.5 m
+    green, brown = (0, 200, 0), (150, 100, 60)  # a* = -72, +16
+    d[10, 10], rgb[10, 10] = 0.1, green  # 0.9 m high and green → background (colour clause)
+    d[10, 11], rgb[10, 11] = 0.1, brown  # 0.9 m high, not green → foreground
+    d[10, 12], rgb[10, 12] = 0.3, green  # 0.7 m: below the top band (0.75 m) → foreground
+    d[10, 13] = 0.95  # 0.05 m above the ground → background
+    d[10, 14] = 0.89  # 0.11 m above the ground → foreground
+    d[10, 15] = np.nan  # nothing seen → background
+    m = observation_mask(d, rgb, cam, SOY)
+    assert m[10, 10:16].tolist() == [False, True, True, False, True, False]
+    assert m.sum() == m.size - 3
+    # without RGB the colour clause never fires
+    assert observation_mask(d, None, cam, SOY)[10, 10]
+    # float RGB in [0, 1] gives the same mask
+    assert np.array_equal(observation_mask(d, rgb / 255.0, cam, SOY), m)
+
+
+def test_lateral_mask_rule_uses_metres():
+    # with a 0.3 m lateral limit a plane at depth 0.8 keeps rows with |v + .5 - cy| * 0.8 / f
+    # < 0.3, i.e. |v + 0.5 - 369| < 296.7 px at full size
+    p = preset("soybean", mask_max_lateral=0.3)
+    m = observation_mask(plane(0.8), None, CAM, p)
+    t = np.abs(np.arange(738) + 0.5 - 369.0)
+    assert np.array_equal(m.all(axis=1), t < 0.3 * F / 0.8)
+    assert m.all(axis=1).sum() == 2 * 297 and np.array_equal(m.any(axis=1), m.all(axis=1))
+    # the same box on the predicted side, on request
+    assert np.array_equal(predicted_mask(plane(0.8), CAM, p), m)
+
+
+def test_maize_observation_mask_rules():
+    cam = MAIZE.row_camera().scaled(0.25)
+    d, rgb = _img(cam, 4.0)  # height 1 m
+    d[5, 5], rgb[5, 5] = 1.5, (0, 200, 0)  # 3.5 m high, bright green (L* 70) → background
+    d[5, 6], rgb[5, 6] = 1.5, (0, 60, 0)  # 3.5 m, dark green (L* 21 < 40) → foreground
+    d[5, 7], rgb[5, 7] = 3.0, (0, 200, 0)  # 2 m high: not above 5 - 2 = 3 m → foreground
+    d[5, 8] = 4.95  # 5 cm → background
+    m = observation_mask(d, rgb, cam, MAIZE)
+    assert m[5, 5:9].tolist() == [False, True, True, False]
+
+
+def test_predicted_mask_is_finite_depth():
+    d = plane(0.5)
+    d[0, 0], d[0, 1], d[0, 2] = np.nan, np.inf, 0.0
+    m = predicted_mask(d)
+    assert m.sum() == m.size - 3 and not m[0, :3].any()
+    with pytest.raises(ConfigError):
+        predicted_mask(d, CAM)
+
+
+# --------------------------------------------------------------------------- observation
+@pytest.fixture(scope="module")
+def obs() -> Observation:
+    d = canopy()
+    rgb = np.zeros((*d.shape, 3), np.uint8)
+    rgb[:] = (40, 140, 40)
+    return Observation.from_depth("soybean", d, CAM, rgb=rgb, meta={"scene": "t", "n": [1, 2]})
+
+
+def test_observation_from_depth(obs):
+    assert obs.preset == SOY and obs.depth.dtype == np.float32
+    # all pixels are green (a* < -8), so the colour clause removes those above 0.75 m
+    expected = predicted_mask(obs.depth, CAM, SOY) & ~(1.0 - obs.depth.astype(float) > 0.75)
+    assert np.array_equal(obs.mask, expected) and 0 < obs.mask.sum() < expected.size
+    assert obs.stats.equals(compute_stats(obs.depth, CAM, obs.mask, SOY))
+    assert not obs.depth.flags.writeable and not obs.mask.flags.writeable
+    # its own depth as a prediction (same mask) scores zero
+    assert obs.loss_of(obs.depth, obs.mask).total == 0.0
+    assert obs.loss_of(np.where(obs.mask, obs.depth, np.nan)).total == 0.0
+
+
+def test_save_load_round_trip_is_exact(obs, tmp_path):
+    obs.save(tmp_path / "o")
+    assert {p.name for p in (tmp_path / "o").iterdir()} == {"observation.npz", "observation.json"}
+    rec = json.loads((tmp_path / "o" / "observation.json").read_text())
+    assert rec["crop"] == "soybean" and rec["preset"]["render_height"] == 1.0
+    back = Observation.load(tmp_path / "o")
+    assert back.equals(obs) and back.stats.equals(obs.stats)
+    obs.save(tmp_path / "single.npz")
+    assert Observation.load(tmp_path / "single.npz").equals(obs)
+    buf = io.BytesIO()
+    obs.save(buf)
+    buf.seek(0)
+    assert Observation.load(buf).equals(obs)
+
+
+def test_load_recomputes_stats_when_the_stored_preset_was_edited(obs, tmp_path):
+    obs.save(tmp_path)
+    rec = json.loads((tmp_path / "observation.json").read_text())
+    rec["preset"]["depth_bins"] = 10
+    (tmp_path / "observation.json").write_text(json.dumps(rec))
+    back = Observation.load(tmp_path)
+    assert back.stats.depth.shape == (10,) and back.preset.loss.depth_bins == 10
+
+
+def test_bad_observations_raise_named_errors(tmp_path):
+    d = plane(0.5)
+    cases = [
+        (lambda: Observation.from_depth("soybean", plane(np.nan)), InputError, "no finite"),
+        (lambda: Observation("soybean", CAM, d, ~full()), InputError, "mask is empty"),
+        (lambda: Observation("soybean", CAM, d[:10], full()[:10]), InputError, "camera is"),
+        (lambda: Observation("soybean", CAM, d, full()[:10]), InputError, "shape"),
+        (
+            lambda: Observation("soybean", CAM, np.where(full(), np.nan, d), full()),
+            InputError,
+            "no finite",
+        ),
+        (lambda: Observation.from_depth("soybean", d, rgb=np.zeros((5, 5, 3))), InputError, "rgb"),
+        (lambda: Observation("wheat", CAM, d, full()), ConfigError, "unknown crop"),
+        (lambda: Observation("soybean", CAM, d, full(), preset=MAIZE), ConfigError, "maize"),
+        (lambda: Observation.from_depth("maize", d, CAM), ConfigError, "render height"),
+        (
+            lambda: Observation("soybean", CAM, d, full(), meta={"x": object()}),
+            InputError,
+            "meta",
+        ),
+        (lambda: Observation.load(tmp_path / "missing"), InputError, "no observation"),
+    ]
+    for make, err, words in cases:
+        with pytest.raises(err, match=words):
+            make()
+    nan_in_mask = d.copy()
+    nan_in_mask[3, 3] = np.nan
+    with pytest.raises(InputError, match="not"):
+        compute_stats(nan_in_mask, CAM, full(), SOY)
+    with pytest.raises(InputError, match="not"):
+        Observation("soybean", CAM, nan_in_mask, full())
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError):
+        Observation.load(tmp_path / "junk.npz")
+    tilted = PinholeCamera.from_vfov(994, 738, 50.0, np.eye(4))
+    with pytest.raises(ConfigError, match="straight down"):
+        Observation("soybean", tilted, d, full())
+    assert issubclass(InputError, CropCraftError)
