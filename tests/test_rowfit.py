@@ -1,0 +1,267 @@
+"""Row fitting on point clouds sampled from real procedural canopies (area-weighted on the faces,
+green) plus noisy brown soil on z = 0, moved into a random similarity frame like an SfM scene."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cropcraft_core.config.layout import default_layout
+from cropcraft_core.errors import ConfigError, CropCraftError
+from cropcraft_core.procedural.canopy import generate_canopy
+from cropcraft_core.rowfit import (
+    RowFitError,
+    estimate_scale_from_rows,
+    fit_ground_and_rows,
+    fit_rows_with_scale,
+    preset,
+    srgb_to_lab,
+)
+
+GREEN = np.array([0.20, 0.42, 0.12])  # L* 41, a* -30: leaf
+BROWN = np.array([0.45, 0.34, 0.24])  # L* 39, a* +6, b* +16: soil
+YOUNG_SOY = {"leaf_length": 0.6, "num_nodes": 4.0}
+BIG_SOY = {"leaf_length": 1.3, "num_nodes": 10.0}
+MAIZE_REGION = (-3.5, 3.5, -3.5, 3.5)
+
+
+def sample_faces(mesh, density, rng):
+    """(n, 3) points uniformly on the mesh faces, ``density`` points per m² of face area."""
+    tri, area = mesh.triangles(), mesh.face_areas()
+    n = rng.poisson(area.sum() * density)
+    f = rng.choice(len(area), n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[f]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+
+
+def make_cloud(crop, params=None, az=0.0, seed=0, half=1.4, density=3000, region=None, soil=True):
+    """Metric cloud (ground z = 0): ((n, 3) points, (n, 3) sRGB in [0, 1], layout)."""
+    rng = np.random.default_rng(seed)
+    lay = default_layout(crop, row_azimuth_deg=az)
+    p = sample_faces(
+        generate_canopy(crop, params, lay, seed=seed, region=region).mesh, density, rng
+    )
+    p = p[(np.abs(p[:, 0]) <= half) & (np.abs(p[:, 1]) <= half)]
+    col = [GREEN + rng.normal(0, 0.03, (len(p), 3))]
+    pts = [p]
+    if soil:
+        ns = rng.poisson((2 * half) ** 2 * density)
+        s = np.column_stack(
+            [rng.uniform(-half, half, ns), rng.uniform(-half, half, ns), rng.normal(0, 0.005, ns)]
+        )
+        pts.append(s)
+        col.append(BROWN + rng.normal(0, 0.03, (ns, 3)))
+    return np.vstack(pts), np.clip(np.vstack(col), 0, 1), lay
+
+
+def to_scene(pts, seed, scale=0.37):
+    """A random similarity (rotation, translation, ``scale`` scene units per metre)."""
+    rot = Rotation.random(random_state=seed).as_matrix()
+    t = np.random.default_rng(seed + 100).normal(0, 2, 3)
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = scale * rot, t
+    return pts @ m[:3, :3].T + t, m
+
+
+def errors(fit, scene_from_true, lay):
+    """Row direction error (deg), lateral offset of the camera from the nearest true row (m),
+    relative camera-height error and ground-normal error (deg), all in the true metric frame."""
+    t_inv = np.linalg.inv(fit.world_from_scene @ scene_from_true)  # world → true
+    r = t_inv[:3, :3] / np.cbrt(np.linalg.det(t_inv[:3, :3]))
+    a = math.radians(lay.row_azimuth_deg)
+    d = r @ np.array([*fit.best_row.direction, 0.0])
+    dir_err = math.degrees(math.acos(min(1.0, abs(d @ [math.cos(a), math.sin(a), 0.0]))))
+    c = t_inv[:3, :3] @ fit.camera.center + t_inv[:3, 3]
+    y = -c[0] * math.sin(a) + c[1] * math.cos(a)
+    lateral = abs(y - round(y / lay.row_spacing) * lay.row_spacing)
+    height = abs(c[2] - fit.render_height) / fit.render_height
+    n = r @ np.array([0.0, 0.0, 1.0])
+    normal_err = math.degrees(math.acos(min(1.0, n[2])))
+    # the camera's image x axis lies along the fitted row, looking straight down
+    cam = fit.camera.cam_to_world
+    assert np.allclose(cam[:3, 0], [*fit.best_row.direction, 0.0])
+    assert np.allclose(cam[:3, 2], [0, 0, -1])
+    return dir_err, lateral, height, normal_err
+
+
+# --------------------------------------------------------------------------- LAB
+def test_lab_known_colours_and_opencv_float_agreement():
+    assert np.allclose(srgb_to_lab(np.array([1.0, 1.0, 1.0])), [100, 0, 0], atol=1e-3)
+    assert np.allclose(srgb_to_lab(np.array([0, 0, 0], np.uint8)), [0, 0, 0], atol=1e-6)
+    rng = np.random.default_rng(0)
+    rgb = rng.random((500, 3)).astype(np.float32)
+    ref = cv2.cvtColor(rgb[None], cv2.COLOR_RGB2Lab)[0]
+    assert np.abs(srgb_to_lab(rgb) - ref).max() < 0.5  # OpenCV interpolates a table
+    u8 = (rgb * 255).round().astype(np.uint8)
+    assert np.allclose(srgb_to_lab(u8), srgb_to_lab(u8.astype(float) / 255))
+    assert srgb_to_lab(GREEN)[1] < -20 and srgb_to_lab(BROWN)[1] > 2  # leaf green, soil red
+
+
+def test_presets_hold_the_papers_numbers():
+    s, m = preset("soybean"), preset("maize")
+    assert (s.sample_count, s.voxel_size, s.ground_threshold, s.ground_iterations) == (
+        100_000,
+        0.01,
+        0.05,
+        1000,
+    )
+    assert (s.remove_l_below, s.remove_b_below, s.plant_a_below) == (0, 1, 2)
+    assert (s.height_percentile, s.line_threshold, s.stop_min_points, s.stop_min_fraction) == (
+        50,
+        0.20,
+        1000,
+        0.2,
+    )
+    assert (s.render_height, s.dense_plant_fraction) == (1.0, 0.75)
+    d = s.dense()
+    assert (d.height_percentile, d.line_threshold, d.render_height) == (70, 0.25, 1.25)
+    assert s.box_center == (0, 0, -1.5) and s.box_size == (2, 2, 3) and s.roi_radius is None
+    assert (m.sample_count, m.ground_threshold, m.render_height, m.roi_radius) == (
+        5_000_000,
+        0.10,
+        5.0,
+        2.0,
+    )
+    assert (m.remove_l_below, m.remove_b_below, m.plant_a_below) == (32, 0, 0)
+    assert preset("maize", sample_count=1000).sample_count == 1000
+    assert preset("soybean", box_size=None).box_center is None
+    with pytest.raises(ConfigError):
+        preset("soybean", line_treshold=0.2)
+    with pytest.raises(ConfigError):
+        preset("wheat")
+
+
+# --------------------------------------------------------------------------- accuracy
+CASES = [
+    ("soybean", YOUNG_SOY, 0.0, 1, {}),
+    ("soybean", YOUNG_SOY, 30.0, 2, {}),
+    ("maize", None, 0.0, 3, dict(half=2.5, density=1000, region=MAIZE_REGION)),
+    ("maize", None, 30.0, 4, dict(half=2.5, density=1000, region=MAIZE_REGION)),
+]
+
+
+@pytest.mark.parametrize("crop,params,az,seed,kw", CASES)
+def test_rows_ground_and_camera_meet_targets(crop, params, az, seed, kw):
+    pts, col, lay = make_cloud(crop, params, az, seed, **kw)
+    scene, m = to_scene(pts, seed)
+    fit = fit_ground_and_rows(
+        scene,
+        col,
+        crop,
+        preset(crop, box_size=None),
+        rng=seed,
+        scale=1 / 0.37,
+        scale_source="user_hint",
+    )
+    dir_err, lateral, height, normal_err = errors(fit, m, lay)
+    assert dir_err <= 2.0
+    assert lateral <= 0.03
+    assert height <= 0.03
+    assert normal_err <= 0.5
+    assert fit.scale_source == "user_hint" and not fit.dense
+    assert fit.render_height == preset(crop).render_height
+    d = fit.diagnostics
+    assert d["n_ground"] + d["n_plant"] + d["n_removed"] == d["n_voxels"]
+    assert 0 < d["plant_fraction"] < 0.75
+    # the world frame is a similarity with the fit's scale; the ground maps to z = 0
+    w = fit.world_from_scene
+    assert np.allclose(w[:3, :3].T @ w[:3, :3], fit.scale**2 * np.eye(3))
+    soil = scene[col[:, 0] > 0.35]
+    assert np.percentile(np.abs(fit.to_world(soil)[:, 2]), 95) < 0.02
+    # the scene-frame camera renders the same view
+    cs = fit.camera_in_scene()
+    assert np.allclose(fit.to_world(cs.center[None])[0], fit.camera.center)
+
+
+def test_dense_canopy_switch():
+    pts, col, lay = make_cloud("soybean", BIG_SOY, 0.0, seed=5)
+    scene, m = to_scene(pts, 5, scale=1.0)
+    fit = fit_ground_and_rows(scene, col, "soybean", preset("soybean", box_size=None), rng=5)
+    assert fit.diagnostics["plant_fraction"] > 0.75 and fit.dense
+    assert fit.render_height == 1.25 and fit.preset.height_percentile == 70
+    assert fit.preset.line_threshold == 0.25
+    dir_err, lateral, height, _ = errors(fit, m, lay)
+    assert dir_err <= 2.0 and height <= 0.03
+    # lateral offset on this nearly closed, flat-topped canopy is looser (measured 6 cm)
+    assert lateral <= 0.38 / 2
+
+
+def test_paper_scene_box_crop():
+    pts, col, lay = make_cloud("soybean", YOUNG_SOY, 0.0, seed=6)
+    pts = pts + [0.0, 0.0, -2.5]  # ground inside the paper box (0, 0, -1.5) ± (1, 1, 1.5)
+    shift = np.eye(4)
+    shift[2, 3] = -2.5
+    fit = fit_ground_and_rows(pts, col, "soybean", rng=6, scale=1.0, scale_source="metric_poses")
+    assert fit.diagnostics["n_in_box"] < len(pts)
+    assert fit.scale_source == "metric_poses"
+    dir_err, lateral, height, _ = errors(fit, shift, lay)
+    assert dir_err <= 2.0 and lateral <= 0.03
+    assert abs(fit.to_world(np.array([[0.0, 0.0, -2.5]]))[0, 2]) < 0.01
+
+
+def test_deterministic_given_seed():
+    pts, col, _ = make_cloud("soybean", YOUNG_SOY, 10.0, seed=7, density=1500)
+    p = preset("soybean", box_size=None)
+    a = fit_ground_and_rows(pts, col, "soybean", p, rng=np.random.default_rng(11))
+    b = fit_ground_and_rows(pts, col, "soybean", p, rng=np.random.default_rng(11))
+    assert np.array_equal(a.camera.cam_to_world, b.camera.cam_to_world)
+    assert [r.n_inliers for r in a.rows] == [r.n_inliers for r in b.rows]
+
+
+# --------------------------------------------------------------------------- scale
+@pytest.mark.parametrize("crop,params,kw", [("soybean", YOUNG_SOY, {}), ("maize", None, {})])
+def test_scale_from_row_spacing(crop, params, kw):
+    if crop == "maize":
+        kw = dict(half=2.5, density=1000, region=MAIZE_REGION)
+    pts, col, lay = make_cloud(crop, params, 20.0, seed=8, **kw)
+    true_scale = 1 / 1.15  # metres per scene unit
+    scene, _ = to_scene(pts, 8, scale=1.15)
+    p = preset(crop, box_size=None)
+    fit = fit_ground_and_rows(scene, col, crop, p, rng=8)  # assumed metric: 15 % off
+    assert fit.scale_source == "assumed_metric"
+    est = estimate_scale_from_rows(fit, lay.row_spacing)
+    assert est.method == "profile_autocorrelation"
+    assert abs(est.factor * fit.scale / true_scale - 1) <= 0.03
+    auto = fit_rows_with_scale(scene, col, crop, p, rng=8, known_row_spacing=lay.row_spacing)
+    assert auto.scale_source == "row_spacing"
+    assert abs(auto.scale / true_scale - 1) <= 0.03
+    hinted = fit_rows_with_scale(scene, col, crop, p, rng=8, scale_hint=true_scale)
+    assert hinted.scale_source == "user_hint" and hinted.scale == true_scale
+
+
+def test_scale_fallback_with_a_single_row():
+    lay = default_layout("soybean", plot_width=0.8)
+    rng = np.random.default_rng(9)
+    can = generate_canopy("soybean", YOUNG_SOY, lay, seed=9, region=(-1.4, 1.4, -0.1, 0.1))
+    p = sample_faces(can.mesh, 3000, rng)
+    ns = 20000
+    soil = np.column_stack([rng.uniform(-1.4, 1.4, (ns, 2)), rng.normal(0, 0.005, ns)])
+    pts = np.vstack([p, soil])
+    col = np.vstack([np.tile(GREEN, (len(p), 1)), np.tile(BROWN, (ns, 1))])
+    fit = fit_ground_and_rows(pts, col, "soybean", preset("soybean", box_size=None), rng=9)
+    est = estimate_scale_from_rows(fit, lay.row_spacing)
+    assert est.method == "fallback_unchanged" and est.factor == 1.0
+
+
+# --------------------------------------------------------------------------- errors
+def test_named_errors():
+    p = preset("soybean", box_size=None)
+    pts, col, _ = make_cloud("soybean", YOUNG_SOY, 0.0, seed=10, soil=False)
+    with pytest.raises(RowFitError, match="no ground found"):
+        fit_ground_and_rows(pts, col, "soybean", p, rng=0)
+    rng = np.random.default_rng(0)
+    soil = np.column_stack([rng.uniform(-1, 1, (30000, 2)), rng.normal(0, 0.005, 30000)])
+    scol = np.tile(BROWN, (30000, 1))
+    scol[:200] = GREEN  # a few scattered green specks: no row
+    with pytest.raises(RowFitError, match="no rows found"):
+        fit_ground_and_rows(soil, scol, "soybean", p, rng=0)
+    with pytest.raises(RowFitError, match="too few points"):
+        fit_ground_and_rows(soil[:50], scol[:50], "soybean", p, rng=0)
+    with pytest.raises(RowFitError, match="too few points"):  # everything outside the box
+        fit_ground_and_rows(soil + [0, 0, 1.0], scol, "soybean", rng=0)
+    assert issubclass(RowFitError, CropCraftError)
