@@ -1,0 +1,298 @@
+"""Bayesian optimisation, baselines, checkpoint/resume and validation (cropcraft_core.optimize)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import cho_solve
+
+from cropcraft_core.config.params import bounds as crop_bounds
+from cropcraft_core.errors import ConfigError, InputError
+from cropcraft_core.optimize import (
+    METHODS,
+    BOConfig,
+    SeedResult,
+    aggregate,
+    check_bounds,
+    check_in_bounds,
+    evaluation_rng,
+    run_method,
+    run_seed,
+)
+from cropcraft_core.optimize.baselines import run_random, run_trust_region
+from cropcraft_core.optimize.gp import MaternGP, fit_hyperparameters
+
+FAST = {"candidates": 512, "local_candidates": 256, "n_polish": 3}
+
+
+def quadratic(centre: np.ndarray, scale: np.ndarray):
+    """Noise-free bowl with minimum 0 at ``centre``; objective(x, i) signature."""
+
+    def f(x: np.ndarray, eval_index: int) -> float:
+        return float((((x - centre) / scale) ** 2).sum())
+
+    return f
+
+
+class Noisy:
+    """Quadratic + independent noise from evaluation_rng(seed, i, common=False)."""
+
+    def __init__(self, seed: int, raise_at: int | None = None):
+        self.seed, self.raise_at, self.calls = seed, raise_at, []
+
+    def __call__(self, x: np.ndarray, eval_index: int) -> float:
+        if eval_index == self.raise_at:
+            raise KeyboardInterrupt(f"simulated kill at {eval_index}")
+        self.calls.append(eval_index)
+        rng = evaluation_rng(self.seed, eval_index, common=False)
+        return float(((x - 0.3) ** 2).sum() + 0.01 * rng.standard_normal())
+
+
+@pytest.mark.parametrize("d,n,n0,tol", [(2, 30, 10, 0.05), (5, 60, 20, 0.15)])
+def test_bo_finds_quadratic_minimum(d, n, n0, tol):
+    rng = np.random.default_rng(d)
+    b = np.column_stack([-rng.uniform(1, 3, d), rng.uniform(1, 3, d)])
+    centre = b[:, 0] + (b[:, 1] - b[:, 0]) * rng.uniform(0.2, 0.8, d)
+    scale = b[:, 1] - b[:, 0]
+    r = run_seed(quadratic(centre, scale), b, BOConfig(n_evals=n, n_initial=n0, **FAST), seed=1)
+    assert r.X.shape == (n, d) and r.y.shape == (n,)
+    assert r.complete and r.best_y == r.y.min()
+    assert np.all(r.X >= b[:, 0]) and np.all(r.X <= b[:, 1])
+    err = np.abs(r.reported_x - centre) / scale
+    assert err.max() < tol, (err, r.best_y)
+    # BO beats its own random initial design by a wide margin.
+    assert r.best_y < 0.1 * r.y[:n0].min()
+    assert r.seconds_optimizer > 0 and r.seconds_per_eval.shape == (n,)
+
+
+def test_seed_is_deterministic_and_initial_design_from_default_rng():
+    b = np.array([[0.0, 2.0], [-1.0, 1.0]])
+    cfg = BOConfig(n_evals=16, n_initial=8, **FAST)
+    r1 = run_seed(Noisy(3), b, cfg, seed=3)
+    r2 = run_seed(Noisy(3), b, cfg, seed=3)
+    np.testing.assert_array_equal(r1.X, r2.X)
+    np.testing.assert_array_equal(r1.y, r2.y)
+    expected = b[:, 0] + (b[:, 1] - b[:, 0]) * np.random.default_rng(3).random((8, 2))
+    np.testing.assert_array_equal(r1.X[:8], expected)
+    r3 = run_seed(Noisy(3), b, cfg, seed=4)
+    assert not np.array_equal(r1.X, r3.X)
+
+
+@pytest.mark.parametrize("kill_at", [5, 23, 30])
+def test_resume_after_interrupt_equals_uninterrupted(tmp_path, kill_at):
+    b = np.array([[0.0, 1.0], [0.0, 2.0], [-1.0, 1.0]])
+    cfg = BOConfig(n_evals=36, n_initial=12, refit_every=4, checkpoint_every=3, **FAST)
+    full = run_seed(Noisy(7), b, cfg, seed=7)
+
+    ck = tmp_path / "seed7.json"
+    snapshots: list[bytes] = []
+
+    def grab(i, x, y):  # what a hard kill (no clean exit) would leave: the last periodic save
+        if ck.exists():
+            snapshots.append(ck.read_bytes())
+
+    with pytest.raises(KeyboardInterrupt):
+        run_seed(Noisy(7, raise_at=kill_at), b, cfg, seed=7, checkpoint=ck, callback=grab)
+    partial = SeedResult.load(ck)
+    assert not partial.complete and partial.n_evals == kill_at  # saved on exit
+    np.testing.assert_array_equal(partial.X, full.X[:kill_at])
+
+    resumed_obj = Noisy(7)
+    resumed = run_seed(resumed_obj, b, cfg, seed=7, checkpoint=ck)
+    assert resumed_obj.calls == list(range(kill_at, 36))  # stored evaluations are not redone
+    for r in (resumed, SeedResult.load(ck)):
+        assert r.complete
+        np.testing.assert_array_equal(r.X, full.X)
+        np.testing.assert_array_equal(r.y, full.y)
+        np.testing.assert_array_equal(r.best_x, full.best_x)
+        np.testing.assert_array_equal(r.best_x_posterior, full.best_x_posterior)
+        assert r.best_y == full.best_y and r.best_mean_posterior == full.best_mean_posterior
+
+    # Hard kill: only an earlier periodic checkpoint survives.
+    if snapshots:
+        ck2 = tmp_path / "hard.json"
+        ck2.write_bytes(snapshots[0])
+        assert SeedResult.load(ck2).n_evals < kill_at
+        again = run_seed(Noisy(7), b, cfg, seed=7, checkpoint=ck2)
+        np.testing.assert_array_equal(again.X, full.X)
+        np.testing.assert_array_equal(again.y, full.y)
+
+    # A finished checkpoint is returned without calling the objective.
+    def boom(x, i):
+        raise AssertionError("objective called for a finished run")
+
+    done = run_seed(boom, b, cfg, seed=7, checkpoint=ck)
+    np.testing.assert_array_equal(done.X, full.X)
+
+
+def test_checkpoint_of_another_run_is_refused(tmp_path):
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    ck = tmp_path / "c.json"
+    run_seed(Noisy(1), b, BOConfig(n_evals=10, n_initial=5, **FAST), seed=1, checkpoint=ck)
+    with pytest.raises(ConfigError, match="another run"):
+        run_seed(Noisy(1), b, BOConfig(n_evals=12, n_initial=5, **FAST), seed=1, checkpoint=ck)
+    with pytest.raises(ConfigError, match="another run"):
+        run_seed(Noisy(2), b, BOConfig(n_evals=10, n_initial=5, **FAST), seed=2, checkpoint=ck)
+
+
+def test_result_serialisation_round_trip(tmp_path):
+    b = crop_bounds("maize")
+    centre = b.mean(1)
+    r = run_seed(
+        quadratic(centre, b[:, 1] - b[:, 0]), b, BOConfig(n_evals=14, n_initial=10, **FAST)
+    )
+    for name in ("r.json", "r.npz"):
+        back = SeedResult.load(r.save(tmp_path / name))
+        np.testing.assert_array_equal(back.X, r.X)
+        np.testing.assert_array_equal(back.y, r.y)
+        np.testing.assert_array_equal(back.best_x_posterior, r.best_x_posterior)
+        assert back.config == r.config and back.hyperparameters == r.hyperparameters
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_aggregate_mean_and_spread():
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    cfg = BOConfig(n_evals=12, n_initial=8, **FAST)
+    rs = [run_seed(Noisy(s), b, cfg, seed=s) for s in range(3)]
+    mean_x, std_x, per_seed = aggregate(rs)
+    P = np.vstack([r.best_x_posterior for r in rs])
+    np.testing.assert_allclose(per_seed, P)
+    np.testing.assert_allclose(mean_x, P.mean(0))
+    np.testing.assert_allclose(std_x, P.std(0, ddof=1))
+    np.testing.assert_allclose(aggregate(rs, use="observed").per_seed, [r.best_x for r in rs])
+    with pytest.raises(ConfigError):
+        aggregate([])
+
+
+@pytest.mark.parametrize("crop", ["soybean", "maize"])
+def test_random_baseline_end_to_end(crop, tmp_path):
+    b = crop_bounds(crop)
+    r = run_random(quadratic(b.mean(1), b[:, 1] - b[:, 0]), b, n_evals=500, seed=2)
+    assert r.method == "random" and r.X.shape == (500, b.shape[0])
+    assert np.all(r.X >= b[:, 0]) and np.all(r.X <= b[:, 1])
+    assert r.best_y == r.y.min() and r.best_x_posterior is None
+    np.testing.assert_array_equal(r.reported_x, r.best_x)
+    # Resumable like BO.
+    ck = tmp_path / "rand.json"
+    obj = Noisy(2, raise_at=123)
+    with pytest.raises(KeyboardInterrupt):
+        run_random(obj, b, n_evals=200, seed=2, checkpoint=ck)
+    resumed = run_random(Noisy(2), b, n_evals=200, seed=2, checkpoint=ck)
+    full = run_random(Noisy(2), b, n_evals=200, seed=2)
+    np.testing.assert_array_equal(resumed.y, full.y)
+
+
+def test_trust_region_baseline_end_to_end(tmp_path):
+    b = crop_bounds("soybean")
+    centre = b[:, 0] + 0.3 * (b[:, 1] - b[:, 0])
+    f = quadratic(centre, b[:, 1] - b[:, 0])
+    r = run_trust_region(f, b, seed=0, n_starts=10, maxiter=500)
+    assert r.method == "trust-region" and r.n_evals > 10
+    assert np.all(r.X >= b[:, 0]) and np.all(r.X <= b[:, 1])
+    assert r.best_y < 1e-6 and r.best_y == r.y.min()
+    # Interrupted and resumed (deterministic replay) = uninterrupted, on a noisy objective.
+    noisy = lambda x, i: Noisy(0)(x, i)  # noqa: E731
+    full = run_trust_region(noisy, b, seed=0, n_starts=3, maxiter=30)
+    ck = tmp_path / "tr.json"
+
+    def killer(x, i):
+        if i == full.n_evals // 2:
+            raise KeyboardInterrupt
+        return noisy(x, i)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_trust_region(killer, b, seed=0, n_starts=3, maxiter=30, checkpoint=ck)
+    resumed = run_trust_region(noisy, b, seed=0, n_starts=3, maxiter=30, checkpoint=ck)
+    np.testing.assert_array_equal(resumed.X, full.X)
+    np.testing.assert_array_equal(resumed.y, full.y)
+    capped = run_trust_region(noisy, b, seed=0, max_evals=40)
+    assert capped.n_evals == 40
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        [[0.0, 1.0], [2.0, 1.0]],  # low > high
+        [[0.0, 0.0]],  # empty side
+        [[0.0, 1.0, 2.0]],  # wrong shape
+        [[0.0, math.nan]],
+        [0.0, 1.0],
+        "box",
+    ],
+)
+def test_bad_bounds_raise_config_error(bad):
+    with pytest.raises(ConfigError):
+        check_bounds(bad)
+    with pytest.raises(ConfigError):
+        run_seed(quadratic(np.zeros(1), np.ones(1)), bad, BOConfig(n_evals=4, n_initial=2))
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"n_initial": 600},
+        {"n_initial": 1, "n_evals": 10},
+        {"refit_every": 0},
+        {"candidates": 0},
+        {"xi": -1.0},
+        {"n_evals": 2.5},
+        {"noise_variance": -1.0},
+        {"blas_threads": 0},
+    ],
+)
+def test_bad_config_raises_config_error(kw):
+    with pytest.raises(ConfigError):
+        run_seed(quadratic(np.zeros(2), np.ones(2)), [[0, 1], [0, 1]], BOConfig(**kw))
+
+
+def test_box_violations_raise_config_error():
+    b = crop_bounds("soybean")
+    check_in_bounds(b.mean(1), b)
+    x = b.mean(1)
+    x[4] = 15.0  # num_nodes in [1, 14]
+    with pytest.raises(ConfigError, match="num_nodes|outside the parameter box"):
+        check_in_bounds(x, b)
+    with pytest.raises(ConfigError):
+        check_in_bounds(b.mean(1)[:3], b)
+    with pytest.raises(ConfigError):
+        run_seed(quadratic(np.zeros(2), np.ones(2)), [[0, 1], [0, 1]], seed=-1)
+    with pytest.raises(ConfigError):
+        run_random(quadratic(np.zeros(2), np.ones(2)), [[0, 1], [0, 1]], n_evals=0)
+
+
+def test_bad_objective_value_raises_input_error():
+    with pytest.raises(InputError, match="evaluation 0"):
+        run_seed(lambda x, i: math.nan, [[0, 1]], BOConfig(n_evals=4, n_initial=2))
+
+
+def test_gp_incremental_update_matches_full_factorisation():
+    rng = np.random.default_rng(0)
+    X = rng.random((60, 3))
+    y = np.sin(4 * X).sum(1)
+    theta = fit_hyperparameters(X[:40], y[:40])
+    inc = MaternGP(X[:40], y[:40], theta)
+    for i in range(40, 60):
+        inc.append(X[i], y[i])
+    full = MaternGP(X, y, theta)
+    full.y_mean, full.y_std = inc.y_mean, inc.y_std
+    full.ys = (y - inc.y_mean) / inc.y_std
+    np.testing.assert_allclose(inc.L, full.L, atol=1e-9)
+    Xs = rng.random((5, 3))
+    m1, s1 = inc.predict(Xs)
+    full.alpha = cho_solve((full.L, True), full.ys)
+    m2, s2 = full.predict(Xs)
+    np.testing.assert_allclose(m1, m2, atol=1e-8)
+    np.testing.assert_allclose(s1, s2, atol=1e-8)
+
+
+def test_run_method_dispatch():
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    cfg = BOConfig(n_evals=12, n_initial=8, **FAST)
+    f = quadratic(np.full(2, 0.4), np.ones(2))
+    for m in METHODS:
+        r = run_method(m, f, b, seed=0, config=cfg)
+        assert r.method == m and np.all((r.X >= 0) & (r.X <= 1))
+    with pytest.raises(ConfigError, match="unknown optimisation method"):
+        run_method("nelder-mead", Noisy(0), b)
