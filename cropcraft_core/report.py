@@ -1,0 +1,300 @@
+"""Self-contained reports: the per-scene HTML page and the season summary (CSV and PNG plot).
+
+Pure functions from small records and arrays to text or bytes; every image is inlined as a
+base64 ``data:`` URI, so a report is one file that opens anywhere. Nothing here reads or writes
+the scene store (the ``report`` task does), and nothing imports Prefect.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from cropcraft_core.errors import InputError
+
+#: Traits shown in the report's metric table and the season summary, in this order.
+REPORT_METRICS = (
+    "lai",
+    "lai_gap_fraction",
+    "leaf_angle_mean_deg",
+    "leaf_angle_std_deg",
+    "leaf_angle_class",
+    "node_count",
+    "internode_mean_m",
+    "plant_height_m",
+    "leaf_count",
+    "n_plants",
+    "leaf_area_m2",
+    "ground_area_m2",
+)
+
+#: Season summary columns: (metrics key, CSV header with unit).
+SEASON_COLUMNS = (
+    ("lai", "lai_m2_m2"),
+    ("lai_gap_fraction", "lai_gap_fraction_m2_m2"),
+    ("leaf_angle_mean_deg", "leaf_angle_mean_deg"),
+    ("leaf_angle_std_deg", "leaf_angle_sd_deg"),
+    ("plant_height_m", "plant_height_m"),
+    ("node_count", "node_count"),
+    ("internode_mean_m", "internode_mean_m"),
+)
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """(H, W, 3) or (H, W) uint8 image → PNG bytes."""
+    from PIL import Image
+
+    a = np.asarray(rgb)
+    if a.dtype != np.uint8 or a.ndim not in (2, 3):
+        raise InputError(f"image must be (H, W[, 3]) uint8, got {a.dtype} {a.shape}")
+    buf = io.BytesIO()
+    Image.fromarray(a).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def data_uri(png: bytes, mime: str = "image/png") -> str:
+    """``data:`` URI of encoded image bytes."""
+    return f"data:{mime};base64,{base64.b64encode(png).decode('ascii')}"
+
+
+def thumbnail(rgb: np.ndarray, max_side: int = 192) -> np.ndarray:
+    """Downscale (H, W, 3) uint8 so that its longer side is at most ``max_side`` pixels."""
+    from PIL import Image
+
+    im = Image.fromarray(np.asarray(rgb, np.uint8))
+    im.thumbnail((max_side, max_side), Image.Resampling.LANCZOS)
+    return np.asarray(im)
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "–"
+        return f"{value:.4g}"
+    return html.escape(str(value))
+
+
+def _depth_pair(observed: np.ndarray, predicted: np.ndarray | None) -> tuple[str, str | None]:
+    """Both depth maps on one colour scale (the observed finite range)."""
+    from cropcraft_core.render.preview import depth_to_rgb
+
+    obs = np.asarray(observed, np.float64)
+    fin = np.isfinite(obs)
+    lo, hi = (float(obs[fin].min()), float(obs[fin].max())) if fin.any() else (0.0, 1.0)
+    a = data_uri(png_bytes(depth_to_rgb(obs, lo, hi)))
+    b = None
+    if predicted is not None:
+        b = data_uri(png_bytes(depth_to_rgb(np.asarray(predicted, np.float64), lo, hi)))
+    return a, b
+
+
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:2em;color:#222;max-width:1100px}
+h1{font-size:1.5em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ddd;padding:.25em .6em;
+text-align:left;vertical-align:top}th{background:#f4f4f4}td.num{text-align:right;
+font-variant-numeric:tabular-nums}.thumbs img{margin:2px;border:1px solid #ccc}
+figure{display:inline-block;margin:.3em 1em .3em 0}figcaption{font-size:.85em;color:#555}
+.small{font-size:.85em;color:#555}
+"""
+
+
+def scene_report_html(
+    scene: str,
+    *,
+    thumbnails: Sequence[np.ndarray] = (),
+    observed_depth: np.ndarray | None = None,
+    predicted_depth: np.ndarray | None = None,
+    preview_png: bytes | None = None,
+    metrics: Mapping[str, Any] | None = None,
+    fit: Mapping[str, Any] | None = None,
+    timings: Mapping[str, float] | None = None,
+    info: Mapping[str, Any] | None = None,
+) -> str:
+    """The HTML page of one scene.
+
+    scene: ``site/crop/date``. thumbnails: (h, w, 3) uint8 input photos (already small).
+    observed_depth / predicted_depth: (H, W) z-depth in metres from the row camera, NaN where
+    empty (shown on the observed map's colour scale). preview_png: the mesh preview.
+    metrics: ``metrics.json`` (values plus ``definitions`` {name: {unit, method}}).
+    fit: ``fit.json`` (``params``, ``params_std``, ``seed_params``, ``seed_losses``, ``method``).
+    timings: seconds per stage. info: other key facts (shown as a table).
+    """
+    metrics = dict(metrics or {})
+    defs = metrics.get("definitions") or {}
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>CropCraft report {html.escape(scene)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>CropCraft scene report: {html.escape(scene)}</h1>",
+    ]
+    if info:
+        parts.append("<table>")
+        for k, v in info.items():
+            parts.append(f"<tr><th>{html.escape(str(k))}</th><td>{_fmt(v)}</td></tr>")
+        parts.append("</table>")
+
+    parts.append("<h2>Input photos</h2>")
+    if thumbnails:
+        parts.append("<div class='thumbs'>")
+        for im in thumbnails:
+            parts.append(f"<img alt='input photo' src='{data_uri(png_bytes(im))}'>")
+        parts.append(f"</div><p class='small'>{len(thumbnails)} of the ingested photos.</p>")
+    else:
+        parts.append("<p class='small'>none recorded</p>")
+
+    parts.append("<h2>Row-camera depth: observed vs predicted</h2>")
+    if observed_depth is not None:
+        a, b = _depth_pair(observed_depth, predicted_depth)
+        parts.append(
+            f"<figure><img alt='observed depth' src='{a}'><figcaption>observed "
+            "(surfaces rendered from the row camera)</figcaption></figure>"
+        )
+        if b is not None:
+            parts.append(
+                f"<figure><img alt='predicted depth' src='{b}'><figcaption>predicted "
+                "(fitted procedural canopy)</figcaption></figure>"
+            )
+        fin = np.isfinite(np.asarray(observed_depth, float))
+        if fin.any():
+            d = np.asarray(observed_depth, float)[fin]
+            parts.append(
+                f"<p class='small'>colour scale: z-depth {d.min():.3f} m (near) to "
+                f"{d.max():.3f} m (far), turbo colour map; grey = nothing seen.</p>"
+            )
+    else:
+        parts.append("<p class='small'>no observation</p>")
+
+    parts.append("<h2>Canopy mesh</h2>")
+    if preview_png:
+        parts.append(
+            f"<img alt='mesh preview' src='{data_uri(preview_png)}' style='max-width:100%'>"
+        )
+    else:
+        parts.append("<p class='small'>no preview</p>")
+
+    parts.append(
+        "<h2>Metrics</h2><table><tr><th>trait</th><th>value</th><th>unit</th><th>method</th></tr>"
+    )
+    for k in REPORT_METRICS:
+        if k not in metrics:
+            continue
+        d = defs.get(k) or {}
+        parts.append(
+            f"<tr><td>{html.escape(k)}</td><td class='num'>{_fmt(metrics[k])}</td>"
+            f"<td>{html.escape(str(d.get('unit', '')))}</td>"
+            f"<td class='small'>{html.escape(str(d.get('method', '')))}</td></tr>"
+        )
+    parts.append("</table>")
+
+    if fit:
+        params = fit.get("params") or {}
+        std = fit.get("params_std") or {}
+        seeds = fit.get("seed_params") or []
+        losses = fit.get("seed_losses") or []
+        parts.append(
+            f"<h2>Fitted parameters ({html.escape(str(fit.get('method', '')))}, "
+            f"{len(seeds)} seeds)</h2><table><tr><th>parameter</th><th>mean</th>"
+            "<th>SD over seeds</th><th>min</th><th>max</th></tr>"
+        )
+        for name, value in params.items():
+            col = [float(s[name]) for s in seeds if name in s]
+            lo = min(col) if col else None
+            hi = max(col) if col else None
+            parts.append(
+                f"<tr><td>{html.escape(name)}</td><td class='num'>{_fmt(value)}</td>"
+                f"<td class='num'>{_fmt(std.get(name))}</td><td class='num'>{_fmt(lo)}</td>"
+                f"<td class='num'>{_fmt(hi)}</td></tr>"
+            )
+        parts.append("</table>")
+        if losses:
+            cells = " ".join(_fmt(float(v)) for v in losses)
+            parts.append(f"<p class='small'>best loss per seed: {cells}</p>")
+
+    if timings:
+        total = sum(float(v) for v in timings.values())
+        parts.append("<h2>Stage timings</h2><table><tr><th>stage</th><th>seconds</th></tr>")
+        for k, v in timings.items():
+            parts.append(f"<tr><td>{html.escape(k)}</td><td class='num'>{float(v):.2f}</td></tr>")
+        parts.append(f"<tr><th>total</th><th class='num'>{total:.2f}</th></tr></table>")
+        parts.append(
+            "<p class='small'>wall-clock seconds of the run that computed each "
+            "stage (a cached stage keeps the time of its original run); fit_seed "
+            "is summed over seeds.</p>"
+        )
+    parts.append("</body></html>\n")
+    return "".join(parts)
+
+
+# --------------------------------------------------------------------------- season summary
+
+
+def season_rows(per_date: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """``{date: metrics}`` → rows sorted by date, one column per :data:`SEASON_COLUMNS`."""
+    rows = []
+    for date in sorted(per_date):
+        m = per_date[date]
+        rows.append({"date": date, **{col: m.get(key) for key, col in SEASON_COLUMNS}})
+    return rows
+
+
+def season_csv(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The season summary as CSV text (units in the column names, empty cell = unknown)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["date", *(col for _, col in SEASON_COLUMNS)])
+    for r in rows:
+        cells = []
+        for _, col in SEASON_COLUMNS:
+            v = r.get(col)
+            cells.append("" if v is None else f"{float(v):.6g}")
+        writer.writerow([r["date"], *cells])
+    return buf.getvalue()
+
+
+def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes:
+    """PNG of LAI, mean leaf angle (± SD) and plant height against date (three panels)."""
+    import datetime as dt
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dates = [dt.date.fromisoformat(r["date"]) for r in rows]
+
+    def col(name: str) -> np.ndarray:
+        return np.array([np.nan if r.get(name) is None else float(r[name]) for r in rows])
+
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    axes[0].plot(dates, col("lai_m2_m2"), "o-", label="LAI (leaf area / ground area)")
+    if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
+        axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")
+    axes[0].set_ylabel("LAI (m² m⁻²)")
+    axes[0].legend(fontsize=8)
+    mean, sd = col("leaf_angle_mean_deg"), col("leaf_angle_sd_deg")
+    axes[1].errorbar(dates, mean, yerr=np.nan_to_num(sd), fmt="o-", capsize=3)
+    axes[1].set_ylabel("leaf angle (°), mean ± SD")
+    axes[2].plot(dates, col("plant_height_m"), "o-")
+    axes[2].set_ylabel("plant height (m)")
+    axes[2].set_xlabel("date")
+    if title:
+        axes[0].set_title(title)
+    fig.autofmt_xdate()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()

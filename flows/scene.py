@@ -1,0 +1,504 @@
+"""The scene flow: photos of one plot on one date → canopy, traits, bundle and report.
+
+    ingest → poses → surfaces → rowfit → observe → fit_seed × n (mapped) → aggregate
+           → generate → metrics → export → report
+
+Each stage is one task of ``tasks/`` (read the store, call ``cropcraft_core``, write the store,
+return a small record); this module only validates the request, resolves the configuration,
+wires the tasks and keeps the scene's manifest up to date.
+
+Idempotence. Every task's cache key is ``{scene}/.prefect/{stage}/{sha256(stage, version,
+scene, stage-config hash, upstream artefact hashes, seed)}`` (``tasks.common.stage_key``) and
+its result is persisted there, under the scene store's root. So a rerun with the same inputs is
+``Cached`` everywhere; a changed stage config recomputes that stage and, where its outputs
+change, everything after it; a run that failed in one seed reruns only that seed and what
+follows. :func:`cached_result` walks the same keys without Prefect, which answers an unchanged
+scene in about a second.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger, unmapped
+
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+from cropcraft_core.store import SceneKey, SceneStore, config_hash
+from tasks.common import fingerprint, get_task, stage_key
+
+# --------------------------------------------------------------------------- configuration
+
+#: Embedded defaults of every stage (the paper's settings; override by section and key).
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "layout": {},
+    "ingest": {"max_size": None, "min_images": 3},
+    "poses": {"matcher": "auto", "seed": 0, "num_threads": 2, "imported_metric": True},
+    "surfaces": {"backend": "tsdf", "bbox": None, "n_points": 100_000},
+    "rowfit": {"seed": 0, "scale": None, "preset": {}},
+    "observe": {"image_scale": 1.0, "preset": {}},
+    "fit": {
+        "method": "bo",
+        "n_seeds": 10,
+        "n_evals": 500,
+        "n_initial": 200,
+        "common_random_numbers": True,
+        "refit_every": 10,
+    },
+    "generate": {"seed": 0},
+    "metrics": {"gap_fraction": True, "seed": 0},
+    "export": {},
+    "report": {"n_thumbnails": 6, "thumbnail_px": 192},
+}
+
+#: Sections whose keys are free-form (checked by the core function that uses them).
+_OPEN_SECTIONS = {"layout", "surfaces"}
+_OPEN_KEYS = {"preset"}
+
+
+def _set_dotted(cfg: dict, dotted: str, value: Any) -> None:
+    section, _, key = dotted.partition(".")
+    if section not in cfg:
+        raise ConfigError(
+            f"unknown config section {section!r} in override {dotted!r}: one of {', '.join(cfg)}"
+        )
+    if not key:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"override {dotted!r} must be a mapping of settings")
+        for k, v in value.items():
+            _set_dotted(cfg, f"{section}.{k}", v)
+        return
+    head, _, rest = key.partition(".")
+    if section not in _OPEN_SECTIONS and head not in cfg[section]:
+        raise ConfigError(
+            f"unknown setting {dotted!r}: {section} has {', '.join(cfg[section]) or 'none'}"
+        )
+    if rest:
+        if head not in _OPEN_KEYS and section not in _OPEN_SECTIONS:
+            raise ConfigError(f"setting {section}.{head} takes a value, not {dotted!r}")
+        target = cfg[section].setdefault(head, {})
+        if not isinstance(target, dict):
+            raise ConfigError(f"setting {section}.{head} is not a mapping")
+        target[rest] = value
+    else:
+        cfg[section][head] = value
+
+
+def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The scene config: :data:`DEFAULTS` with ``overrides`` applied and checked.
+
+    overrides: nested (``{"fit": {"n_evals": 60}}``) or dotted (``{"fit.n_evals": 60,
+    "observe.preset.lambda_sobel": 2}``). Unknown sections or settings, and values a core
+    config refuses, raise ConfigError before any work starts.
+    """
+    cfg = copy.deepcopy(DEFAULTS)
+    for k, v in (overrides or {}).items():
+        _set_dotted(cfg, str(k), v)
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.fit import FitConfig
+    from cropcraft_core.observe import preset as observe_preset
+    from cropcraft_core.rowfit import preset as rowfit_preset
+
+    try:
+        default_layout(crop, **cfg["layout"])
+    except TypeError as exc:
+        raise ConfigError(f"invalid layout override {cfg['layout']}: {exc}") from None
+    FitConfig(**cfg["fit"]).validate()
+    rowfit_preset(crop, **cfg["rowfit"]["preset"])
+    observe_preset(crop, **cfg["observe"]["preset"])
+    try:
+        from cropcraft_core.surfaces import SurfacesConfig
+    except ImportError:
+        pass
+    else:
+        s = {k: v for k, v in cfg["surfaces"].items() if k not in ("bbox", "n_points")}
+        SurfacesConfig.from_dict(s)
+    if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
+        raise ConfigError("observe.image_scale must be in (0, 4]")
+    return cfg
+
+
+def stage_configs(cfg: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """The config each task sees (and its cache key hashes): its own section, plus the planting
+    layout for the stages that build canopies."""
+    layout = {"layout": dict(cfg["layout"])}
+    return {
+        "ingest": dict(cfg["ingest"]),
+        "poses": dict(cfg["poses"]),
+        "surfaces": dict(cfg["surfaces"]),
+        "rowfit": dict(cfg["rowfit"]),
+        "observe": dict(cfg["observe"]),
+        "fit_seed": {**cfg["fit"], **layout},
+        "aggregate": {**cfg["fit"], **layout},
+        "generate": {**cfg["generate"], **layout},
+        "metrics": dict(cfg["metrics"]),
+        "export": dict(cfg["export"]),
+        "report": {**cfg["report"], **layout},
+    }
+
+
+# --------------------------------------------------------------------------- the request
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneRequest:
+    """A validated scene run: everything the wiring needs, nothing large."""
+
+    scene: SceneKey
+    store_root: str
+    images: str
+    poses: str | None
+    config: dict[str, Any]
+    inputs: dict[str, dict[str, str]]
+    """Fingerprints: ``{"images": {...}, "poses": {...}}`` (poses only when given)."""
+
+    @property
+    def stages(self) -> dict[str, dict[str, Any]]:
+        return stage_configs(self.config)
+
+
+def default_images_uri(store: SceneStore, scene: SceneKey) -> str:
+    """The scene's photo inbox in the store: ``{site}/{crop}/{date}/images/``."""
+    return store.url(f"{scene.prefix}/images")
+
+
+def default_poses_uri(store: SceneStore, scene: SceneKey) -> str | None:
+    """``images/transforms.json`` in the scene's inbox, when there is one."""
+    key = f"{scene.prefix}/images/transforms.json"
+    return store.url(key) if store.isfile(key) else None
+
+
+def prepare(
+    site: str,
+    crop: str,
+    date: str,
+    images: str | None = None,
+    poses: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    store: str | None = None,
+    *,
+    timeout_s: float = 5.0,
+) -> SceneRequest:
+    """Validate a scene run before any work starts.
+
+    Raises ConfigError (bad site/crop/date characters, unknown settings), StoreError (the store
+    cannot be reached or written, within ``timeout_s``) or InputError (no photos at ``images``,
+    nothing at ``poses``). ``images`` defaults to the scene's inbox in the store, ``poses`` to
+    ``images/transforms.json`` there if present.
+    """
+    scene = SceneKey(site, crop, str(date))
+    cfg = resolve_config(crop, overrides)
+    st = SceneStore.connect(store, timeout_s=timeout_s)
+    uri = images or default_images_uri(st, scene)
+    inputs = {"images": fingerprint(str(uri), what="images")}
+    poses_uri = poses if poses is not None else (None if images else default_poses_uri(st, scene))
+    if poses_uri:
+        inputs["poses"] = fingerprint(str(poses_uri), what="poses")
+    return SceneRequest(scene, st.root, str(uri), poses_uri and str(poses_uri), cfg, inputs)
+
+
+def result_storage(store_root: str) -> Any:
+    """Prefect result storage at the scene store's root: a ``Path`` for a local store, an
+    (unsaved) ``RemoteFileSystem`` block for object storage, carrying only the endpoint;
+    credentials come from the environment of whoever reads or writes."""
+    store = SceneStore(store_root)
+    if store.protocol == "file":
+        return Path(store.fs._strip_protocol(store.root))
+    from prefect.filesystems import RemoteFileSystem
+
+    opts = store.describe()["storage_options"]
+    settings: dict[str, Any] = {}
+    endpoint = opts.get("endpoint_url") or (opts.get("client_kwargs") or {}).get("endpoint_url")
+    if endpoint:
+        settings["endpoint_url"] = endpoint
+    return RemoteFileSystem(basepath=store.root, settings=settings)
+
+
+# --------------------------------------------------------------------------- the wiring
+
+
+class _Miss(Exception):
+    """A stage has no cached result (cache walk only)."""
+
+
+def _flatten(upstream: Mapping[str, Any]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for rec in upstream.values():
+        if isinstance(rec, Mapping) and "hashes" in rec:
+            out.update(rec["hashes"])
+    return out
+
+
+class _CacheWalk:
+    """Executes the wiring by reading persisted stage records only (no Prefect run)."""
+
+    def __init__(self, req: SceneRequest) -> None:
+        self.req = req
+        self.store = SceneStore(req.store_root)
+        self.base = self.store.fs._strip_protocol(self.store.root).rstrip("/")
+        self.states: dict[str, str] = {}
+
+    def _read(self, key: str) -> dict:
+        from prefect._internal.result_records import ResultRecord
+
+        path = f"{self.base}/{key}"
+        try:
+            data = self.store.fs.cat_file(path)
+        except (FileNotFoundError, OSError):
+            raise _Miss(key) from None
+        try:
+            return ResultRecord.deserialize(data).result
+        except Exception:  # unreadable record: treat as a miss, the flow recomputes
+            raise _Miss(key) from None
+
+    def run(self, stage: str, upstream: dict, **_: Any) -> dict:
+        key = stage_key(stage, self.req.scene.prefix, self.req.stages[stage], upstream)
+        rec = self._read(key)
+        self.states[stage] = "Cached"
+        return rec
+
+    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
+        out = {}
+        cfg = self.req.stages["fit_seed"]
+        for s in seeds:
+            key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, {"seed": s})
+            out[f"seed-{s}"] = self._read(key)
+            self.states[f"fit_seed-{s}"] = "Cached"
+        return out
+
+
+class _PrefectRun:
+    """Executes the wiring with Prefect tasks, recording each stage in the manifest."""
+
+    def __init__(self, req: SceneRequest, storage: Any) -> None:
+        self.req = req
+        self.storage = storage
+        self.store = SceneStore(req.store_root)
+        self.states: dict[str, str] = {}
+        self.log = get_run_logger()
+
+    def _task(self, stage: str):
+        return get_task(stage).with_options(result_storage=self.storage)
+
+    def _record(self, stage: str, upstream: dict, rec: dict | None, error: Any = None) -> None:
+        scene = self.req.scene
+        chash = config_hash(self.req.stages[stage])
+        if error is not None:
+            self.store.update_stage(scene, stage, status="failed", config_hash=chash, error=error)
+            return
+        assert rec is not None
+        self.store.update_stage(
+            scene,
+            stage,
+            status="done",
+            config_hash=chash,
+            inputs=_flatten(upstream),
+            artefacts=rec["hashes"],
+            seconds=rec["seconds"],
+        )
+
+    def run(self, stage: str, upstream: dict, **kwargs: Any) -> dict:
+        fut = self._task(stage).submit(
+            store_root=self.req.store_root,
+            scene=self.req.scene.prefix,
+            config=self.req.stages[stage],
+            upstream=upstream,
+            **kwargs,
+        )
+        fut.wait()
+        self.states[stage] = fut.state.name
+        try:
+            rec = fut.result()
+        except Exception as exc:
+            self._record(stage, upstream, None, exc)
+            raise
+        self._record(stage, upstream, rec)
+        self.log.info("%s: %s (%.1f s)", stage, fut.state.name, rec["seconds"])
+        return rec
+
+    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
+        futures = self._task("fit_seed").map(
+            store_root=unmapped(self.req.store_root),
+            scene=unmapped(self.req.scene.prefix),
+            config=unmapped(self.req.stages["fit_seed"]),
+            upstream=unmapped(upstream),
+            seed=seeds,
+        )
+        futures.wait()
+        out, failed = {}, []
+        for s, fut in zip(seeds, futures, strict=True):
+            self.states[f"fit_seed-{s}"] = fut.state.name
+            try:
+                out[f"seed-{s}"] = fut.result()
+            except Exception as exc:
+                failed.append((s, exc))
+        if failed:
+            msg = "; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failed)
+            self._record("fit_seed", upstream, None, msg)
+            raise CropCraftError(
+                f"{len(failed)} of {len(seeds)} fit seeds failed for {self.req.scene} ({msg}); "
+                "the other seeds are saved: rerun the same command to compute only what is "
+                "missing"
+            )
+        hashes: dict[str, str] = {}
+        for rec in out.values():
+            hashes.update(rec["hashes"])
+        seconds = sum(r["seconds"] for r in out.values())
+        self._record("fit_seed", upstream, {"hashes": hashes, "seconds": seconds})
+        return out
+
+
+def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
+    """The scene graph; ``ex`` is :class:`_PrefectRun` or :class:`_CacheWalk`."""
+    r: dict[str, Any] = {}
+    r["ingest"] = ex.run("ingest", {"inputs": req.inputs["images"]}, images=req.images)
+    up = {"ingest": r["ingest"]}
+    if req.poses:
+        up["inputs"] = req.inputs["poses"]
+    r["poses"] = ex.run("poses", up, poses_uri=req.poses)
+    r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
+    r["rowfit"] = ex.run("rowfit", {"surfaces": r["surfaces"], "poses": r["poses"]})
+    r["observe"] = ex.run("observe", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]})
+    seeds = list(range(int(req.config["fit"]["n_seeds"])))
+    seed_recs = ex.map_seeds({"observe": r["observe"]}, seeds)
+    r["aggregate"] = ex.run("aggregate", dict(seed_recs))
+    r["generate"] = ex.run("generate", {"aggregate": r["aggregate"]})
+    r["metrics"] = ex.run("metrics", {"generate": r["generate"]})
+    r["export"] = ex.run(
+        "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": r["aggregate"]}
+    )
+    r["report"] = ex.run("report", {k: r[k] for k in r if k != "fit_seed"} | dict(seed_recs))
+    r["fit_seeds"] = seed_recs
+    return r
+
+
+def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]) -> dict:
+    """The small result of a scene run: where everything is, the key numbers, stage states."""
+    store = SceneStore(req.store_root)
+    return {
+        "scene": req.scene.prefix,
+        "store": req.store_root,
+        "config_hash": config_hash(req.config),
+        "states": dict(states),
+        "metrics": records["metrics"]["summary"],
+        "params": records["aggregate"]["summary"]["params"],
+        "params_std": records["aggregate"]["summary"]["params_std"],
+        "report": store.url(records["report"]["artefacts"]["report"]),
+        "bundle": store.url(records["export"]["artefacts"]["bundle"]),
+        "seconds": {k: v["seconds"] for k, v in records.items() if k != "fit_seeds"},
+    }
+
+
+def cached_result(req: SceneRequest) -> dict | None:
+    """The scene's summary if every stage is already cached for this request, else None.
+
+    Reads the persisted stage records along the same keys the flow would compute, without
+    starting Prefect.
+    """
+    walk = _CacheWalk(req)
+    try:
+        records = _wire(walk, req)
+    except _Miss:
+        return None
+    return summarize(req, records, walk.states)
+
+
+def cache_walk(req: SceneRequest) -> tuple[dict[str, str], str | None]:
+    """``(states, first_missing_key)``: how far the cache reaches for this request."""
+    walk = _CacheWalk(req)
+    try:
+        _wire(walk, req)
+    except _Miss as miss:
+        return walk.states, str(miss)
+    return walk.states, None
+
+
+# --------------------------------------------------------------------------- the flow
+
+
+@flow(name="reconstruct-scene", persist_result=False, validate_parameters=True)
+def reconstruct_scene(
+    site: str,
+    crop: str,
+    date: str,
+    images: str | None = None,
+    poses: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    store: str | None = None,
+) -> dict[str, Any]:
+    """Reconstruct one scene (``site``/``crop``/``date``) from its photos.
+
+    images: folder or fsspec URL of the photos (default: the scene's inbox in the store,
+    ``{site}/{crop}/{date}/images/``). poses: nerfstudio ``transforms.json`` or a COLMAP model
+    folder to import instead of running SfM (default: ``images/transforms.json`` in the inbox
+    if present). overrides: config overrides (see :func:`resolve_config`). store: scene store
+    root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``).
+
+    Returns :func:`summarize`'s record, with ``states`` telling which stages ran and which
+    were ``Cached``.
+    """
+    t0 = time.perf_counter()
+    req = prepare(site, crop, date, images, poses, overrides, store)
+    st = SceneStore(req.store_root)
+    st.init_manifest(
+        req.scene,
+        {f"{k}:{n}": v for k, fp in req.inputs.items() for n, v in fp.items()},
+        req.config,
+    )
+    ex = _PrefectRun(req, result_storage(req.store_root))
+    records = _wire(ex, req)
+    out = summarize(req, records, ex.states)
+    out["flow_seconds"] = time.perf_counter() - t0
+    try:
+        from prefect.runtime import flow_run
+
+        out["flow_run_id"] = str(flow_run.id)
+    except Exception:  # pragma: no cover - outside a run
+        pass
+    return out
+
+
+def run_scene(
+    site: str,
+    crop: str,
+    date: str,
+    images: str | None = None,
+    poses: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    store: str | None = None,
+    runner: str = "threads",
+) -> dict[str, Any]:
+    """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``).
+
+    Validation happens here first, so bad input fails before Prefect starts.
+    """
+    from flows.runners import make_task_runner
+
+    prepare(site, crop, date, images, poses, overrides, store)
+    return reconstruct_scene.with_options(task_runner=make_task_runner(runner))(
+        site=site,
+        crop=crop,
+        date=str(date),
+        images=images,
+        poses=poses,
+        overrides=dict(overrides or {}),
+        store=store,
+    )
+
+
+__all__ = [
+    "DEFAULTS",
+    "SceneRequest",
+    "cache_walk",
+    "cached_result",
+    "prepare",
+    "reconstruct_scene",
+    "resolve_config",
+    "result_storage",
+    "run_scene",
+    "InputError",
+]

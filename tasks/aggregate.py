@@ -1,0 +1,45 @@
+"""Stage ``aggregate``: the final parameters from the per-seed results (the paper's mean of the
+seeds' best points) and their spread."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+from tasks.fit_seed import fit_config
+
+
+@stage_task("aggregate")
+def aggregate(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+) -> dict[str, Any]:
+    """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream``; stores
+    ``FitResult.to_dict()`` as ``{scene}/fit/fit.json`` (params, params_std, per-seed params and
+    losses; ``seconds`` = the seeds' summed optimisation time)."""
+    from cropcraft_core.fit import combine
+    from cropcraft_core.optimize import SeedResult
+
+    store = open_store(store_root)
+    cfg = fit_config(config)
+    crop = scene.split("/")[1]
+    seeds = sorted(
+        (rec for name, rec in upstream.items() if name.startswith("seed-")),
+        key=lambda r: r["summary"]["seed"],
+    )
+    with Timer() as t, workdir("aggregate") as tmp:
+        results = []
+        for rec in seeds:
+            path = store.get_file(key_of(rec, "seed"), tmp / f"{rec['summary']['seed']}.npz")
+            results.append(SeedResult.load(path))
+        seconds = sum(float(r["seconds"]) for r in seeds)
+        fit = combine(crop, results, cfg, seconds)
+        key = artefact(scene, "aggregate", "fit.json")
+        digest = store.put_json(key, fit.to_dict())
+    return make_record(
+        "aggregate",
+        scene,
+        {"fit": key},
+        {key: digest},
+        {"params": fit.params, "params_std": fit.params_std, "n_seeds": len(results)},
+        t.seconds,
+    )

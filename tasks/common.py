@@ -1,0 +1,328 @@
+"""Plumbing shared by every stage task: the cache key, the stage-task decorator, store access,
+stage records, input fingerprints and the progress hook.
+
+A stage task is one arrow of the scene graph (``shared/DESIGN.md``): it reads its inputs from the
+scene store by key, calls one ``cropcraft_core`` function, writes its outputs to the store and
+returns a small **stage record** (a JSON-able dict, never an array)::
+
+    {"stage": "observe", "scene": "plotA/soybean/2024-07-01",
+     "artefacts": {"observation": "plotA/soybean/2024-07-01/observe/observation.npz", ...},
+     "hashes": {"plotA/.../observation.npz": "<sha256>", ...},
+     "summary": {...a few numbers...}, "seconds": 1.23}
+
+Cache key (see :func:`stage_key`)::
+
+    {scene}/.prefect/{stage}/{sha256(canonical JSON of {stage, scene, stage version,
+                                                         config hash, upstream artefact hashes,
+                                                         extra (e.g. the seed)})}
+
+The key is also the path of Prefect's persisted result under the result storage, which is the
+scene store's root (a local ``Path`` or an fsspec ``RemoteFileSystem`` block for ``s3://``), so
+cached results live in the same store as the artefacts, beside the scene they belong to, hidden
+from ``SceneStore.list`` by the leading dot. Two runs with the same scene, stage config and
+upstream artefact bytes share a key, whatever flow run, machine or worker computes them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from prefect import task
+
+from cropcraft_core.errors import ConfigError, InputError
+from cropcraft_core.store import SceneKey, SceneStore, canonical_json, config_hash, sha256_bytes
+
+#: Pipeline stages in order (``fit_seed`` is mapped over optimiser seeds).
+STAGES = (
+    "ingest",
+    "poses",
+    "surfaces",
+    "rowfit",
+    "observe",
+    "fit_seed",
+    "aggregate",
+    "generate",
+    "metrics",
+    "export",
+    "report",
+)
+
+#: Folder (per scene) holding Prefect's persisted stage results; dot = hidden from listings.
+CACHE_DIR = ".prefect"
+
+#: Bump a stage's version when the format or meaning of its outputs changes: old cache entries
+#: then stop matching and the stage (and everything after it) is recomputed.
+STAGE_VERSIONS: dict[str, int] = {stage: 1 for stage in STAGES}
+
+#: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).
+STAGE_FOLDERS: dict[str, str] = {
+    "ingest": "ingest",
+    "poses": "poses",
+    "surfaces": "surfaces",
+    "rowfit": "rowfit",
+    "observe": "observe",
+    "fit_seed": "fit",
+    "aggregate": "fit",
+    "generate": "generate",
+    "metrics": "metrics",
+    "export": "export",
+    "report": "report",
+}
+
+
+# --------------------------------------------------------------------------- cache key
+
+
+def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:
+    """``{name: {store key: sha256}}`` of upstream stage records (or input fingerprints).
+
+    Each value of ``upstream`` is a stage record (its ``hashes`` are used) or a plain
+    ``{name: hash}`` mapping (an input fingerprint).
+    """
+    out: dict[str, dict[str, str]] = {}
+    for name, rec in sorted((upstream or {}).items()):
+        if rec is None:
+            continue
+        if not isinstance(rec, Mapping):
+            raise ConfigError(f"upstream {name!r} must be a stage record, got {type(rec)}")
+        hashes = rec.get("hashes") if "hashes" in rec else rec
+        out[str(name)] = {str(k): str(v) for k, v in dict(hashes).items()}
+    return out
+
+
+def stage_key(
+    stage: str,
+    scene: str,
+    config: Any,
+    upstream: Mapping[str, Any] | None,
+    extra: Mapping[str, Any] | None = None,
+) -> str:
+    """The cache key (and result path) of one stage run: see the module docstring.
+
+    scene: ``site/crop/date``; config: the stage's own config (JSON-able);
+    upstream: upstream stage records; extra: other identity (the optimiser seed).
+    """
+    if stage not in STAGE_VERSIONS:
+        raise ConfigError(f"unknown stage {stage!r}: one of {', '.join(STAGES)}")
+    SceneKey.parse(scene)  # validates
+    identity = {
+        "stage": stage,
+        "version": STAGE_VERSIONS[stage],
+        "scene": scene,
+        "config": config_hash(config if config is not None else {}),
+        "upstream": upstream_hashes(upstream),
+        "extra": {k: v for k, v in sorted((extra or {}).items()) if v is not None},
+    }
+    digest = sha256_bytes(canonical_json(identity))
+    return f"{scene}/{CACHE_DIR}/{stage}/{digest}"
+
+
+def cache_key_fn(context: Any, parameters: dict[str, Any]) -> str:
+    """Prefect ``cache_key_fn``: :func:`stage_key` from the task's name and parameters.
+
+    Parameters named ``scene``, ``config``, ``upstream`` and ``seed`` make the identity; every
+    other parameter (the store root, source URIs) is deliberately not part of it: the same
+    inputs in another place give the same results.
+    """
+    return stage_key(
+        context.task.name,
+        parameters["scene"],
+        parameters.get("config"),
+        parameters.get("upstream"),
+        {"seed": parameters.get("seed")},
+    )
+
+
+def stage_task(name: str, **options: Any) -> Callable[[Callable[..., dict]], Any]:
+    """Decorator: a Prefect task for stage ``name`` with the CropCraft cache policy.
+
+    Results are persisted (JSON) under their cache key in the flow's result storage; a task run
+    whose key already has a result finishes ``Cached`` without running.
+    """
+    if name not in STAGE_VERSIONS:
+        raise ConfigError(f"unknown stage {name!r}")
+    defaults: dict[str, Any] = {
+        "name": name,
+        "cache_key_fn": cache_key_fn,
+        "persist_result": True,
+        "result_serializer": "json",
+        "cache_result_in_memory": False,
+        "log_prints": False,
+    }
+    defaults.update(options)
+    return task(**defaults)
+
+
+#: stage → (module, task attribute); imported on first use by :func:`get_task`.
+TASK_OBJECTS: dict[str, tuple[str, str]] = {
+    "ingest": ("tasks.ingest", "ingest"),
+    "poses": ("tasks.poses", "poses"),
+    "surfaces": ("tasks.surfaces", "surfaces"),
+    "rowfit": ("tasks.rowfit", "rowfit"),
+    "observe": ("tasks.observe", "observe"),
+    "fit_seed": ("tasks.fit_seed", "fit_seed_task"),
+    "aggregate": ("tasks.aggregate", "aggregate"),
+    "generate": ("tasks.generate", "generate"),
+    "metrics": ("tasks.metrics", "metrics"),
+    "export": ("tasks.export", "export"),
+    "report": ("tasks.report", "report"),
+}
+
+
+def get_task(stage: str) -> Any:
+    """The Prefect task of ``stage``."""
+    import importlib
+
+    module, attr = TASK_OBJECTS[stage]
+    return getattr(importlib.import_module(module), attr)
+
+
+# --------------------------------------------------------------------------- store plumbing
+
+
+def open_store(root: str) -> SceneStore:
+    """The scene store at ``root`` (credentials from the worker's own environment)."""
+    return SceneStore(root)
+
+
+def artefact(scene: str, stage: str, name: str) -> str:
+    """Store key of an artefact of ``stage`` (``{scene}/{folder}/{name}``)."""
+    return f"{scene}/{STAGE_FOLDERS[stage]}/{name}"
+
+
+def make_record(
+    stage: str,
+    scene: str,
+    artefacts: Mapping[str, str],
+    hashes: Mapping[str, str],
+    summary: Mapping[str, Any] | None = None,
+    seconds: float = 0.0,
+) -> dict[str, Any]:
+    """A stage record: ``artefacts`` {name: key}, ``hashes`` {key: sha256}, a small summary."""
+    return {
+        "stage": stage,
+        "scene": scene,
+        "artefacts": dict(artefacts),
+        "hashes": dict(sorted(hashes.items())),
+        "summary": dict(summary or {}),
+        "seconds": float(seconds),
+    }
+
+
+def key_of(record: Mapping[str, Any], name: str) -> str:
+    """Store key of artefact ``name`` of an upstream record (InputError if it has none)."""
+    try:
+        return record["artefacts"][name]
+    except (KeyError, TypeError):
+        stage = record.get("stage") if isinstance(record, Mapping) else "?"
+        raise InputError(f"stage {stage!r} record has no artefact {name!r}") from None
+
+
+@contextlib.contextmanager
+def workdir(prefix: str) -> Iterator[Path]:
+    """A private local scratch folder for tools that need real files; removed afterwards."""
+    with tempfile.TemporaryDirectory(prefix=f"cropcraft-{prefix}-") as d:
+        yield Path(d)
+
+
+def checkpoint_dir() -> Path:
+    """Local folder for per-seed optimiser checkpoints (``$CROPCRAFT_WORK`` or the temp dir)."""
+    base = os.environ.get("CROPCRAFT_WORK") or os.path.join(tempfile.gettempdir(), "cropcraft")
+    path = Path(base) / "checkpoints"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+class Timer:
+    """``with Timer() as t: ...`` then ``t.seconds`` (wall clock)."""
+
+    def __enter__(self) -> Timer:
+        self._t0 = time.perf_counter()
+        self.seconds = 0.0
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.seconds = time.perf_counter() - self._t0
+
+
+# --------------------------------------------------------------------------- input fingerprints
+
+PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png")
+
+
+def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
+    """``{name: identity}`` of the files at a folder or file URI (local path or fsspec URL).
+
+    The identity is the object's size plus its ETag / checksum / modification time, whatever the
+    backend reports: cheap (no file is read), and any edit, replacement or re-upload changes it.
+    A file gives one entry; a folder one per file directly in it (hidden files skipped).
+    Raises InputError naming the URI when nothing is there.
+    """
+    from fsspec.core import url_to_fs
+
+    try:
+        fs, path = url_to_fs(os.fspath(uri))
+        if fs.isfile(path):
+            infos = [fs.info(path)]
+        else:
+            infos = [i for i in fs.ls(path, detail=True) if i.get("type") == "file"]
+    except FileNotFoundError:
+        infos = []
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot list {what} at {uri!r}: {exc}") from exc
+    out: dict[str, str] = {}
+    for info in infos:
+        name = str(info["name"]).rstrip("/").rsplit("/", 1)[-1]
+        if name.startswith("."):
+            continue
+        if what == "images" and not name.lower().endswith(PHOTO_EXTENSIONS):
+            continue
+        tag = (
+            info.get("ETag")
+            or info.get("etag")
+            or info.get("checksum")
+            or info.get("md5")
+            or info.get("mtime")
+            or info.get("LastModified")
+            or info.get("last_modified")
+            or ""
+        )
+        out[name] = f"{info.get('size')}:{str(tag).strip(chr(34))}"
+    if not out:
+        raise InputError(
+            f"no {what} found at {uri!r}: check the URI (a folder of JPEG/PNG photos, or a "
+            "poses file / COLMAP model folder)"
+        )
+    return dict(sorted(out.items()))
+
+
+# --------------------------------------------------------------------------- progress
+
+_progress_lock = threading.Lock()
+_progress_sink: Callable[[str, int, int, int], None] | None = None
+
+
+def set_progress_sink(sink: Callable[[str, int, int, int], None] | None) -> None:
+    """Install ``sink(scene, seed, done, total)``, called as optimiser evaluations finish.
+
+    Only tasks running in this process report (threads runner); on Dask workers progress goes
+    to the Prefect log instead.
+    """
+    global _progress_sink
+    with _progress_lock:
+        _progress_sink = sink
+
+
+def report_progress(scene: str, seed: int, done: int, total: int) -> None:
+    """Forward one progress tick to the installed sink (no-op without one)."""
+    sink = _progress_sink
+    if sink is not None:
+        with contextlib.suppress(Exception):
+            sink(scene, seed, done, total)

@@ -1,0 +1,87 @@
+"""Stage ``fit_seed``: one optimiser seed of the procedural-model fit (mapped over seeds)."""
+
+from __future__ import annotations
+
+import io
+import json
+from typing import Any
+
+from prefect import get_run_logger
+
+from cropcraft_core.fit import FitConfig, fit_seed
+from tasks.common import (
+    Timer,
+    artefact,
+    checkpoint_dir,
+    key_of,
+    make_record,
+    open_store,
+    report_progress,
+    stage_key,
+    stage_task,
+    workdir,
+)
+
+
+def fit_config(config: dict[str, Any]) -> FitConfig:
+    """The ``FitConfig`` of a fit stage config (extra keys such as ``layout`` ignored)."""
+    names = set(FitConfig.__dataclass_fields__)
+    return FitConfig(**{k: v for k, v in config.items() if k in names}).validate()
+
+
+def layout_of(crop: str, config: dict[str, Any]):
+    """The planting layout: ``default_layout(crop)`` with ``config["layout"]`` overrides
+    (``plot_width``, ``plot_length``, ``row_spacing``, ``density``)."""
+    from cropcraft_core.config import default_layout
+
+    return default_layout(crop, **dict(config.get("layout") or {}))
+
+
+@stage_task("fit_seed", task_run_name="fit_seed-{seed}")
+def fit_seed_task(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any], seed: int
+) -> dict[str, Any]:
+    """:func:`cropcraft_core.fit.fit_seed` for optimiser ``seed`` against the scene's
+    observation; stores the :class:`~cropcraft_core.optimize.SeedResult` as
+    ``{scene}/fit/seed-{seed}.npz``.
+
+    A local checkpoint (``$CROPCRAFT_WORK/checkpoints``, named by the cache key) lets a seed
+    killed halfway continue where it stopped on the same machine; it is removed on success.
+    Progress goes to :func:`tasks.common.report_progress` every evaluation and to the log every
+    10 %.
+    """
+    from cropcraft_core.observe import Observation
+
+    log = get_run_logger()
+    store = open_store(store_root)
+    cfg = fit_config(config)
+    crop = scene.split("/")[1]
+    digest = stage_key("fit_seed", scene, config, upstream, {"seed": seed}).rsplit("/", 1)[-1]
+    ckpt = checkpoint_dir() / f"{digest}.json"
+    total = cfg.n_evals
+    step = max(1, total // 10)
+
+    def callback(i: int, x: Any, y: float) -> None:
+        done = i + 1
+        report_progress(scene, seed, done, total)
+        if done % step == 0 or done == total:
+            log.info("seed %d: %d/%d evaluations, loss %.4g", seed, done, total, y)
+
+    with Timer() as t:
+        data = store.get_bytes(key_of(upstream["observe"], "observation"))
+        obs = Observation.load(io.BytesIO(data))
+        result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
+        key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz")
+        with workdir("seed") as tmp:
+            path = result.save(tmp / "seed.npz")
+            digest_out = store.put_file(path, key)
+    ckpt.unlink(missing_ok=True)
+    summary = {
+        "seed": int(seed),
+        "best_loss": float(result.best_y),
+        "n_evals": int(result.n_evals),
+        "seconds_objective": float(result.seconds_objective),
+        "seconds_optimizer": float(result.seconds_optimizer),
+    }
+    json.dumps(summary)
+    return make_record("fit_seed", scene, {"seed": key}, {key: digest_out}, summary, t.seconds)

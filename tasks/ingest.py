@@ -1,0 +1,44 @@
+"""Stage ``ingest``: photos at a folder/URL → checked, normalised images in the scene store."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tasks.common import Timer, artefact, make_record, open_store, stage_task, workdir
+
+
+@stage_task("ingest")
+def ingest(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any], images: str
+) -> dict[str, Any]:
+    """Run :func:`cropcraft_core.sfm.ingest_images` on ``images`` and store the result under
+    ``{scene}/ingest/`` (``images/*.png`` and ``manifest.json``).
+
+    config: ``max_size`` (longer image side, pixels, or None), ``min_images``.
+    upstream: ``{"inputs": fingerprint of the photos}`` (cache identity only).
+    """
+    from cropcraft_core.sfm import ingest_images
+
+    store = open_store(store_root)
+    with Timer() as t, workdir("ingest") as tmp:
+        manifest = ingest_images(
+            images,
+            tmp / "images",
+            max_size=config.get("max_size"),
+            min_images=int(config.get("min_images", 3)),
+        )
+        hashes = store.put_tree(tmp / "images", artefact(scene, "ingest", "images"))
+    manifest_key = artefact(scene, "ingest", "images/manifest.json")
+    return make_record(
+        "ingest",
+        scene,
+        {"images": artefact(scene, "ingest", "images"), "manifest": manifest_key},
+        hashes,
+        {
+            "n_images": len(manifest),
+            "duplicates": len(manifest.duplicates),
+            "ignored": len(manifest.ignored),
+            "size_px": [manifest.images[0].width, manifest.images[0].height],
+        },
+        t.seconds,
+    )

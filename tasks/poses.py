@@ -1,0 +1,109 @@
+"""Stage ``poses``: camera poses of the ingested images, imported (nerfstudio
+``transforms.json`` or a COLMAP model) or computed by structure from motion."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+from cropcraft_core.errors import InputError
+from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+
+
+def _rename_to_ingested(poses, manifest: dict):
+    """Poses named by the source photos → named by the ingested images (same stems)."""
+    from cropcraft_core.sfm import Poses
+
+    by_source = {im["source"]: im["name"] for im in manifest["images"]}
+    by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
+    views, missing = [], []
+    for name, cam in poses:
+        new = by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
+        if new is None:
+            missing.append(name)
+            continue
+        views.append((new, cam))
+    if len(views) < 3:
+        raise InputError(
+            f"the imported poses name {len(poses)} images but only {len(views)} of them were "
+            f"ingested (e.g. missing: {', '.join(missing[:5])}); give the poses of these photos"
+        )
+    dist = {
+        by_source.get(k) or by_stem.get(PurePosixPath(k).stem): v
+        for k, v in poses.distortion.items()
+    }
+    return Poses(tuple(views), {k: v for k, v in dist.items() if k})
+
+
+def _fetch(uri: str, dest: Path) -> Path:
+    """Copy a file or folder at a local path / fsspec URL to ``dest``; return the local path."""
+    from fsspec.core import url_to_fs
+
+    fs, path = url_to_fs(uri)
+    target = dest / PurePosixPath(path.rstrip("/")).name
+    if fs.isdir(path):
+        fs.get(path.rstrip("/") + "/", str(target), recursive=True)
+    else:
+        fs.get(path, str(target))
+    return target
+
+
+@stage_task("poses")
+def poses(
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    poses_uri: str | None = None,
+) -> dict[str, Any]:
+    """Poses of the ingested images, stored as ``{scene}/poses/poses.json`` (and, after SfM, the
+    sparse points as ``points.npz``).
+
+    With ``poses_uri``: :func:`~cropcraft_core.sfm.import_transforms_json` (a ``.json`` file) or
+    :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``metric`` in the summary says
+    whether the frame is metric and gravity-aligned (``config["imported_metric"]``). Without:
+    :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``).
+    """
+    from cropcraft_core.sfm import import_colmap, import_transforms_json, run_sfm
+
+    store = open_store(store_root)
+    ing = upstream["ingest"]
+    manifest = store.get_json(key_of(ing, "manifest"))
+    hashes: dict[str, str] = {}
+    arts: dict[str, str] = {}
+    with Timer() as t, workdir("poses") as tmp:
+        if poses_uri:
+            local = _fetch(poses_uri, tmp)
+            if local.is_dir():
+                sub = local / "sparse" / "0"
+                found = import_colmap(sub if sub.is_dir() else local)
+            else:
+                found = import_transforms_json(local)
+            result = _rename_to_ingested(found, manifest)
+            summary = {
+                "source": "imported",
+                "metric": bool(config.get("imported_metric", True)),
+                "n_registered": len(result),
+                "n_images": len(manifest["images"]),
+            }
+        else:
+            with store.open_local(key_of(ing, "images")) as image_dir:
+                sfm = run_sfm(
+                    image_dir,
+                    tmp / "sfm",
+                    matcher=config.get("matcher", "auto"),
+                    num_threads=int(config.get("num_threads", 2)),
+                    seed=int(config.get("seed", 0)),
+                )
+            result = sfm.poses
+            key = artefact(scene, "poses", "points.npz")
+            hashes[key] = store.put_npz(key, {"points": sfm.points, "colors": sfm.colors})
+            arts["points"] = key
+            summary = {"source": "sfm", "metric": False, **sfm.summary()}
+            summary.pop("model_dir", None)
+        key = artefact(scene, "poses", "poses.json")
+        hashes[key] = store.put_json(key, result.to_dict())
+        arts["poses"] = key
+    json.dumps(summary)  # small and JSON-able by construction
+    return make_record("poses", scene, arts, hashes, summary, t.seconds)

@@ -1,0 +1,92 @@
+"""Stage ``report``: one self-contained HTML page per scene."""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+
+from tasks.common import STAGES, Timer, artefact, key_of, make_record, open_store, stage_task
+from tasks.fit_seed import layout_of
+
+
+def _timings(upstream: dict[str, Any]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for stage in STAGES:
+        if stage == "fit_seed":
+            recs = [r for n, r in upstream.items() if n.startswith("seed-")]
+            if recs:
+                out[f"fit_seed (x{len(recs)})"] = sum(float(r["seconds"]) for r in recs)
+        elif stage in upstream:
+            out[stage] = float(upstream[stage].get("seconds", 0.0))
+    return out
+
+
+@stage_task("report")
+def report(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+) -> dict[str, Any]:
+    """Build ``{scene}/report/report.html`` with :func:`cropcraft_core.report.scene_report_html`:
+    input thumbnails, observed vs predicted row-camera depth (the predicted canopy rendered by
+    the fit's forward model with the generate stage's seed), the mesh preview, the metrics with
+    units, the parameters with their spread over seeds, and every stage's time.
+
+    config: ``n_thumbnails``, ``thumbnail_px``.
+    """
+    from PIL import Image
+
+    from cropcraft_core.fit import ForwardModel
+    from cropcraft_core.observe import Observation
+    from cropcraft_core.report import scene_report_html, thumbnail
+
+    store = open_store(store_root)
+    crop = scene.split("/")[1]
+    with Timer() as t:
+        thumbs = []
+        n = int(config.get("n_thumbnails", 6))
+        keys = [
+            k
+            for k in store.list(key_of(upstream["ingest"], "images"))
+            if k.lower().endswith((".png", ".jpg", ".jpeg"))
+        ]
+        step = max(1, len(keys) // max(1, n))
+        for k in keys[::step][:n]:
+            with Image.open(io.BytesIO(store.get_bytes(k))) as im:
+                thumbs.append(
+                    thumbnail(np.asarray(im.convert("RGB")), int(config.get("thumbnail_px", 192)))
+                )
+        obs = Observation.load(
+            io.BytesIO(store.get_bytes(key_of(upstream["observe"], "observation")))
+        )
+        fit = store.get_json(key_of(upstream["aggregate"], "fit"))
+        recipe = store.get_json(key_of(upstream["generate"], "recipe"))
+        metrics = store.get_json(key_of(upstream["metrics"], "metrics"))
+        fwd = ForwardModel(obs, layout_of(crop, {"layout": config.get("layout")}))
+        predicted = fwd.depth(fit["params"], int(recipe["seed"]))
+        preview = store.get_bytes(key_of(upstream["export"], "preview.png"))
+        info = {
+            "crop": crop,
+            "photos ingested": upstream["ingest"]["summary"].get("n_images"),
+            "poses": upstream["poses"]["summary"].get("source"),
+            "surfaces backend": upstream["surfaces"]["summary"].get("backend"),
+            "rows found": upstream["rowfit"]["summary"].get("n_rows"),
+            "row camera height (m)": upstream["rowfit"]["summary"].get("render_height_m"),
+            "scale source": upstream["rowfit"]["summary"].get("scale_source"),
+        }
+        page = scene_report_html(
+            scene,
+            thumbnails=thumbs,
+            observed_depth=np.where(obs.mask, obs.depth, np.nan),
+            predicted_depth=predicted,
+            preview_png=preview,
+            metrics=metrics,
+            fit=fit,
+            timings=_timings(upstream),
+            info=info,
+        )
+        key = artefact(scene, "report", "report.html")
+        digest = store.put_bytes(key, page.encode("utf-8"))
+    return make_record(
+        "report", scene, {"report": key}, {key: digest}, {"bytes": len(page)}, t.seconds
+    )

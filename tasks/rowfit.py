@@ -1,0 +1,58 @@
+"""Stage ``rowfit``: ground plane, crop rows and the row camera from the surfaces' point cloud."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task
+
+
+@stage_task("rowfit")
+def rowfit(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+) -> dict[str, Any]:
+    """:func:`cropcraft_core.rowfit.fit_ground_and_rows` on ``{scene}/surfaces/points.npz``;
+    stores ``{scene}/rowfit/rowfit.json`` (``RowFit.to_dict()`` plus ``camera_in_scene``, the
+    row camera in the poses' frame, which the observe stage renders the surfaces from).
+
+    config: ``preset`` (RowFitPreset overrides), ``seed``, ``scale`` (metres per scene unit;
+    default 1 with metric poses). The scale source is ``metric_poses`` when the poses stage
+    imported metric poses, ``user_hint`` when ``scale`` is given, else ``assumed_metric``.
+    """
+    from cropcraft_core.rowfit import fit_ground_and_rows
+    from cropcraft_core.rowfit import preset as rowfit_preset
+
+    store = open_store(store_root)
+    crop = scene.split("/")[1]
+    with Timer() as t:
+        cloud = store.get_npz(key_of(upstream["surfaces"], "points"))
+        metric = bool(upstream["poses"].get("summary", {}).get("metric"))
+        scale = config.get("scale")
+        source = "user_hint" if scale else ("metric_poses" if metric else "assumed_metric")
+        fit = fit_ground_and_rows(
+            cloud["points"],
+            cloud["colors"],
+            crop,
+            rowfit_preset(crop, **dict(config.get("preset") or {})),
+            rng=int(config.get("seed", 0)),
+            scale=float(scale or 1.0),
+            scale_source=source,
+        )
+        record = {**fit.to_dict(), "camera_in_scene": fit.camera_in_scene().to_dict()}
+        key = artefact(scene, "rowfit", "rowfit.json")
+        digest = store.put_json(key, record)
+    return make_record(
+        "rowfit",
+        scene,
+        {"rowfit": key},
+        {key: digest},
+        {
+            "n_rows": len(fit.rows),
+            "row_azimuth_deg": fit.best_row.azimuth_deg,
+            "render_height_m": fit.render_height,
+            "scale": fit.scale,
+            "scale_source": fit.scale_source,
+            "dense": fit.dense,
+        },
+        t.seconds,
+    )

@@ -1,0 +1,67 @@
+"""Stage ``surfaces``: the visible surfaces of the posed photos (the paper's NeRF stage)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from cropcraft_core.errors import CropCraftError
+from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+
+
+def _surfaces_api():
+    try:
+        from cropcraft_core.surfaces import SurfacesConfig, make_backend
+    except ImportError as exc:  # the surfaces package is optional in a partial checkout
+        raise CropCraftError(
+            f"stage surfaces not available: cropcraft_core.surfaces cannot be imported ({exc})"
+        ) from exc
+    return SurfacesConfig, make_backend
+
+
+@stage_task("surfaces")
+def surfaces(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+) -> dict[str, Any]:
+    """Fit a surfaces backend (``config["backend"]``: tsdf on CPU, nerfacto on CUDA) to the
+    ingested images and their poses; store the fitted model under ``{scene}/surfaces/model/``
+    and a coloured point cloud (``points`` (n, 3) m, ``colors`` (n, 3) in [0, 1]) as
+    ``{scene}/surfaces/points.npz``.
+
+    config: ``SurfacesConfig`` fields, plus ``bbox`` ([[xmin, ymin, zmin], [xmax, ymax, zmax]]
+    in the poses' frame, or None) and ``n_points`` (point-cloud size).
+    """
+    from PIL import Image
+
+    from cropcraft_core.sfm import Poses
+
+    SurfacesConfig, make_backend = _surfaces_api()
+    store = open_store(store_root)
+    cfg = dict(config)
+    bbox = cfg.pop("bbox", None)
+    n_points = int(cfg.pop("n_points", 100_000))
+    poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
+    hashes: dict[str, str] = {}
+    with Timer() as t, workdir("surfaces") as tmp:
+        images = []
+        with store.open_local(key_of(upstream["ingest"], "images")) as image_dir:
+            for name in poses.names:
+                with Image.open(image_dir / name) as im:
+                    images.append(np.asarray(im.convert("RGB")))
+        backend = make_backend(SurfacesConfig.from_dict(cfg))
+        backend.fit(images, poses.cameras, None if bbox is None else np.asarray(bbox, float))
+        points, colors = backend.point_cloud(n_points)
+        backend.save(tmp / "model")
+        hashes.update(store.put_tree(tmp / "model", artefact(scene, "surfaces", "model")))
+        key = artefact(scene, "surfaces", "points.npz")
+        hashes[key] = store.put_npz(key, {"points": points, "colors": colors})
+    timings = {k: float(v) for k, v in backend.timings.items() if isinstance(v, int | float)}
+    return make_record(
+        "surfaces",
+        scene,
+        {"model": artefact(scene, "surfaces", "model"), "points": key},
+        hashes,
+        {"backend": backend.name, "n_points": int(len(points)), "timings": timings},
+        t.seconds,
+    )
