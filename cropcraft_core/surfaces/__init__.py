@@ -1,0 +1,24 @@
+"""Visible surfaces of a posed photo scene (the paper's NeRF stage): point cloud and renders.
+
+``make_backend(SurfacesConfig(backend=...))`` → ``fit(images, cameras, bbox)`` →
+``point_cloud(n_max)`` / ``render(camera)`` / ``save(dir)``; ``load_surfaces(dir)`` reads any
+saved backend back. See ``cropcraft_core.surfaces.base``.
+"""
+
+from cropcraft_core.surfaces.base import (
+    BACKENDS,
+    SurfaceBackend,
+    SurfacesConfig,
+    SurfacesError,
+    load_surfaces,
+    make_backend,
+)
+
+__all__ = [
+    "BACKENDS",
+    "SurfaceBackend",
+    "SurfacesConfig",
+    "SurfacesError",
+    "load_surfaces",
+    "make_backend",
+]

@@ -1,0 +1,383 @@
+"""The visible-surfaces stage (the paper's NeRF stage): interface, configuration, factory.
+
+A surface backend is fitted to posed photos (``fit``) and then answers two questions:
+
+* ``point_cloud(n_max)``: a coloured point cloud of the visible surfaces (row fitting input);
+* ``render(camera)``: z-depth and RGB images for any pinhole camera (the row camera's observation).
+
+``save(dir)`` persists the fitted surface so a later stage can render from it without refitting;
+``load_surfaces(dir)`` reads it back whatever the backend.
+
+Backends (``SurfacesConfig.backend``):
+
+* ``tsdf`` (default, CPU): plane-sweep multi-view stereo per view over its best neighbours,
+  cross-view depth consistency filtering, Open3D TSDF fusion with colour, mesh extraction,
+  ray casting for new views (``cropcraft_core.surfaces.tsdf``).
+* ``nerfacto``: nerfstudio's Nerfacto as in the paper; needs nerfstudio and a CUDA GPU
+  (``cropcraft_core.surfaces.nerfacto``).
+* ``truth``: the true mesh plus the ground plane, for tests and benchmarks
+  (``cropcraft_core.surfaces.mesh_truth``).
+
+World frame: metres, z up. Cameras: ``PinholeCamera`` (OpenCV axes, pixel centres at +0.5). Depth
+is z-depth along the optical axis, NaN where a ray meets nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+from cropcraft_core.geometry.camera import PinholeCamera
+
+#: Backend names ``make_backend`` knows.
+BACKENDS = ("tsdf", "nerfacto", "truth")
+
+#: File every saved surface folder holds: backend name, config, cameras, backend metadata.
+META_FILE = "surfaces.json"
+
+#: ``progress(stage: str, fraction: float)``: called with fractions in [0, 1] during ``fit``.
+Progress = Callable[[str, float], None]
+
+
+class SurfacesError(CropCraftError, RuntimeError):
+    """The surfaces stage cannot run (missing backend dependency, no GPU, fit failed)."""
+
+
+@dataclass(frozen=True)
+class SurfacesConfig:
+    """Settings of the visible-surfaces stage. Unused fields are ignored by other backends."""
+
+    backend: str = "tsdf"
+    """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'nerfacto' (nerfstudio, CUDA)
+    or 'truth' (the true mesh, for tests and benchmarks)."""
+    voxel_size: float = 0.01
+    """tsdf: TSDF voxel edge (m)."""
+    trunc_voxels: float = 4.0
+    """tsdf: truncation distance of the signed distance, in voxels."""
+    depth_range: tuple[float, float] | None = None
+    """(near, far) z-depth searched by stereo and fused (m). None: per view, from the bounding
+    box's corners (or (0.2, 8.0) without a box)."""
+    neighbours: int = 4
+    """tsdf: source views matched against each reference view (2–6)."""
+    mvs_scale: float = 0.5
+    """tsdf: image scale for stereo (0.5: 640×480 photos are matched at 320×240)."""
+    n_depths: int = 128
+    """tsdf: depth hypotheses per view, uniform in inverse depth."""
+    window: int = 7
+    """tsdf: side of the NCC matching window (pixels at ``mvs_scale``, odd)."""
+    min_ncc: float = 0.4
+    """tsdf: a depth is kept where its aggregated NCC matching score reaches this (−1 … 1)."""
+    min_consistent: int = 2
+    """tsdf: a depth is kept where at least this many other views' depth maps agree with it."""
+    consistency_rel: float = 0.01
+    """tsdf: relative z-depth tolerance of that agreement (0.01 = 1 %)."""
+    weight_threshold: float = 2.0
+    """tsdf: minimum fused weight (views) of a voxel on the extracted surface."""
+    nerf_iterations: int = 20000
+    """nerfacto: training iterations (the paper: 20K)."""
+    near_plane: float | None = None
+    """nerfacto: near plane in nerfstudio's scaled frame (the paper's maize: 0.05; None: the
+    nerfstudio default)."""
+    far_plane: float | None = None
+    """nerfacto: far plane (the paper's maize: 6.0; None: the nerfstudio default)."""
+    hidden_dim: int | None = None
+    """nerfacto: MLP width (the paper's maize: 128; None: the nerfstudio default)."""
+    orientation: str = "up"
+    """nerfacto: nerfstudio-data ``--orientation-method`` (default 'up'; the paper's maize:
+    'vertical')."""
+    workdir: str | None = None
+    """nerfacto: folder for its dataset, checkpoints and exports (None: a temporary folder)."""
+    truth_mesh: str | None = None
+    """truth: PLY of the true canopy mesh (used when ``make_backend`` gets no mesh)."""
+    seed: int = 0
+    """Seed of every random choice (point subsampling, nerfstudio's ``--machine.seed``)."""
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(
+                f"unknown surfaces backend {self.backend!r}: choose one of {', '.join(BACKENDS)}"
+            )
+        for name in ("voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
+                raise ConfigError(f"surfaces {name} must be a positive number, got {v!r}")
+        if not 2 <= int(self.neighbours) <= 8:
+            raise ConfigError(f"surfaces neighbours must be in [2, 8], got {self.neighbours}")
+        if int(self.n_depths) < 8:
+            raise ConfigError(f"surfaces n_depths must be ≥ 8, got {self.n_depths}")
+        if int(self.window) < 3 or int(self.window) % 2 == 0:
+            raise ConfigError(f"surfaces window must be odd and ≥ 3, got {self.window}")
+        if not -1.0 <= self.min_ncc < 1.0:
+            raise ConfigError(f"surfaces min_ncc must be in [-1, 1), got {self.min_ncc}")
+        if int(self.min_consistent) < 0:
+            raise ConfigError(f"surfaces min_consistent must be ≥ 0, got {self.min_consistent}")
+        if self.depth_range is not None:
+            near, far = (float(x) for x in self.depth_range)
+            if not (0 < near < far and np.isfinite(far)):
+                raise ConfigError(f"surfaces depth_range must be 0 < near < far, got {near, far}")
+            object.__setattr__(self, "depth_range", (near, far))
+        if int(self.nerf_iterations) < 1:
+            raise ConfigError(f"nerf_iterations must be ≥ 1, got {self.nerf_iterations}")
+
+    @classmethod
+    def for_crop(cls, crop: str, **overrides: Any) -> SurfacesConfig:
+        """The paper's settings per crop: soybean = nerfstudio defaults; maize = near/far planes
+        0.05/6.0, MLP width 128, orientation 'vertical'. ``overrides`` win."""
+        base: dict[str, Any] = {}
+        if crop == "maize":
+            base = {"near_plane": 0.05, "far_plane": 6.0, "hidden_dim": 128}
+            base["orientation"] = "vertical"
+        elif crop != "soybean":
+            raise ConfigError(f"unknown crop {crop!r}: choose soybean or maize")
+        base.update(overrides)
+        return cls(**base)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        if d["depth_range"] is not None:
+            d["depth_range"] = list(d["depth_range"])
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SurfacesConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"unknown surfaces settings: {', '.join(sorted(unknown))}")
+        d = dict(d)
+        if d.get("depth_range") is not None:
+            d["depth_range"] = tuple(d["depth_range"])
+        return cls(**d)
+
+
+def check_inputs(
+    images: Sequence[np.ndarray], cameras: Sequence[PinholeCamera], bbox: Any
+) -> tuple[list[np.ndarray], list[PinholeCamera], np.ndarray | None]:
+    """Validate ``fit``'s arguments: images (H, W, 3) uint8 matching their camera's size, at least
+    two views, bbox None or (2, 3) (min corner, max corner). Returns them as lists / an array."""
+    imgs, cams = list(images), list(cameras)
+    if len(imgs) != len(cams):
+        raise InputError(f"{len(imgs)} images but {len(cams)} cameras")
+    if len(cams) < 2:
+        raise InputError(f"the surfaces stage needs at least 2 posed images, got {len(cams)}")
+    for i, (im, cam) in enumerate(zip(imgs, cams, strict=True)):
+        if not isinstance(cam, PinholeCamera):
+            raise InputError(f"camera {i} is a {type(cam).__name__}, not a PinholeCamera")
+        a = np.asarray(im)
+        if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
+            raise InputError(f"image {i} must be (H, W, 3) uint8, got {a.dtype} {a.shape}")
+        if a.shape[:2] != (cam.height, cam.width):
+            raise InputError(
+                f"image {i} is {a.shape[1]}×{a.shape[0]} but its camera is {cam.width}×{cam.height}"
+            )
+        imgs[i] = a
+    box = None
+    if bbox is not None:
+        box = np.asarray(bbox, dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+            raise InputError(f"bbox must be (2, 3) [min corner, max corner], got {bbox!r}")
+    return imgs, cams, box
+
+
+def depth_limits(
+    camera: PinholeCamera, bbox: np.ndarray | None, depth_range: tuple[float, float] | None
+) -> tuple[float, float]:
+    """(near, far) z-depth for ``camera``: ``depth_range`` if given; else the range of z-depths at
+    which a 16 × 12 grid of the camera's pixel rays is inside the bounding box (near ≥ 5 cm);
+    else (0.2, 8.0)."""
+    if depth_range is not None:
+        return float(depth_range[0]), float(depth_range[1])
+    if bbox is None:
+        return 0.2, 8.0
+    small = camera.scaled(16 / camera.width) if camera.width > 16 else camera
+    d = small.ray_directions(normalized=False).reshape(-1, 3)  # t = z-depth
+    c = camera.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (bbox[0] - c) / d
+        t1 = (bbox[1] - c) / d
+    lo = np.where(np.isnan(t0), -np.inf, np.minimum(t0, t1))
+    hi = np.where(np.isnan(t1), np.inf, np.maximum(t0, t1))
+    inside_axis = (d == 0) & (c >= bbox[0]) & (c <= bbox[1])
+    lo = np.where(inside_axis, -np.inf, lo).max(axis=1)
+    hi = np.where(inside_axis, np.inf, hi).min(axis=1)
+    ok = (hi > lo) & (hi > 0.05)
+    if not ok.any():
+        raise InputError("a camera does not see the bounding box")
+    return max(0.05, float(lo[ok].min())), float(hi[ok].max())
+
+
+class SurfaceBackend(ABC):
+    """A fitted model of the visible surfaces of a scene."""
+
+    #: the name ``SurfacesConfig.backend`` selects it by
+    name: str = ""
+
+    def __init__(self, config: SurfacesConfig | None = None) -> None:
+        self.config = config or SurfacesConfig(backend=self.name or "tsdf")
+        self.cameras: list[PinholeCamera] = []
+        self.bbox: np.ndarray | None = None
+        self.timings: dict[str, float] = {}
+
+    @abstractmethod
+    def fit(
+        self,
+        images: list[np.ndarray],
+        cameras: list[PinholeCamera],
+        bbox: np.ndarray | None = None,
+        progress: Progress | None = None,
+    ) -> None:
+        """Fit the surfaces to posed photos.
+
+        images: n (H, W, 3) uint8 RGB photos.  cameras: their n ``PinholeCamera`` poses (world
+        frame, metres).  bbox: (2, 3) [min corner, max corner] of the region of interest (m), or
+        None for everything the views see.  progress: optional ``progress(stage, fraction)``.
+        """
+
+    @abstractmethod
+    def render(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+        """(depth (H, W) float32 z-depth in metres, NaN where empty; rgb (H, W, 3) uint8) seen
+        by ``camera``."""
+
+    @abstractmethod
+    def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+        """(points (n, 3) float64 metres, colors (n, 3) float64 in [0, 1]) on the visible
+        surfaces inside the bounding box, n ≤ ``n_max`` (a seeded random subset if more)."""
+
+    @abstractmethod
+    def _save_payload(self, folder: Path) -> dict:
+        """Write the backend's files into ``folder``; return metadata for ``surfaces.json``."""
+
+    @abstractmethod
+    def _load_payload(self, folder: Path, meta: dict) -> None:
+        """Read back what ``_save_payload`` wrote."""
+
+    @property
+    def fitted(self) -> bool:
+        return bool(self.cameras)
+
+    def _require_fitted(self) -> None:
+        if not self.fitted:
+            raise SurfacesError(f"the {self.name} surfaces are not fitted: call fit() or load()")
+
+    def save(self, folder: str | os.PathLike) -> Path:
+        """Persist the fitted surface in ``folder`` (created): ``surfaces.json`` plus the backend's
+        files. Returns the folder."""
+        self._require_fitted()
+        out = Path(folder)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SurfacesError(f"cannot create {out}: {e}") from None
+        payload = self._save_payload(out)
+        meta = {
+            "backend": self.name,
+            "config": self.config.to_dict(),
+            "cameras": [c.to_dict() for c in self.cameras],
+            "bbox": None if self.bbox is None else self.bbox.tolist(),
+            "timings_s": self.timings,
+            "payload": payload,
+        }
+        tmp = out / (META_FILE + ".tmp")
+        tmp.write_text(json.dumps(meta, indent=1), encoding="utf-8")
+        os.replace(tmp, out / META_FILE)
+        return out
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike) -> SurfaceBackend:
+        """Read a surface that ``save`` wrote (of this backend class)."""
+        folder = Path(folder)
+        meta = read_meta(folder)
+        if meta.get("backend") != cls.name:
+            raise InputError(
+                f"{folder} holds {meta.get('backend')!r} surfaces, not {cls.name!r}: "
+                "use load_surfaces()"
+            )
+        obj = cls.__new__(cls)
+        SurfaceBackend.__init__(obj, SurfacesConfig.from_dict(meta["config"]))
+        obj.cameras = [PinholeCamera.from_dict(c) for c in meta["cameras"]]
+        obj.bbox = None if meta.get("bbox") is None else np.asarray(meta["bbox"], np.float64)
+        obj.timings = dict(meta.get("timings_s", {}))
+        obj._load_payload(folder, meta.get("payload", {}))
+        return obj
+
+
+def read_meta(folder: Path) -> dict:
+    p = Path(folder) / META_FILE
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{folder} holds no saved surfaces ({META_FILE} is missing)") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(f"cannot read {p}: {e}") from None
+
+
+def make_backend(config: SurfacesConfig | None = None, mesh: Any = None) -> SurfaceBackend:
+    """The backend ``config.backend`` names (default: tsdf).
+
+    mesh: for 'truth' only, the true ``CanopyMesh`` (else ``config.truth_mesh`` is read).
+    Raises ``ConfigError`` for an unknown backend, ``SurfacesError`` where nerfacto cannot run.
+    """
+    if config is None:
+        config = SurfacesConfig()
+    if isinstance(config, str):
+        config = SurfacesConfig(backend=config)
+    if not isinstance(config, SurfacesConfig):
+        raise ConfigError(f"expected a SurfacesConfig, got {type(config).__name__}")
+    if config.backend == "tsdf":
+        from cropcraft_core.surfaces.tsdf import TsdfSurfaces
+
+        return TsdfSurfaces(config)
+    if config.backend == "nerfacto":
+        from cropcraft_core.surfaces.nerfacto import NerfactoSurfaces
+
+        return NerfactoSurfaces(config)
+    if config.backend == "truth":
+        from cropcraft_core.surfaces.mesh_truth import TruthSurfaces
+
+        return TruthSurfaces(mesh, config=config)
+    raise ConfigError(  # unreachable: SurfacesConfig checks the name
+        f"unknown surfaces backend {config.backend!r}: choose one of {', '.join(BACKENDS)}"
+    )
+
+
+def load_surfaces(folder: str | os.PathLike) -> SurfaceBackend:
+    """Load saved surfaces of any backend from ``folder``."""
+    meta = read_meta(Path(folder))
+    name = meta.get("backend")
+    if name == "tsdf":
+        from cropcraft_core.surfaces.tsdf import TsdfSurfaces as cls
+    elif name == "nerfacto":
+        from cropcraft_core.surfaces.nerfacto import NerfactoSurfaces as cls
+    elif name == "truth":
+        from cropcraft_core.surfaces.mesh_truth import TruthSurfaces as cls
+    else:
+        raise InputError(f"{folder} holds surfaces of an unknown backend {name!r}")
+    return cls.load(folder)
+
+
+def subsample(
+    points: np.ndarray, colors: np.ndarray, n_max: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A seeded random subset of at most ``n_max`` rows of points (n, 3) and colors (n, 3)."""
+    if n_max < 0:
+        raise ConfigError(f"n_max must be ≥ 0, got {n_max}")
+    if len(points) <= n_max:
+        return points, colors
+    rng = np.random.default_rng(seed)
+    idx = np.sort(rng.choice(len(points), size=n_max, replace=False))
+    return points[idx], colors[idx]
+
+
+def in_bbox(points: np.ndarray, bbox: np.ndarray | None) -> np.ndarray:
+    """(n,) bool: rows of points (n, 3) inside bbox (2, 3) (all True without a box)."""
+    if bbox is None:
+        return np.ones(len(points), bool)
+    return np.all((points >= bbox[0]) & (points <= bbox[1]), axis=1)

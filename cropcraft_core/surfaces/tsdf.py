@@ -1,0 +1,611 @@
+"""CPU visible surfaces: plane-sweep multi-view stereo, consistency filtering, TSDF fusion.
+
+Pipeline (``TsdfSurfaces.fit``):
+
+1. **Neighbours.** For every reference view, the source views whose triangulation angle at the
+   reference view's look-at point is closest to ~12° (at least ~2°, the point in their frustum),
+   ``config.neighbours`` of them.
+2. **Plane-sweep stereo** per reference view at ``config.mvs_scale`` of the photo size:
+   ``config.n_depths`` fronto-parallel planes uniform in inverse depth over the view's depth range
+   (from the bounding box); each source image is warped onto each plane by the plane-induced
+   homography (OpenCV) and compared with the reference by windowed normalised cross-correlation
+   (box filters). The per-source scores are aggregated by the mean of the best half (robust to
+   occlusion in some sources); the best plane per pixel wins, refined to sub-plane precision by a
+   parabola. Pixels whose score is below ``config.min_ncc`` are dropped.
+3. **Consistency.** A depth survives where at least ``config.min_consistent`` neighbour depth maps
+   agree with its reprojection within ``config.consistency_rel`` relative z-depth; depths outside
+   the bounding box are dropped.
+4. **Fusion.** Open3D's ``VoxelBlockGrid`` integrates the filtered depth maps with colour into a
+   TSDF (``config.voxel_size``, truncation ``config.trunc_voxels`` voxels); marching cubes extracts
+   a triangle mesh with vertex colours, cropped to the bounding box.
+5. **Rendering** casts one ray per pixel centre at that mesh (Open3D ``RaycastingScene``) and
+   interpolates the vertex colours with the hit's barycentric coordinates.
+
+``save`` writes the mesh as ``surface.ply`` (binary, float32 positions, uint8 colours).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from numba import njit, prange
+
+from cropcraft_core.errors import InputError
+from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.render.raycast import build_scene
+from cropcraft_core.surfaces.base import (
+    Progress,
+    SurfaceBackend,
+    SurfacesConfig,
+    SurfacesError,
+    check_inputs,
+    depth_limits,
+    in_bbox,
+    subsample,
+)
+
+MESH_FILE = "surface.ply"
+# Pixel-centre shift between PinholeCamera (centres at +0.5) and OpenCV/Open3D index coordinates.
+_T_IDX = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+_T_IDX_INV = np.linalg.inv(_T_IDX)
+
+
+# --------------------------------------------------------------------------- neighbours
+
+
+def look_at_point(camera: PinholeCamera, bbox: np.ndarray | None) -> np.ndarray:
+    """(3,) the point the optical axis meets at the middle height of ``bbox`` (or 1.5 m ahead
+    when there is no box or the axis does not go down to it)."""
+    axis = camera.cam_to_world[:3, 2]
+    c = camera.center
+    if bbox is not None and axis[2] < -1e-3:
+        zm = 0.5 * (bbox[0, 2] + bbox[1, 2])
+        t = (zm - c[2]) / axis[2]
+        if t > 0:
+            return c + t * axis
+    return c + 1.5 * axis
+
+
+def select_neighbours(
+    cameras: list[PinholeCamera], k: int, bbox: np.ndarray | None, best_angle_deg: float = 12.0
+) -> list[list[int]]:
+    """For every camera, the indices of up to ``k`` source views for stereo, best first.
+
+    Score of source j for reference i: a Gaussian of the triangulation angle at i's look-at point
+    around ``best_angle_deg`` (σ 5° below it, 15° above), zero below 2° or where the point is
+    outside j's frustum or the optical axes differ by more than 70°.
+    """
+    n = len(cameras)
+    centres = np.array([c.center for c in cameras])
+    axes = np.array([c.cam_to_world[:3, 2] for c in cameras])
+    out = []
+    for i, ci in enumerate(cameras):
+        p = look_at_point(ci, bbox)
+        a = centres[i] - p
+        b = centres - p
+        cosang = (b @ a) / (np.linalg.norm(b, axis=1) * np.linalg.norm(a) + 1e-12)
+        ang = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+        sigma = np.where(ang < best_angle_deg, 5.0, 15.0)
+        score = np.exp(-((ang - best_angle_deg) ** 2) / (2 * sigma**2))
+        score[ang < 2.0] = 0.0
+        score[(axes @ axes[i]) < math.cos(math.radians(70))] = 0.0
+        for j in range(n):
+            if score[j] > 0:
+                uv, z = cameras[j].project(p[None])
+                u, v = uv[0]
+                if not (z[0] > 0 and 0 <= u < cameras[j].width and 0 <= v < cameras[j].height):
+                    score[j] = 0.0
+        score[i] = 0.0
+        order = [int(j) for j in np.argsort(-score, kind="stable") if score[j] > 0][:k]
+        out.append(order)
+    return out
+
+
+# --------------------------------------------------------------------------- stereo
+
+
+def to_grey(image: np.ndarray, camera: PinholeCamera, scale: float) -> np.ndarray:
+    """(h, w) float32 grey image in [0, 1] at ``scale`` of (H, W, 3) uint8 ``image`` (area
+    resampling), matching ``camera.scaled(scale)``."""
+    small = camera.scaled(scale)
+    g = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    if (small.width, small.height) != (camera.width, camera.height):
+        g = cv2.resize(g, (small.width, small.height), interpolation=cv2.INTER_AREA)
+    return g.astype(np.float32) / 255.0
+
+
+def _resize_rgb(image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    if image.shape[:2] == (camera.height, camera.width):
+        return image
+    return cv2.resize(image, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+
+
+def plane_homography(ref: PinholeCamera, src: PinholeCamera, depth: float) -> np.ndarray:
+    """(3, 3) homography taking reference pixel index coordinates to source pixel index
+    coordinates (OpenCV: pixel centres at integers) for points on the fronto-parallel plane at
+    z-depth ``depth`` of the reference camera."""
+    rel = src.world_to_cam @ ref.cam_to_world  # ref camera → src camera
+    r, t = rel[:3, :3], rel[:3, 3]
+    n = np.array([0.0, 0.0, 1.0])
+    h = src.K @ (r + np.outer(t, n) / depth) @ np.linalg.inv(ref.K)
+    return _T_IDX_INV @ h @ _T_IDX
+
+
+def plane_sweep(
+    ref_grey: np.ndarray,
+    ref: PinholeCamera,
+    src_greys: list[np.ndarray],
+    srcs: list[PinholeCamera],
+    near: float,
+    far: float,
+    n_depths: int = 128,
+    window: int = 7,
+    p1: float = 0.05,
+    p2: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plane-sweep stereo of one reference view with semi-global cost aggregation.
+
+    ref_grey: (h, w) float32 grey reference image matching ``ref``; src_greys: (h_j, w_j) images
+    matching ``srcs``. Depth hypotheses: ``n_depths`` fronto-parallel planes uniform in inverse
+    depth over [near, far]. Matching cost: 1 − NCC over a ``window`` × ``window`` window, the mean
+    of the best half of the sources; aggregated along 4 image paths (SGM, penalties ``p1`` for a
+    one-plane step, ``p2`` for a jump). Returns (depth (h, w) float32 z-depth, refined to sub-plane
+    precision by a parabola; score (h, w) float32, the aggregated NCC at the winning plane, −1
+    where no source sees the pixel or the winner is the first or last plane).
+    """
+    h, w = ref_grey.shape
+    inv = np.linspace(1.0 / near, 1.0 / far, int(n_depths))
+    homs = np.array([[plane_homography(ref, c, 1.0 / q) for c in srcs] for q in inv])
+    hs = max(g.shape[0] for g in src_greys)
+    ws = max(g.shape[1] for g in src_greys)
+    stack = np.zeros((len(srcs), hs, ws), np.float32)
+    for s, g in enumerate(src_greys):
+        stack[s, : g.shape[0], : g.shape[1]] = g
+    hw = np.array([g.shape[:2] for g in src_greys], np.int64)
+    vol = np.empty((h, w, len(inv)), np.float32)
+    _sweep_ncc(
+        np.ascontiguousarray(ref_grey, np.float32), stack, hw, homs, int(window) // 2,
+        max(1, (len(srcs) + 1) // 2), vol,
+    )  # fmt: skip
+    agg = _sgm(1.0 - vol, float(p1), float(p2)) if p2 > 0 else 1.0 - vol
+    best = np.argmin(agg, axis=2)
+    s0 = np.take_along_axis(agg, best[..., None], 2)[..., 0]
+    lo = np.take_along_axis(agg, np.maximum(best - 1, 0)[..., None], 2)[..., 0]
+    hi = np.take_along_axis(agg, np.minimum(best + 1, len(inv) - 1)[..., None], 2)[..., 0]
+    denom = lo - 2 * s0 + hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.where(denom > 1e-9, 0.5 * (lo - hi) / denom, 0.0)
+    inner = (best > 0) & (best < len(inv) - 1)
+    off = np.where(inner, np.clip(off, -0.5, 0.5), 0.0)
+    idepth = inv[0] + (best + off) * (inv[1] - inv[0])
+    depth = (1.0 / idepth).astype(np.float32)
+    score = np.take_along_axis(vol, best[..., None], 2)[..., 0]
+    score = np.where(inner, score, -1.0).astype(np.float32)
+    return depth, score
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover - numba
+    """ref (h, w) float32; srcs (S, hs, ws) float32; src_hw (S, 2) int64 real sizes;
+    homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32 aggregated
+    NCC (mean of the best m_best sources; -1 where fewer sources see the pixel)."""
+    h, w = ref.shape
+    n_d, n_s = homs.shape[0], homs.shape[1]
+    # reference window statistics (integral images)
+    ir = np.zeros((h + 1, w + 1))
+    ir2 = np.zeros((h + 1, w + 1))
+    for y in range(h):
+        for x in range(w):
+            r = ref[y, x]
+            ir[y + 1, x + 1] = ir[y, x + 1] + ir[y + 1, x] - ir[y, x] + r
+            ir2[y + 1, x + 1] = ir2[y, x + 1] + ir2[y + 1, x] - ir2[y, x] + r * r
+    for k in prange(n_d):
+        scores = np.full((n_s, h, w), -1.0, np.float32)
+        wimg = np.zeros((h, w))
+        seen = np.zeros((h, w), np.bool_)
+        iw = np.zeros((h + 1, w + 1))
+        iw2 = np.zeros((h + 1, w + 1))
+        irw = np.zeros((h + 1, w + 1))
+        for s in range(n_s):
+            hs, ws = src_hw[s, 0], src_hw[s, 1]
+            m = homs[k, s]
+            for y in range(h):
+                for x in range(w):
+                    pz = m[2, 0] * x + m[2, 1] * y + m[2, 2]
+                    val = 0.0
+                    ok = False
+                    if pz > 1e-9:
+                        u = (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / pz
+                        v = (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / pz
+                        if u >= 0.0 and v >= 0.0 and u <= ws - 1.0 and v <= hs - 1.0:
+                            x0 = min(int(u), ws - 2)
+                            y0 = min(int(v), hs - 2)
+                            fx = u - x0
+                            fy = v - y0
+                            a = srcs[s, y0, x0] * (1 - fx) + srcs[s, y0, x0 + 1] * fx
+                            b = srcs[s, y0 + 1, x0] * (1 - fx) + srcs[s, y0 + 1, x0 + 1] * fx
+                            val = a * (1 - fy) + b * fy
+                            ok = True
+                    wimg[y, x] = val
+                    seen[y, x] = ok
+            for y in range(h):
+                for x in range(w):
+                    q = wimg[y, x]
+                    iw[y + 1, x + 1] = iw[y, x + 1] + iw[y + 1, x] - iw[y, x] + q
+                    iw2[y + 1, x + 1] = iw2[y, x + 1] + iw2[y + 1, x] - iw2[y, x] + q * q
+                    irw[y + 1, x + 1] = irw[y, x + 1] + irw[y + 1, x] - irw[y, x] + q * ref[y, x]
+            for y in range(h):
+                y0 = max(0, y - half)
+                y1 = min(h, y + half + 1)
+                for x in range(w):
+                    if not seen[y, x]:
+                        continue
+                    x0 = max(0, x - half)
+                    x1 = min(w, x + half + 1)
+                    n = (y1 - y0) * (x1 - x0)
+                    sr = ir[y1, x1] - ir[y0, x1] - ir[y1, x0] + ir[y0, x0]
+                    sr2 = ir2[y1, x1] - ir2[y0, x1] - ir2[y1, x0] + ir2[y0, x0]
+                    sw = iw[y1, x1] - iw[y0, x1] - iw[y1, x0] + iw[y0, x0]
+                    sw2 = iw2[y1, x1] - iw2[y0, x1] - iw2[y1, x0] + iw2[y0, x0]
+                    srw = irw[y1, x1] - irw[y0, x1] - irw[y1, x0] + irw[y0, x0]
+                    vr = sr2 / n - (sr / n) ** 2 + 1e-5
+                    vw = sw2 / n - (sw / n) ** 2 + 1e-5
+                    if vr < 1e-5:
+                        vr = 1e-5
+                    if vw < 1e-5:
+                        vw = 1e-5
+                    scores[s, y, x] = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
+        # aggregate: mean of the best m_best sources
+        for y in range(h):
+            for x in range(w):
+                tot = 0.0
+                for _t in range(m_best):
+                    bi = -1
+                    bv = -3.0
+                    for s in range(n_s):
+                        sv = scores[s, y, x]
+                        if sv > bv:
+                            bv = sv
+                            bi = s
+                    tot += bv
+                    scores[bi, y, x] = -4.0
+                out[y, x, k] = tot / m_best
+
+
+@njit(cache=True)
+def _path(cost, agg, y0, x0, dy, dx, p1, p2):  # pragma: no cover - numba
+    h, w, n_d = cost.shape
+    prev = np.empty(n_d)
+    cur = np.empty(n_d)
+    y = np.int64(y0)
+    x = np.int64(x0)
+    first = True
+    pmin = 0.0
+    while 0 <= y < h and 0 <= x < w:
+        if first:
+            for d in range(n_d):
+                cur[d] = cost[y, x, d]
+            first = False
+        else:
+            for d in range(n_d):
+                best = prev[d]
+                if d > 0 and prev[d - 1] + p1 < best:
+                    best = prev[d - 1] + p1
+                if d < n_d - 1 and prev[d + 1] + p1 < best:
+                    best = prev[d + 1] + p1
+                if pmin + p2 < best:
+                    best = pmin + p2
+                cur[d] = cost[y, x, d] + best - pmin
+        pmin = 1e30
+        for d in range(n_d):
+            agg[y, x, d] += cur[d]
+            prev[d] = cur[d]
+            if cur[d] < pmin:
+                pmin = cur[d]
+        y += dy
+        x += dx
+
+
+@njit(cache=True, parallel=True)
+def _sgm(cost, p1, p2):  # pragma: no cover - numba
+    """cost (h, w, D) float32 → (h, w, D) float32 sum of 4 path aggregations (SGM)."""
+    h, w, n_d = cost.shape
+    agg = np.zeros((h, w, n_d), np.float32)
+    for y in prange(h):
+        _path(cost, agg, y, 0, 0, 1, p1, p2)
+        _path(cost, agg, y, w - 1, 0, -1, p1, p2)
+    for x in prange(w):
+        _path(cost, agg, 0, x, 1, 0, p1, p2)
+        _path(cost, agg, h - 1, x, -1, 0, p1, p2)
+    return agg
+
+
+# --------------------------------------------------------------------------- consistency
+
+
+def consistency_count(
+    depths: list[np.ndarray], cams: list[PinholeCamera], i: int, others: list[int], rel: float
+) -> np.ndarray:
+    """(h, w) int: for every valid pixel of depth map i, how many of the depth maps ``others``
+    see its 3D point at the same z-depth within ``rel`` (relative)."""
+    d = depths[i]
+    valid = np.isfinite(d)
+    count = np.zeros(d.shape, np.int32)
+    if not valid.any():
+        return count
+    pts = cams[i].unproject(d)[valid]
+    for j in others:
+        uv, z = cams[j].project(pts)
+        ok = np.isfinite(uv).all(axis=1) & (z > 0)
+        ui = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+        vi = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+        hj, wj = depths[j].shape
+        ok &= (ui >= 0) & (ui < wj) & (vi >= 0) & (vi < hj)
+        dj = np.full(len(pts), np.nan)
+        dj[ok] = depths[j][vi[ok], ui[ok]]
+        with np.errstate(invalid="ignore"):
+            agree = np.abs(dj - z) <= rel * z
+        count[valid] += agree
+    return count
+
+
+# --------------------------------------------------------------------------- the backend
+
+
+def _o3d_intrinsic(cam: PinholeCamera) -> o3d.core.Tensor:
+    k = _T_IDX_INV @ cam.K  # Open3D: pixel centres at integer coordinates
+    return o3d.core.Tensor(k, o3d.core.float64)
+
+
+class TsdfSurfaces(SurfaceBackend):
+    """CPU default: multi-view stereo fused into a TSDF; renders by ray casting its mesh."""
+
+    name = "tsdf"
+
+    def __init__(self, config: SurfacesConfig | None = None) -> None:
+        super().__init__(config or SurfacesConfig(backend="tsdf"))
+        self.vertices = np.zeros((0, 3))
+        self.faces = np.zeros((0, 3), np.int32)
+        self.vertex_colors = np.zeros((0, 3))
+        self.depth_maps: list[np.ndarray] = []
+        self._scene = None
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, images, cameras, bbox=None, progress: Progress | None = None) -> None:
+        imgs, cams, box = check_inputs(images, cameras, bbox)
+        cfg = self.config
+        say = progress or (lambda stage, frac: None)
+        t0 = time.perf_counter()
+        small = [c.scaled(cfg.mvs_scale) for c in cams]
+        greys = [to_grey(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
+        nbrs = select_neighbours(cams, int(cfg.neighbours), box)
+        limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
+
+        raw: list[np.ndarray] = []
+        for i in range(len(cams)):
+            if not nbrs[i]:
+                raw.append(np.full(greys[i].shape, np.nan, np.float32))
+                continue
+            near, far = limits[i]
+            depth, score = plane_sweep(
+                greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
+                near, far, int(cfg.n_depths), int(cfg.window),
+            )  # fmt: skip
+            depth[score < cfg.min_ncc] = np.nan
+            raw.append(depth)
+            say("stereo", (i + 1) / len(cams))
+        t1 = time.perf_counter()
+
+        filtered = []
+        for i in range(len(cams)):
+            d = raw[i].copy()
+            if cfg.min_consistent > 0:
+                # the views this one was matched with and those matched with it
+                others = sorted(set(nbrs[i]) | {j for j in range(len(cams)) if i in nbrs[j]})
+                cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
+                d[cnt < cfg.min_consistent] = np.nan
+            if box is not None:
+                pts = small[i].unproject(d)
+                inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=-1)
+                d[~inside] = np.nan
+            filtered.append(d)
+        say("consistency", 1.0)
+        t2 = time.perf_counter()
+
+        self.bbox = box
+        self._fuse(imgs, small, filtered, limits)
+        say("fusion", 1.0)
+        t3 = time.perf_counter()
+        self.cameras = cams
+        self.depth_maps = filtered
+        self._scene = None
+        n_valid = [float(np.isfinite(d).mean()) for d in filtered]
+        self.timings = {
+            "stereo": t1 - t0,
+            "consistency": t2 - t1,
+            "fusion": t3 - t2,
+            "total": t3 - t0,
+            "valid_fraction": float(np.mean(n_valid)),
+        }
+        if len(self.faces) == 0:
+            raise SurfacesError(
+                "multi-view stereo found no consistent surface: check the poses, the bounding box "
+                "and the image overlap (or lower surfaces min_consistent / min_ncc)"
+            )
+
+    def _fuse(self, imgs, small, depths, limits) -> None:
+        cfg = self.config
+        vs = float(cfg.voxel_size)
+        trunc = float(cfg.trunc_voxels)
+        block_res = 8
+        frames = []
+        probe = o3d.t.geometry.VoxelBlockGrid(
+            ("tsdf", "weight", "color"),
+            (o3d.core.float32, o3d.core.float32, o3d.core.float32),
+            ((1), (1), (3)), vs, block_res, 16,
+        )  # fmt: skip
+        coords = []
+        for im, cam, d, (_, far) in zip(imgs, small, depths, limits, strict=True):
+            dd = np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+            if not np.any(dd > 0):
+                continue
+            depth_img = o3d.t.geometry.Image(np.ascontiguousarray(dd))
+            rgb = np.ascontiguousarray(_resize_rgb(im, cam).astype(np.float32) / 255.0)
+            intr = _o3d_intrinsic(cam)
+            extr = o3d.core.Tensor(cam.world_to_cam, o3d.core.float64)
+            bc = probe.compute_unique_block_coordinates(depth_img, intr, extr, 1.0, far, trunc)
+            coords.append(bc.numpy())
+            frames.append((depth_img, o3d.t.geometry.Image(rgb), intr, extr, far, bc))
+        if not frames:
+            raise SurfacesError("no view has a usable depth map: nothing to fuse")
+        n_blocks = len(np.unique(np.concatenate(coords), axis=0))
+        vbg = o3d.t.geometry.VoxelBlockGrid(
+            ("tsdf", "weight", "color"),
+            (o3d.core.float32, o3d.core.float32, o3d.core.float32),
+            ((1), (1), (3)), vs, block_res, int(n_blocks * 1.2) + 64,
+        )  # fmt: skip
+        for depth_img, color_img, intr, extr, far, bc in frames:
+            vbg.integrate(bc, depth_img, color_img, intr, extr, 1.0, far, trunc)
+        mesh = vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold))
+        v = mesh.vertex.positions.numpy().astype(np.float64)
+        f = mesh.triangle.indices.numpy().astype(np.int32) if len(v) else np.zeros((0, 3), int)
+        c = mesh.vertex.colors.numpy().astype(np.float64) if len(v) else np.zeros((0, 3))
+        self._set_mesh(v, f.reshape(-1, 3), c)
+
+    def _set_mesh(self, v: np.ndarray, f: np.ndarray, c: np.ndarray) -> None:
+        """Store the surface exactly as ``save`` writes it (float32 positions, 8-bit colours), so
+        that a saved and reloaded surface renders identically; faces leaving the bounding box
+        (grown by two voxels) are dropped."""
+        f = np.asarray(f, np.int32).reshape(-1, 3)
+        if self.bbox is not None and len(f):
+            pad = 2 * float(self.config.voxel_size)
+            inside = np.all((v >= self.bbox[0] - pad) & (v <= self.bbox[1] + pad), axis=1)
+            f = f[inside[f].all(axis=1)]
+        if len(f):
+            used, inv = np.unique(f, return_inverse=True)
+            v, c, f = v[used], c[used], inv.reshape(-1, 3).astype(np.int32)
+        else:
+            v, c = np.zeros((0, 3)), np.zeros((0, 3))
+        self.vertices = np.asarray(v, np.float32).astype(np.float64)
+        self.vertex_colors = np.rint(np.clip(c, 0.0, 1.0) * 255.0) / 255.0
+        self.faces = f
+        self._scene = None
+
+    # ------------------------------------------------------------------ queries
+    def _raycaster(self):
+        if self._scene is None:
+            self._scene = build_scene(self.vertices, self.faces)
+        return self._scene
+
+    def render(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+        self._require_fitted()
+        if not isinstance(camera, PinholeCamera):
+            raise InputError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+        h, w = camera.height, camera.width
+        d = camera.ray_directions(normalized=False).reshape(-1, 3)
+        rays = np.empty((len(d), 6), np.float32)
+        rays[:, :3] = camera.center
+        rays[:, 3:] = d
+        ans = self._raycaster().cast_rays(o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy()
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        hit = np.isfinite(t) & (prim != o3d.t.geometry.RaycastingScene.INVALID_ID)
+        depth = np.where(hit, t, np.nan).astype(np.float32).reshape(h, w)
+        rgb = np.zeros((len(d), 3))
+        if hit.any():
+            uv = ans["primitive_uvs"].numpy()[hit].astype(np.float64)
+            tri = self.faces[prim[hit]]
+            col = self.vertex_colors
+            rgb[hit] = (
+                (1 - uv[:, :1] - uv[:, 1:]) * col[tri[:, 0]]
+                + uv[:, :1] * col[tri[:, 1]]
+                + uv[:, 1:] * col[tri[:, 2]]
+            )
+        rgb8 = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8).reshape(h, w, 3)
+        return depth, rgb8
+
+    def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices of the fused mesh inside the bounding box (about one per voxel of surface),
+        with their fused colours."""
+        self._require_fitted()
+        keep = in_bbox(self.vertices, self.bbox)
+        return subsample(self.vertices[keep], self.vertex_colors[keep], n_max, self.config.seed)
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices (n, 3) float64 m, faces (m, 3) int32, vertex colours (n, 3) float in
+        [0, 1]) of the fused surface."""
+        self._require_fitted()
+        return self.vertices, self.faces, self.vertex_colors
+
+    # ------------------------------------------------------------------ persistence
+    def _save_payload(self, folder: Path) -> dict:
+        write_colored_ply(folder / MESH_FILE, self.vertices, self.faces, self.vertex_colors)
+        return {"mesh": MESH_FILE, "vertices": len(self.vertices), "faces": len(self.faces)}
+
+    def _load_payload(self, folder: Path, meta: dict) -> None:
+        self.depth_maps = []
+        self._scene = None
+        v, f, c = read_colored_ply(folder / meta.get("mesh", MESH_FILE))
+        self._set_mesh(v, f, c)
+
+
+# --------------------------------------------------------------------------- PLY with colours
+
+
+def write_colored_ply(path: Path, v: np.ndarray, f: np.ndarray, c: np.ndarray) -> Path:
+    """Binary little-endian PLY: vertices (n, 3) as float32 x y z + uint8 r g b from colours
+    (n, 3) in [0, 1]; faces (m, 3) as int32 lists. Written atomically."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment cropcraft visible surfaces, metres, z up\n"
+        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode("ascii")
+    vd = np.empty(len(v), [("p", "<f4", (3,)), ("c", "u1", (3,))])
+    vd["p"] = v
+    vd["c"] = np.clip(np.rint(np.asarray(c) * 255.0), 0, 255)
+    fd = np.empty(len(f), [("n", "u1"), ("i", "<i4", (3,))])
+    fd["n"] = 3
+    fd["i"] = f
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_bytes(header + vd.tobytes() + fd.tobytes())
+        tmp.replace(path)
+    except OSError as e:
+        raise SurfacesError(f"cannot write {path}: {e}") from None
+    return path
+
+
+def read_colored_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read what ``write_colored_ply`` wrote: (vertices (n, 3) float64, faces (m, 3) int32,
+    colours (n, 3) float64 in [0, 1])."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise InputError(f"cannot read {path}: {e}") from None
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputError(f"{path} is not a PLY file")
+    head = data[:end].decode("ascii", "replace").splitlines()
+    try:
+        nv = int(next(x for x in head if x.startswith("element vertex")).split()[2])
+        nf = int(next(x for x in head if x.startswith("element face")).split()[2])
+    except (StopIteration, ValueError, IndexError):
+        raise InputError(f"{path}: malformed PLY header") from None
+    body = data[end + len(b"end_header\n") :]
+    vdt = np.dtype([("p", "<f4", (3,)), ("c", "u1", (3,))])
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    if len(body) != nv * vdt.itemsize + nf * fdt.itemsize:
+        raise InputError(f"{path}: size does not match its header (truncated?)")
+    vd = np.frombuffer(body, vdt, nv)
+    fd = np.frombuffer(body, fdt, nf, offset=nv * vdt.itemsize)
+    return (
+        vd["p"].astype(np.float64),
+        fd["i"].astype(np.int32),
+        vd["c"].astype(np.float64) / 255.0,
+    )

@@ -1,0 +1,178 @@
+"""Visible-surfaces stage: tsdf (CPU MVS + TSDF) on a small posed synthetic scene, truth backend,
+save/load, config errors, nerfacto availability."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cropcraft_core.config.layout import CanopyLayout
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.procedural.canopy import generate_canopy
+from cropcraft_core.render.raster import render_depth
+from cropcraft_core.surfaces import (
+    SurfacesConfig,
+    SurfacesError,
+    load_surfaces,
+    make_backend,
+)
+
+
+def _texture(p: np.ndarray, cell: float = 0.025) -> np.ndarray:
+    """(n,) brightness in [0.6, 1.4] anchored to 3D points (n, 3): the same in every view."""
+    k = np.floor(p / cell).astype(np.int64)
+    x = (k[:, 0] * 73856093) ^ (k[:, 1] * 19349663) ^ (k[:, 2] * 83492791)
+    x = (x ^ (x >> 13)) * 1274126177
+    return 0.6 + 0.8 * ((x >> 8) & 1023) / 1023.0
+
+
+def _view(mesh, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """((H, W, 3) uint8 image, (H, W) float32 true depth incl. the ground z = 0)."""
+    res = render_depth(mesh.vertices, mesh.faces, cam)
+    depth = res.depth.astype(np.float64)
+    d = cam.ray_directions(normalized=False)
+    ground = ~np.isfinite(depth) & (d[..., 2] < 0)
+    depth[ground] = (-cam.center[2] / d[..., 2])[ground]
+    pts = cam.unproject(np.where(np.isfinite(depth), depth, 0.0)).reshape(-1, 3)
+    leaf = np.isfinite(res.depth).reshape(-1)
+    base = np.where(leaf[:, None], [60, 140, 45], [125, 88, 60]).astype(np.float64)
+    rgb = base * _texture(pts)[:, None]
+    rgb[~np.isfinite(depth).reshape(-1)] = [170, 190, 220]
+    return np.clip(rgb, 0, 255).astype(np.uint8).reshape(*depth.shape, 3), depth
+
+
+def _arc(
+    n: int, radius: float, height: float, arc_deg: float = 135.0, size=(320, 240)
+) -> list[PinholeCamera]:
+    """n cameras on an arc of ``arc_deg`` around the plot, looking at its centre."""
+    cams = []
+    for i in range(n):
+        a = math.radians(-90.0 - arc_deg / 2 + arc_deg * i / (n - 1))
+        c = np.array([radius * math.cos(a), radius * math.sin(a), height])
+        f = np.array([0.0, 0.0, 0.15]) - c
+        f /= np.linalg.norm(f)
+        r = np.cross(f, [0.0, 0.0, 1.0])
+        r /= np.linalg.norm(r)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(f, r), f, c
+        cams.append(PinholeCamera.from_vfov(size[0], size[1], 55.0, m))
+    return cams
+
+
+@pytest.fixture(scope="module")
+def scene():
+    layout = CanopyLayout(plot_length=1.0, plot_width=1.0, margin=0.4)
+    mesh = generate_canopy("soybean", {}, layout, seed=3).mesh
+    cams = _arc(14, 1.1, 1.5)
+    views = [_view(mesh, c) for c in cams]
+    bbox = np.array([[-0.9, -0.9, -0.05], [0.9, 0.9, 1.2]])
+    return mesh, cams, [v[0] for v in views], bbox
+
+
+@pytest.fixture(scope="module")
+def fitted(scene):
+    mesh, cams, imgs, bbox = scene
+    cfg = SurfacesConfig(n_depths=64, mvs_scale=0.5, voxel_size=0.01)
+    b = make_backend(cfg)
+    b.fit(imgs, cams, bbox)
+    return b
+
+
+def test_tsdf_renders_new_downward_view(scene, fitted):
+    mesh, *_ = scene
+    cam = PinholeCamera.look_down(height_m=1.2, size=(200, 150))
+    depth, rgb = fitted.render(cam)
+    truth = make_backend(SurfacesConfig(backend="truth"), mesh=mesh)
+    d_true, _ = truth.render(cam)
+    both = np.isfinite(depth) & np.isfinite(d_true)
+    assert both.mean() > 0.15, f"the fused surface covers only {both.mean():.0%} of the view"
+    err = np.median(np.abs(depth[both] - d_true[both]))
+    assert err < 0.03, f"median depth error {err:.3f} m"
+    assert depth.dtype == np.float32 and rgb.dtype == np.uint8 and rgb.shape == (150, 200, 3)
+
+
+def test_point_cloud_coloured(fitted):
+    pts, cols = fitted.point_cloud(5000)
+    assert 1000 <= len(pts) <= 5000 and cols.shape == pts.shape
+    assert np.all((cols >= 0) & (cols <= 1))
+    assert np.all((pts >= fitted.bbox[0] - 0.03) & (pts <= fitted.bbox[1] + 0.03))
+    green = (cols[:, 1] > cols[:, 0]) & (cols[:, 1] > cols[:, 2])
+    brown = (cols[:, 0] > cols[:, 1]) & (cols[:, 1] > cols[:, 2])
+    assert green.mean() > 0.2 and brown.mean() > 0.05
+    assert (green | brown).mean() > 0.85
+
+
+def test_save_load_round_trip(fitted, tmp_path):
+    fitted.save(tmp_path / "s")
+    again = load_surfaces(tmp_path / "s")
+    cam = PinholeCamera.look_down(height_m=1.0, size=(120, 90))
+    d0, c0 = fitted.render(cam)
+    d1, c1 = again.render(cam)
+    np.testing.assert_array_equal(d0, d1)
+    np.testing.assert_array_equal(c0, c1)
+    assert len(again.cameras) == len(fitted.cameras)
+
+
+def test_truth_backend_and_round_trip(scene, tmp_path):
+    mesh, cams, imgs, bbox = scene
+    b = make_backend(SurfacesConfig(backend="truth"), mesh=mesh)
+    b.fit(imgs, cams, bbox)
+    pts, cols = b.point_cloud(2000)
+    assert len(pts) == 2000 and np.all(pts[:, 2] > -0.01)
+    b.save(tmp_path / "t")
+    cam = PinholeCamera.look_down(height_m=1.0, size=(80, 60))
+    np.testing.assert_array_equal(b.render(cam)[0], load_surfaces(tmp_path / "t").render(cam)[0])
+
+
+def test_unknown_backend_is_config_error():
+    with pytest.raises(ConfigError, match="unknown surfaces backend"):
+        make_backend(SurfacesConfig(backend="colmap-dense"))
+    with pytest.raises(ConfigError):
+        make_backend("nope")
+    with pytest.raises(ConfigError):
+        make_backend(SurfacesConfig(backend="truth"))  # no mesh
+
+
+def _cuda() -> bool:
+    try:
+        import torch
+
+        return bool(torch.cuda.is_available())
+    except ImportError:  # pragma: no cover
+        return False
+
+
+def _nerfstudio() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("nerfstudio") is not None
+
+
+@pytest.mark.skipif(_cuda() and _nerfstudio(), reason="nerfstudio and CUDA are present")
+def test_nerfacto_without_cuda_names_cpu_backend():
+    with pytest.raises(SurfacesError, match="--surfaces tsdf"):
+        make_backend(SurfacesConfig(backend="nerfacto"))
+
+
+def test_paper_settings_per_crop():
+    m = SurfacesConfig.for_crop("maize", backend="nerfacto")
+    assert (m.near_plane, m.far_plane, m.hidden_dim, m.orientation) == (0.05, 6.0, 128, "vertical")
+    assert SurfacesConfig.for_crop("soybean").nerf_iterations == 20000
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not (_cuda() and _nerfstudio()), reason="needs nerfstudio and CUDA")
+def test_nerfacto_fits_on_gpu(scene, tmp_path):  # pragma: no cover - GPU hosts only
+    mesh, cams, imgs, bbox = scene
+    cfg = SurfacesConfig(backend="nerfacto", nerf_iterations=2000, workdir=str(tmp_path))
+    b = make_backend(cfg)
+    b.fit(imgs, cams, bbox)
+    cam = PinholeCamera.look_down(height_m=1.2, size=(200, 150))
+    depth, rgb = b.render(cam)
+    d_true, _ = make_backend(SurfacesConfig(backend="truth"), mesh=mesh).render(cam)
+    both = np.isfinite(depth) & np.isfinite(d_true)
+    assert np.median(np.abs(depth[both] - d_true[both])) < 0.05
+    assert len(b.point_cloud(1000)[0]) > 0
