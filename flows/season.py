@@ -1,0 +1,104 @@
+"""The season flow: every dated scene of a site that has photos and no results, each as a
+subflow, then a season summary (LAI, leaf angle, height by date: CSV and a PNG plot)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from prefect import flow, get_run_logger
+
+from cropcraft_core.errors import CropCraftError
+from cropcraft_core.store import SceneStore
+
+
+def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
+    """Dates of ``site``/``crop`` with photos in their inbox whose report stage is not done."""
+    return [d.scene.date for d in store.discover(site, crop) if d.stages.get("report") != "done"]
+
+
+def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
+    """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
+    and ``summary.png``. Returns the keys and the rows."""
+    from cropcraft_core.report import season_csv, season_plot_png, season_rows
+
+    per_date = {}
+    for d in store.discover(site, crop):
+        key = f"{d.scene.prefix}/metrics/metrics.json"
+        if d.stages.get("metrics") == "done" and store.isfile(key):
+            per_date[d.scene.date] = store.get_json(key)
+    rows = season_rows(per_date)
+    csv_key = f"{site}/{crop}/season/summary.csv"
+    png_key = f"{site}/{crop}/season/summary.png"
+    store.put_bytes(csv_key, season_csv(rows).encode("utf-8"))
+    if rows:
+        store.put_bytes(png_key, season_plot_png(rows, f"{site} {crop}"))
+    return {
+        "csv": store.url(csv_key),
+        "png": store.url(png_key) if rows else None,
+        "rows": rows,
+    }
+
+
+@flow(name="process-season", persist_result=False)
+def process_season(
+    site: str,
+    crop: str,
+    store: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    runner: str = "threads",
+) -> dict[str, Any]:
+    """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
+    that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
+    ``transforms.json`` beside them) and no finished report, one after another, on ``runner``;
+    a failed date does not stop the others. Then write the season summary.
+    """
+    from flows.runners import make_task_runner
+    from flows.scene import prepare, reconstruct_scene
+
+    log = get_run_logger()
+    st = SceneStore.connect(store)
+    dates = pending_dates(st, site, crop)
+    log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
+    scenes: dict[str, str] = {}
+    failed = []
+    sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
+    for date in dates:
+        try:
+            prepare(site, crop, date, None, None, overrides, store)
+        except CropCraftError as exc:
+            scenes[date] = f"invalid: {exc}"
+            failed.append(date)
+            continue
+        state = sub(
+            site=site,
+            crop=crop,
+            date=date,
+            overrides=dict(overrides or {}),
+            store=store,
+            return_state=True,
+        )
+        scenes[date] = state.name
+        if not state.is_completed():
+            failed.append(date)
+            log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
+    summary = write_summary(st, site, crop)
+    return {"scenes": scenes, "failed": failed, "csv": summary["csv"], "png": summary["png"]}
+
+
+def run_season(
+    site: str,
+    crop: str,
+    store: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    runner: str = "threads",
+) -> dict[str, Any]:
+    """Validate (names, store, settings), then run :func:`process_season`."""
+    from cropcraft_core.store import SceneKey
+    from flows.runners import parse_runner
+    from flows.scene import resolve_config
+
+    SceneKey(site, crop, "2000-01-01")
+    resolve_config(crop, overrides)
+    parse_runner(runner)
+    SceneStore.connect(store)
+    return process_season(site, crop, store, dict(overrides or {}), runner)

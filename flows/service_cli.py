@@ -1,0 +1,332 @@
+"""The service sub-commands of ``cropcraft``: ``run``, ``season``, ``status`` and ``demo``.
+
+``flows/cli.py`` registers them with :func:`add_service_commands`. Every command validates its
+input (scene names, store reachability, photos present, settings) before Prefect starts, and a
+``CropCraftError`` becomes one line and exit code 2 in ``flows.cli.main``. One ``--store``
+option everywhere (default ``$CROPCRAFT_STORE``, else ``./cropcraft-data``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from contextlib import contextmanager
+from typing import Any
+
+from cropcraft_core.errors import ConfigError
+
+# --------------------------------------------------------------------------- shared options
+
+
+def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
+    p.add_argument(
+        "--store",
+        default=os.environ.get("CROPCRAFT_STORE"),
+        metavar="URI",
+        help="scene store root: a folder or s3://bucket/prefix (env CROPCRAFT_STORE; "
+        "default ./cropcraft-data)",
+    )
+    if runner:
+        p.add_argument(
+            "--runner",
+            default="threads",
+            metavar="RUNNER",
+            help="threads (default), dask (a local 2-worker cluster) or dask://HOST:PORT",
+        )
+        p.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="SECTION.KEY=VALUE",
+            help="config override, e.g. fit.n_evals=200 or observe.image_scale=0.5 (repeatable; "
+            "VALUE is JSON, else a string)",
+        )
+        p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """``["fit.n_evals=200", "surfaces.backend=tsdf"]`` → ``{"fit.n_evals": 200, ...}``."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, raw = item.partition("=")
+        if not sep or "." not in key:
+            raise ConfigError(f"--set expects SECTION.KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = json.loads(raw)
+        except ValueError:
+            out[key.strip()] = raw
+    return out
+
+
+def _parse_scene(text: str):
+    from cropcraft_core.store import SceneKey
+
+    return SceneKey.parse(text)
+
+
+@contextmanager
+def progress_bar(enabled: bool = True):
+    """A tqdm bar over all optimiser evaluations of the running fit (threads runner)."""
+    from tasks.common import set_progress_sink
+
+    if not enabled or not sys.stderr.isatty():
+        yield
+        return
+    from tqdm import tqdm
+
+    lock = threading.Lock()
+    state: dict[int, tuple[int, int]] = {}
+    bar = tqdm(total=0, unit="eval", desc="fit (BO evaluations)", dynamic_ncols=True)
+
+    def sink(scene: str, seed: int, done: int, total: int) -> None:
+        with lock:
+            state[seed] = (done, total)
+            bar.total = sum(t for _, t in state.values())
+            bar.n = sum(d for d, _ in state.values())
+            bar.refresh()
+
+    set_progress_sink(sink)
+    try:
+        yield
+    finally:
+        set_progress_sink(None)
+        bar.close()
+
+
+def _quiet_prefect() -> None:
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+
+def _print_summary(out: Mapping[str, Any]) -> None:
+    states = out.get("states", {})
+    ran = sorted(k for k, v in states.items() if v != "Cached")
+    cached = sorted(k for k, v in states.items() if v == "Cached")
+    print(f"scene    {out['scene']}  (store {out['store']})")
+    print(f"ran      {', '.join(ran) or '-'}")
+    print(f"cached   {', '.join(cached) or '-'}")
+    for k, v in out.get("metrics", {}).items():
+        print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
+    print(f"report   {out['report']}")
+    print(f"bundle   {out['bundle']}")
+
+
+# --------------------------------------------------------------------------- run
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``cropcraft run SITE/CROP/DATE [--images URI] [--poses URI]``."""
+    from flows.scene import cached_result, prepare, run_scene
+
+    scene = _parse_scene(args.scene)
+    overrides = parse_sets(args.set)
+    req = prepare(
+        scene.site, scene.crop, scene.date, args.images, args.poses, overrides, args.store
+    )
+    hit = None if args.force else cached_result(req)
+    if hit is not None:
+        _print_summary(hit)
+        return 0
+    _quiet_prefect()
+    if args.force:
+        os.environ["PREFECT_TASKS_REFRESH_CACHE"] = "true"
+    with progress_bar(not args.no_progress):
+        out = run_scene(
+            scene.site,
+            scene.crop,
+            scene.date,
+            args.images,
+            args.poses,
+            overrides,
+            args.store,
+            runner=args.runner,
+        )
+    _print_summary(out)
+    return 0
+
+
+# --------------------------------------------------------------------------- season
+
+
+def cmd_season(args: argparse.Namespace) -> int:
+    """``cropcraft season SITE/CROP``: every dated scene with photos and no results."""
+    from flows.season import run_season
+
+    site, _, crop = args.site_crop.partition("/")
+    _quiet_prefect()
+    with progress_bar(not args.no_progress):
+        out = run_season(site, crop, args.store, parse_sets(args.set), runner=args.runner)
+    for date, state in out["scenes"].items():
+        print(f"{date}  {state}")
+    print(f"summary  {out.get('csv')}")
+    print(f"plot     {out.get('png')}")
+    return 0 if not out.get("failed") else 1
+
+
+# --------------------------------------------------------------------------- status
+
+
+def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list[dict[str, Any]]:
+    """Per stage: manifest status (done/failed/running/pending), whether its result for the
+    scene's recorded inputs and config is cached, its time and error."""
+    from cropcraft_core.errors import InputError
+    from cropcraft_core.store import SceneStore
+    from flows.scene import cache_walk, prepare
+    from tasks.common import STAGES
+
+    scene = _parse_scene(scene_text)
+    store = SceneStore.connect(store_uri)
+    try:
+        manifest = store.load_manifest(scene)
+    except InputError:
+        manifest = None
+    states: dict[str, str] = {}
+    if manifest is not None:
+        try:
+            req = prepare(scene.site, scene.crop, scene.date, None, None, overrides, store_uri)
+            states, _ = cache_walk(req)
+        except Exception:  # inputs moved: report the manifest only
+            states = {}
+    rows = []
+    for stage in STAGES:
+        rec = manifest.stages.get(stage) if manifest else None
+        if stage == "fit_seed":
+            n = sum(1 for k in states if k.startswith("fit_seed-"))
+            cached = f"{n} seeds" if n else "no"
+        else:
+            cached = "yes" if states.get(stage) == "Cached" else "no"
+        rows.append(
+            {
+                "stage": stage,
+                "status": rec.status if rec else "pending",
+                "cached": cached,
+                "seconds": rec.seconds if rec else None,
+                "error": rec.error if rec else None,
+            }
+        )
+    return rows
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """``cropcraft status SITE/CROP/DATE``: what is done, cached and failed."""
+    rows = scene_status(args.store, args.scene)
+    print(f"{'stage':<10} {'status':<8} {'cached':<9} {'seconds':>8}  error")
+    for r in rows:
+        sec = f"{r['seconds']:.1f}" if r["seconds"] is not None else "-"
+        err = (r["error"] or "")[:100]
+        print(f"{r['stage']:<10} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
+    return 0
+
+
+# --------------------------------------------------------------------------- demo
+
+DEMO_SCENE = ("demo", "soybean", "2024-07-15")
+#: The built-in synthetic soybean scene (truth parameters: middle of their ranges).
+DEMO_SYNTH = {"seed": 0, "views": 30, "resolution": (480, 360), "trajectory": "walk"}
+#: Reduced-budget defaults that keep the demo under 15 minutes on 2 CPU cores.
+DEMO_OVERRIDES: dict[str, Any] = {
+    "surfaces.backend": "tsdf",
+    "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
+    "rowfit.preset": {"box_center": None, "box_size": None},
+    "observe.image_scale": 0.5,
+    "fit.n_seeds": 4,
+    "fit.n_evals": 120,
+    "fit.n_initial": 40,
+}
+DEMO_TRUTH_KEYS = (
+    ("lai", "LAI (m2/m2)"),
+    ("leaf_angle_mean_deg", "leaf angle mean (deg)"),
+    ("leaf_angle_std_deg", "leaf angle SD (deg)"),
+    ("node_count", "node count"),
+    ("internode_mean_m", "internode length (m)"),
+)
+
+
+def ensure_demo_inputs(store) -> None:
+    """Make the synthetic demo scene once and put its photos (with ``transforms.json``) into
+    the scene's inbox and its truth under ``{scene}/truth/``."""
+    import tempfile
+    from pathlib import Path
+
+    from cropcraft_core.store import SceneKey
+    from cropcraft_core.synth import make_scene
+
+    scene = SceneKey(*DEMO_SCENE)
+    if store.isfile(f"{scene.prefix}/truth/metrics.json") and store.isfile(
+        f"{scene.prefix}/images/transforms.json"
+    ):
+        return
+    print("making the synthetic soybean scene (once) ...", flush=True)
+    with tempfile.TemporaryDirectory(prefix="cropcraft-demo-") as tmp:
+        make_scene("soybean", tmp, **DEMO_SYNTH)
+        store.put_tree(Path(tmp) / "images", f"{scene.prefix}/images")
+        store.put_file(Path(tmp) / "transforms.json", f"{scene.prefix}/images/transforms.json")
+        for name in ("params.json", "canopy.ply", "metrics.json"):  # metrics last: the marker
+            store.put_file(Path(tmp) / "truth" / name, f"{scene.prefix}/truth/{name}")
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:>12.3f}" if isinstance(v, int | float) else f"{'-':>12}"
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``cropcraft demo``: the built-in synthetic soybean scene through the whole scene flow."""
+    from cropcraft_core.store import SceneStore
+    from flows.scene import cached_result, prepare, run_scene
+
+    t0 = time.perf_counter()
+    site, crop, date = DEMO_SCENE
+    store = SceneStore.connect(args.store)
+    overrides = {**DEMO_OVERRIDES, **parse_sets(args.set)}
+    ensure_demo_inputs(store)
+    req = prepare(site, crop, date, None, None, overrides, args.store)
+    out = cached_result(req)
+    if out is None:
+        _quiet_prefect()
+        with progress_bar(not args.no_progress):
+            out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
+    truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")
+    metrics = store.get_json(f"{site}/{crop}/{date}/metrics/metrics.json")
+    print(f"\n{'trait':<24}{'estimated':>12}{'true':>12}")
+    for key, label in DEMO_TRUTH_KEYS:
+        est, tru = metrics.get(key), truth.get(key)
+        print(f"{label:<24}{_fmt(est)}{_fmt(tru)}")
+    states = out.get("states", {})
+    n_cached = sum(1 for v in states.values() if v == "Cached")
+    print(f"\nstages cached: {n_cached} of {len(states)}")
+    print(f"report   {out['report']}")
+    print(f"bundle   {out['bundle']}")
+    print(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def add_service_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``run``, ``season``, ``status`` and ``demo`` on the ``cropcraft`` parser."""
+    r = subparsers.add_parser("run", help="reconstruct one scene (cached, resumable)")
+    r.add_argument("scene", metavar="SITE/CROP/DATE")
+    r.add_argument("--images", metavar="URI", help="photos (default: the scene's store inbox)")
+    r.add_argument("--poses", metavar="URI", help="transforms.json or COLMAP model (else SfM)")
+    r.add_argument("--force", action="store_true", help="recompute every stage")
+    _add_common(r)
+    r.set_defaults(func=cmd_run)
+
+    s = subparsers.add_parser("season", help="every new dated scene of a site, then a summary")
+    s.add_argument("site_crop", metavar="SITE/CROP")
+    _add_common(s)
+    s.set_defaults(func=cmd_season)
+
+    st = subparsers.add_parser("status", help="what is done, cached and failed for a scene")
+    st.add_argument("scene", metavar="SITE/CROP/DATE")
+    _add_common(st, runner=False)
+    st.set_defaults(func=cmd_status)
+
+    d = subparsers.add_parser("demo", help="the whole scene flow on the built-in synthetic scene")
+    _add_common(d)
+    d.set_defaults(func=cmd_demo)
