@@ -202,9 +202,11 @@ def prepare(
 
 
 def result_storage(store_root: str) -> Any:
-    """Prefect result storage at the scene store's root: a ``Path`` for a local store, an
-    (unsaved) ``RemoteFileSystem`` block for object storage, carrying only the endpoint;
-    credentials come from the environment of whoever reads or writes."""
+    """Prefect result storage at the scene store's root: a ``Path`` for a local store; for
+    object storage a ``RemoteFileSystem`` block saved on the Prefect server as
+    ``cropcraft-results-<hash of the root>`` (Prefect only accepts saved blocks there). The
+    block carries the root and the endpoint only; credentials come from the environment of
+    whoever reads or writes."""
     store = SceneStore(store_root)
     if store.protocol == "file":
         return Path(store.fs._strip_protocol(store.root))
@@ -215,7 +217,10 @@ def result_storage(store_root: str) -> Any:
     endpoint = opts.get("endpoint_url") or (opts.get("client_kwargs") or {}).get("endpoint_url")
     if endpoint:
         settings["endpoint_url"] = endpoint
-    return RemoteFileSystem(basepath=store.root, settings=settings)
+    block = RemoteFileSystem(basepath=store.root, settings=settings)
+    name = "cropcraft-results-" + config_hash({"root": store.root, **settings})[:16]
+    block.save(name, overwrite=True)
+    return block
 
 
 # --------------------------------------------------------------------------- the wiring

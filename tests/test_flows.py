@@ -1,0 +1,307 @@
+"""The scene flow under Prefect's test harness, on a small synthetic scene, with real
+components: the cache (a rerun executes nothing), a late config change, a fault in one mapped
+seed and its resume, the store and results on a real S3-compatible server (moto), the Dask
+runner on a 2-worker local cluster, and named errors for bad input before any work starts.
+
+The harness (a temporary Prefect server and database, ~20 s) starts once per session with a
+temporary PREFECT_HOME and local result storage. The scene is computed once (module fixture
+``base_run``); the other tests reuse its upstream stages through the cache, which is the point.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("prefect")
+pytest.importorskip("cropcraft_core.synth")
+pytest.importorskip("cropcraft_core.surfaces")
+
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError  # noqa: E402
+from cropcraft_core.store import SceneKey, SceneStore, StoreError  # noqa: E402
+from tests.conftest_s3 import s3_server  # noqa: E402, F401
+
+CROP = "soybean"
+DATE = "2024-07-01"
+N_SEEDS = 3
+OVERRIDES = {
+    "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
+    "rowfit.preset": {"box_center": None, "box_size": None},
+    "observe.image_scale": 0.25,
+    "fit.n_seeds": N_SEEDS,
+    "fit.n_evals": 12,
+    "fit.n_initial": 6,
+    "metrics.gap_fraction": False,
+}
+N_TASKS = 10 + N_SEEDS  # ten single stages + the mapped seeds
+LATE_STAGES = ("aggregate", "generate", "metrics", "export", "report")
+
+
+@pytest.fixture(scope="session")
+def prefect_harness(tmp_path_factory):
+    """One Prefect test server for the session, temporary PREFECT_HOME and result storage."""
+    from prefect.settings import PREFECT_HOME, PREFECT_LOCAL_STORAGE_PATH, temporary_settings
+    from prefect.testing.utilities import prefect_test_harness
+
+    home = tmp_path_factory.mktemp("prefect-home")
+    with temporary_settings(
+        {PREFECT_HOME: str(home), PREFECT_LOCAL_STORAGE_PATH: str(home / "storage")}
+    ):
+        with prefect_test_harness(server_startup_timeout=90):
+            yield
+
+
+@pytest.fixture(scope="session")
+def scene_dir(tmp_path_factory) -> Path:
+    """A small synthetic soybean scene: photos, transforms.json, truth."""
+    from cropcraft_core.synth import make_scene
+
+    out = tmp_path_factory.mktemp("scene")
+    make_scene(CROP, out, seed=0, views=16, resolution=(400, 300), metrics=False)
+    return out
+
+
+def _run(site, store, scene_dir, overrides=OVERRIDES, runner="threads"):
+    from flows.scene import run_scene
+
+    return run_scene(
+        site,
+        CROP,
+        DATE,
+        images=str(scene_dir / "images"),
+        poses=str(scene_dir / "transforms.json"),
+        overrides=overrides,
+        store=str(store),
+        runner=runner,
+    )
+
+
+def _task_run_states(flow_run_id: str) -> dict[str, str]:
+    """{task run name: state name} of one flow run, read back from the Prefect API."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+    from prefect.client.schemas.sorting import TaskRunSort
+
+    with get_client(sync_client=True) as client:
+        runs = client.read_task_runs(
+            flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])),
+            sort=TaskRunSort.EXPECTED_START_TIME_DESC,
+            limit=200,
+        )
+    return {r.name: r.state.name for r in runs}
+
+
+def _executed(states: dict[str, str]) -> list[str]:
+    return sorted(k for k, v in states.items() if v != "Cached")
+
+
+@pytest.fixture(scope="module")
+def base_run(prefect_harness, scene_dir, tmp_path_factory):
+    """The scene computed once from scratch, then rerun with the same inputs."""
+    store = tmp_path_factory.mktemp("store-local")
+    t = time.perf_counter()
+    first = _run("plotA", store, scene_dir)
+    t_first = time.perf_counter() - t
+    t = time.perf_counter()
+    second = _run("plotA", store, scene_dir)
+    t_second = time.perf_counter() - t
+    return {"store": store, "first": first, "second": second, "t": (t_first, t_second)}
+
+
+def test_scene_flow_produces_everything(base_run):
+    out = base_run["first"]
+    assert len(out["states"]) == N_TASKS
+    assert _executed(out["states"]) == sorted(out["states"])  # all computed the first time
+    m = out["metrics"]
+    assert m["lai"] > 0 and math.isfinite(m["lai"])
+    assert 0 < m["leaf_angle_mean_deg"] < 90
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    html = store.get_bytes(f"{scene}/report/report.html").decode()
+    for needle in ("data:image/png;base64,", "observed", "predicted", "Stage timings", "m2"):
+        assert needle in html
+    for name in ("canopy.ply", "canopy.glb", "canopy.helios.xml", "preview.png", "metrics.json"):
+        assert store.isfile(f"{scene}/export/bundle/{name}")
+    manifest = store.load_manifest(SceneKey.parse(scene))
+    assert all(manifest.stages[s].status == "done" for s in ("ingest", "report", "fit_seed"))
+    # no arrays in any record that went through Prefect
+    assert len(repr(out)) < 20_000
+
+
+def test_rerun_is_cached_everywhere(base_run):
+    second = base_run["second"]
+    assert set(second["states"].values()) == {"Cached"}
+    api = _task_run_states(second["flow_run_id"])
+    assert len(api) == N_TASKS
+    assert _executed(api) == [], f"executed on rerun: {_executed(api)}"
+    assert second["params"] == base_run["first"]["params"]
+
+
+def test_unchanged_scene_answered_without_prefect(base_run, scene_dir):
+    from flows.scene import cached_result, prepare
+
+    req = prepare(
+        "plotA",
+        CROP,
+        DATE,
+        str(scene_dir / "images"),
+        str(scene_dir / "transforms.json"),
+        OVERRIDES,
+        str(base_run["store"]),
+    )
+    t = time.perf_counter()
+    hit = cached_result(req)
+    assert hit is not None and time.perf_counter() - t < 10
+    assert hit["params"] == base_run["first"]["params"]
+
+
+def test_late_config_change_recomputes_from_that_stage_on(base_run, scene_dir):
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 1})
+    assert _executed(out["states"]) == ["export", "generate", "metrics", "report"]
+    api = _task_run_states(out["flow_run_id"])
+    assert len(_executed(api)) == 4
+
+
+def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
+    import tasks.fit_seed as fit_seed_module
+    from cropcraft_core.fit import FitConfig, fit_observation
+    from cropcraft_core.observe import Observation
+
+    overrides = {**OVERRIDES, "fit.n_evals": 14}  # a new fit: seeds and what follows recompute
+    real = fit_seed_module.fit_seed
+    calls: list[int] = []
+
+    def faulty(observation, seed, *args, **kwargs):
+        calls.append(int(seed))
+        if int(seed) == 1:
+            raise RuntimeError("injected fault in seed 1")
+        return real(observation, seed, *args, **kwargs)
+
+    monkeypatch.setattr(fit_seed_module, "fit_seed", faulty)
+    with pytest.raises(CropCraftError, match="1 of 3 fit seeds failed"):
+        _run("plotA", base_run["store"], scene_dir, overrides)
+    assert sorted(calls) == [0, 1, 2]
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    assert store.load_manifest(scene).stages["fit_seed"].status == "failed"
+
+    def counting(observation, seed, *args, **kwargs):
+        calls.append(int(seed))
+        return real(observation, seed, *args, **kwargs)
+
+    monkeypatch.setattr(fit_seed_module, "fit_seed", counting)
+    calls.clear()
+    out = _run("plotA", base_run["store"], scene_dir, overrides)
+    assert calls == [1], "only the missing seed may run again"
+    assert _executed(out["states"]) == sorted(["fit_seed-1", *LATE_STAGES])
+
+    # equals a clean run: all seeds of the same fit computed in one go, no fault
+    obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene.prefix}/observe/observation.npz")))
+    cfg = FitConfig(method="bo", n_seeds=N_SEEDS, n_evals=14, n_initial=6)
+    from cropcraft_core.config import default_layout
+
+    clean = fit_observation(obs, cfg, default_layout(CROP))
+    for k, v in clean.params.items():
+        assert out["params"][k] == pytest.approx(v, rel=0, abs=1e-12), k
+
+
+def _copy_without_late_results(src: Path, dst: Path) -> None:
+    """A copy of a local store minus the cached results from fit_seed on (so they recompute)."""
+    shutil.copytree(src, dst)
+    for cache in dst.glob("*/*/*/.prefect"):
+        for stage in ("fit_seed", *LATE_STAGES):
+            shutil.rmtree(cache / stage, ignore_errors=True)
+
+
+def test_dask_runner_gives_the_same_result_as_threads(base_run, scene_dir, tmp_path):
+    pytest.importorskip("prefect_dask")
+    store = tmp_path / "store-dask"
+    _copy_without_late_results(base_run["store"], store)
+    out = _run("plotA", store, scene_dir, runner="dask")
+    assert _executed(out["states"]) == sorted(
+        [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
+    )
+    assert out["params"] == base_run["first"]["params"]
+    assert out["metrics"] == base_run["first"]["metrics"]
+
+
+def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  # noqa: F811
+    import fsspec
+
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", s3_server.key)
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", s3_server.secret)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", s3_server.region)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", s3_server.endpoint)
+    root = f"s3://{s3_server.bucket}/flows"
+    local = Path(str(base_run["store"])) / "s3-copy"
+    _copy_without_late_results(base_run["store"], local)
+    fs = fsspec.filesystem("s3", endpoint_url=s3_server.endpoint, skip_instance_cache=True)
+    fs.put(str(local) + "/", f"{s3_server.bucket}/flows/", recursive=True)
+    shutil.rmtree(local)
+
+    # upstream stages are read back from the results on S3, the fit and later stages are
+    # computed against S3 and their results written there
+    first = _run("plotA", root, scene_dir)
+    assert _executed(first["states"]) == sorted(
+        [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
+    )
+    assert first["params"] == base_run["first"]["params"]
+    assert first["metrics"] == base_run["first"]["metrics"]
+    second = _run("plotA", root, scene_dir)
+    assert set(second["states"].values()) == {"Cached"}
+    results = fs.find(f"{s3_server.bucket}/flows/plotA/{CROP}/{DATE}/.prefect")
+    assert any("/report/" in p for p in results) and any("/fit_seed/" in p for p in results)
+    assert first["report"].startswith("s3://")
+
+
+def _dead_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
+    from flows.scene import prepare, run_scene
+
+    store = str(tmp_path / "store")
+    with pytest.raises(ConfigError, match="invalid site"):
+        run_scene("plot A/../x", CROP, DATE, images=str(scene_dir / "images"), store=store)
+    with pytest.raises(InputError, match="no images found"):
+        run_scene("plotA", CROP, DATE, images=str(tmp_path / "missing"), store=store)
+    with pytest.raises(ConfigError, match="unknown setting"):
+        prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.n_eval": 3}, store)
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "x")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "y")
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_dead_port()}")
+    t = time.perf_counter()
+    with pytest.raises(StoreError, match="not reachable"):
+        run_scene("plotA", CROP, DATE, images=str(scene_dir / "images"), store="s3://nope/x")
+    assert time.perf_counter() - t < 30
+    assert not (tmp_path / "store").exists() or not any((tmp_path / "store").rglob("*.npz"))
+
+
+def test_report_builder_is_self_contained():
+    from cropcraft_core.report import scene_report_html, season_csv, season_rows
+
+    depth = np.full((8, 10), 0.8)
+    depth[0, 0] = np.nan
+    page = scene_report_html(
+        "s/soybean/2024-07-01",
+        thumbnails=[np.zeros((4, 6, 3), np.uint8)],
+        observed_depth=depth,
+        predicted_depth=depth + 0.1,
+        metrics={"lai": 2.0, "definitions": {"lai": {"unit": "m2 m-2", "method": "x"}}},
+        fit={"params": {"a": 1.0}, "params_std": {"a": 0.1}, "seed_params": [{"a": 1.0}]},
+        timings={"ingest": 1.0},
+    )
+    assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
+    assert "src='http" not in page
+    csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
+    assert csv.splitlines()[1].startswith("2024-06-01,1")
