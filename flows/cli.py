@@ -84,6 +84,35 @@ def _print_summary(out: str, metrics: dict) -> None:
     print(f"written to {Path(out).resolve()}")
 
 
+def _fit_config(args: argparse.Namespace):
+    from cropcraft_core.fit import FitConfig
+
+    cfg = FitConfig(
+        method=args.method,
+        n_seeds=args.seeds,
+        n_evals=args.evals,
+        n_initial=min(args.initial, args.evals),
+    )
+    return cfg if args.method == "poisson" else cfg.validate()
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from cropcraft_core.bundle import check_output_dir
+    from cropcraft_core.config.params import check_crop
+    from cropcraft_core.errors import InputError
+    from cropcraft_core.fit.geometry import fit_geometry
+
+    check_crop(args.crop)
+    if not Path(args.geometry).is_file():
+        raise InputError(f"{args.geometry}: no such file")
+    cfg = _fit_config(args)
+    layout = _layout(args.crop, args)
+    check_output_dir(args.out)
+    metrics = fit_geometry(args.geometry, args.crop, args.out, cfg, layout, seed=args.seed)
+    _print_summary(args.out, metrics)
+    return 0
+
+
 BENCHMARKS = {
     "generate": "benchmarks.bench_generate",
     "render": "benchmarks.bench_render",
@@ -118,6 +147,22 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--density", type=float, metavar="PLANTS_PER_M2")
     g.add_argument("--out", required=True, metavar="DIR")
     g.set_defaults(func=cmd_generate)
+
+    f = sub.add_parser("fit", help="fit a metric, z-up mesh or point cloud (LiDAR, other tools)")
+    f.add_argument("crop", help="soybean or maize")
+    f.add_argument("--geometry", required=True, metavar="FILE.ply")
+    f.add_argument("--out", required=True, metavar="DIR")
+    f.add_argument(
+        "--method", default="bo", choices=["bo", "trust-region", "random", "mlp", "poisson"]
+    )
+    f.add_argument("--seeds", type=int, default=10, help="optimiser seeds (paper: 10)")
+    f.add_argument("--evals", type=int, default=500, help="evaluations per seed (paper: 500)")
+    f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
+    f.add_argument("--seed", type=int, default=0, help="seed of the final canopy and sampling")
+    f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")
+    f.add_argument("--row-spacing", type=float, metavar="M", help="known planting row spacing")
+    f.add_argument("--density", type=float, metavar="PLANTS_PER_M2")
+    f.set_defaults(func=cmd_fit)
 
     b = sub.add_parser("bench", help="benchmarks (speed and accuracy targets)")
     b.add_argument("what", choices=sorted(BENCHMARKS))

@@ -265,3 +265,16 @@ def test_named_errors():
     with pytest.raises(RowFitError, match="too few points"):  # everything outside the box
         fit_ground_and_rows(soil + [0, 0, 1.0], scol, "soybean", rng=0)
     assert issubclass(RowFitError, CropCraftError)
+
+
+@pytest.mark.parametrize("params,az,seed", [(None, 0.0, 7), (None, 30.0, 8), (BIG_SOY, 0.0, 5)])
+def test_known_row_spacing_puts_camera_on_the_row(params, az, seed):
+    """Mid-season and nearly closed soybean: with the known planting row spacing, the best row
+    snaps to the periodic row pattern and the camera sits within 3 cm of a true row."""
+    pts, col, lay = make_cloud("soybean", params, az, seed)
+    scene, m = to_scene(pts, seed, scale=1.0)
+    fit = fit_ground_and_rows(
+        scene, col, "soybean", preset("soybean", box_size=None, row_spacing=0.76), rng=seed
+    )
+    dir_err, lateral, height, _ = errors(fit, m, lay)
+    assert dir_err <= 2.0 and lateral <= 0.03 and height <= 0.03

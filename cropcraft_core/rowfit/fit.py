@@ -463,9 +463,11 @@ def fit_ground_and_rows(
     best_xy = inlier_sets[order[0]]
     if used.refine_direction_deg is not None:
         rows[0], best_xy = _refine_row(xy, rows[0], used)
+        if used.row_spacing is not None:
+            rows[0], best_xy = _snap_to_row_pattern(q[:, :2], xy, rows[0], used)
 
-    # 7. camera above the mean of the best row's inliers
-    center = best_xy.mean(axis=0)
+    # 7. camera above the mean of the best row's inliers (on the pattern's line when snapped)
+    center = rows[0].point if used.row_spacing is not None else best_xy.mean(axis=0)
     camera = PinholeCamera.look_down(
         (float(center[0]), float(center[1])),
         used.render_height,
@@ -589,6 +591,26 @@ def _refine_row(xy: np.ndarray, row: Row, p: RowFitPreset) -> tuple[Row, np.ndar
             break
     sel = xy[inl]
     return Row(_canonical(d), sel.mean(axis=0), int(inl.sum())), sel
+
+
+def _snap_to_row_pattern(
+    plant_xy: np.ndarray, xy: np.ndarray, row: Row, p: RowFitPreset
+) -> tuple[Row, np.ndarray]:
+    """Move the best row onto the nearest centre line of the periodic row pattern (see
+    ``RowFitPreset.row_spacing``). The phase is the circular mean, modulo the spacing, of the
+    lateral offsets of *all* plant points (m, 2) — the upper slice alone is only weakly periodic;
+    inliers are taken from the row points ``xy`` (k, 2) as before."""
+    d = row.direction
+    n = np.array([-d[1], d[0]])
+    k = 2 * math.pi / p.row_spacing
+    u_all = (plant_xy - row.point) @ n
+    phase = math.atan2(float(np.sin(k * u_all).sum()), float(np.cos(k * u_all).sum())) / k
+    c = phase + p.row_spacing * round(-phase / p.row_spacing)  # the line nearest the band's
+    u = (xy - row.point) @ n
+    inl = np.abs(u - c) < p.line_threshold
+    sel = xy[inl]
+    along = float(((sel - row.point) @ d).mean()) if len(sel) else 0.0
+    return Row(d, row.point + along * d + c * n, int(inl.sum())), sel
 
 
 # --------------------------------------------------------------------------- metric scale

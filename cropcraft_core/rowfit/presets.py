@@ -102,6 +102,13 @@ class RowFitPreset:
     sharpest lateral profile of all row points, then take the ``line_threshold`` band holding
     the most points along it and mean-shift it. Plain RANSAC counts favour the scene box's
     diagonal on nearly closed canopies (errors up to 45° on synthetic mid-season soybean)."""
+    row_spacing: float | None = None
+    """Known planting row spacing (metres), not in the paper (``None`` = off): with the refined
+    direction, the best row's lateral position is moved to the nearest line of the periodic row
+    pattern whose phase is the circular mean of all plant points' offsets modulo the spacing.
+    Plants are symmetric about their row, so every row point votes for the centre lines; the
+    band mean alone drifts towards the neighbour row's leaves on wide canopies (15 cm measured
+    on mid-season soybean)."""
     dense_plant_fraction: float | None = 0.75
     """Plant-point fraction above which the dense-canopy settings apply (soybean 0.75; maize
     ``None`` = never)."""
@@ -169,6 +176,8 @@ class RowFitPreset:
             _positive("roi_radius", self.roi_radius)
         if self.refine_direction_deg is not None:
             _positive("refine_direction_deg", self.refine_direction_deg)
+        if self.row_spacing is not None:
+            _positive("row_spacing", self.row_spacing)
         if (self.box_center is None) != (self.box_size is None):
             raise ConfigError("box_center and box_size must both be given or both be None")
         if self.box_size is not None:
