@@ -172,7 +172,8 @@ def cmd_season(args: argparse.Namespace) -> int:
 
 def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list[dict[str, Any]]:
     """Per stage: manifest status (done/failed/running/pending), whether its result for the
-    scene's recorded inputs and config is cached, its time and error."""
+    scene's inbox photos and its recorded config (or ``overrides``) is cached, its time and
+    error."""
     from cropcraft_core.errors import InputError
     from cropcraft_core.store import SceneStore
     from flows.scene import cache_walk, prepare
@@ -187,7 +188,8 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     states: dict[str, str] = {}
     if manifest is not None:
         try:
-            req = prepare(scene.site, scene.crop, scene.date, None, None, overrides, store_uri)
+            recorded = overrides if overrides is not None else manifest.config
+            req = prepare(scene.site, scene.crop, scene.date, None, None, recorded, store_uri)
             states, _ = cache_walk(req)
         except Exception:  # inputs moved: report the manifest only
             states = {}
