@@ -1,8 +1,14 @@
 """Optimiser benchmark: our GP-BO vs scikit-optimize gp_minimize vs the paper's baselines.
 
-    .venv/bin/python -m benchmarks.bench_optimizer [--quick] [--seeds 5] [--skopt-seeds 1]
-        [--skopt-n 500] [--methods bo,bo-iid,skopt,random,trust-region] [--json out.json]
+    .venv/bin/python -m benchmarks.bench_optimizer [--quick] [--seeds 5] [--first-seed 0]
+        [--n 500] [--n-initial 200] [--noise-sd 0.1] [--skopt-seeds 1] [--skopt-n 500]
+        [--methods bo,bo-iid,skopt,random,trust-region] [--json out.json] [--progress skopt.log]
         [--load earlier.json ...]
+
+scikit-optimize costs ~20-25 CPU-minutes per seed at n = 500 (more wall time on a loaded
+machine), so the default runs one skopt seed; ``--skopt-n 300`` with ``--progress`` gives its
+per-iteration CPU curve, from which n = 500 is extrapolated (cost ~ n^1.7 per iteration here).
+``--load a.json b.json --methods ""`` prints one table from earlier ``--json`` runs.
 
 Objective: Hartmann-6 restricted to 5-D (x6 fixed at its optimum coordinate 0.6573, so the
 minimum is still -3.32237 at (0.20169, 0.15001, 0.47687, 0.27533, 0.31165)) on [0, 1]^5, plus
@@ -107,15 +113,24 @@ class NoisyHartmann:
 
 
 def run_method(
-    method: str, seed: int, n: int, n_init: int, skopt_n: int, progress: str | None = None
+    method: str,
+    seed: int,
+    n: int,
+    n_init: int,
+    skopt_n: int,
+    progress: str | None = None,
+    noise_sd: float = 0.1,
 ) -> SeedResult:
     if method == "bo":
         return run_seed(
-            NoisyHartmann(seed, True), BOUNDS, BOConfig(n_evals=n, n_initial=n_init), seed
+            NoisyHartmann(seed, True, noise_sd), BOUNDS, BOConfig(n_evals=n, n_initial=n_init), seed
         )
     if method == "bo-iid":
         return run_seed(
-            NoisyHartmann(seed, False), BOUNDS, BOConfig(n_evals=n, n_initial=n_init), seed
+            NoisyHartmann(seed, False, noise_sd),
+            BOUNDS,
+            BOConfig(n_evals=n, n_initial=n_init),
+            seed,
         )
     if method == "skopt":
         from cropcraft_core.optimize.skopt_reference import run_skopt
@@ -128,7 +143,7 @@ def run_method(
                 log.flush()
 
         return run_skopt(
-            NoisyHartmann(seed, False),
+            NoisyHartmann(seed, False, noise_sd),
             BOUNDS,
             seed=seed,
             n_evals=skopt_n,
@@ -136,9 +151,9 @@ def run_method(
             callback=cb,
         )
     if method == "random":
-        return run_random(NoisyHartmann(seed, False), BOUNDS, n_evals=n, seed=seed)
+        return run_random(NoisyHartmann(seed, False, noise_sd), BOUNDS, n_evals=n, seed=seed)
     if method == "trust-region":
-        return run_trust_region(NoisyHartmann(seed, False), BOUNDS, seed=seed)
+        return run_trust_region(NoisyHartmann(seed, False, noise_sd), BOUNDS, seed=seed)
     raise SystemExit(f"unknown method {method!r}")
 
 
@@ -170,7 +185,7 @@ def summarise(method: str, results: list[SeedResult], checkpoints: tuple[int, ..
 
 def print_table(rows: list[dict], checkpoints: tuple[int, ...]) -> None:
     head = (
-        f"{'method':<14}{'seeds':>6}{'n':>5}{'opt CPU s':>11}{'opt wall s':>12}"
+        f"{'method':<14}{'noise':>6}{'seeds':>6}{'n':>7}{'opt CPU s':>11}{'opt wall s':>12}"
         + "".join(f"{'s/it@' + str(n):>10}" for n in checkpoints)
         + f"{'true f @ reported':>22}{'f @ lowest obs':>16}{'f @ seed-mean x':>17}{'|sd x|':>8}"
     )
@@ -182,7 +197,7 @@ def print_table(rows: list[dict], checkpoints: tuple[int, ...]) -> None:
             for n in checkpoints
         )
         print(
-            f"{r['method']:<14}{len(r['seeds']):>6}{r['n_evals']:>5}"
+            f"{r['method']:<14}{r.get('noise_sd', 0.1):>6.2f}{len(r['seeds']):>6}{r['n_evals']:>7}"
             f"{r.get('opt_cpu', float('nan')):>11.1f}{r['opt_s']:>12.1f}{pi}"
             f"{r['true_reported_mean']:>13.3f} ± {r['true_reported_sd']:<6.3f}"
             f"{r['true_observed_mean']:>16.3f}{r['true_at_seed_mean']:>17.3f}{r['spread_x']:>8.3f}"
@@ -194,6 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="n=120/40 initial, 2 seeds, skopt n=120")
     p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--n", type=int, default=500, help="evaluations per seed (ours, baselines)")
+    p.add_argument("--n-initial", type=int, default=200)
+    p.add_argument("--noise-sd", type=float, default=0.1)
     p.add_argument("--skopt-seeds", type=int, default=1)
     p.add_argument("--skopt-n", type=int, default=500)
     p.add_argument("--methods", default="bo,bo-iid,skopt,random,trust-region")
@@ -201,10 +220,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--progress", help="skopt: append 'seed eval cpu wall' lines here as it runs")
     p.add_argument("--load", nargs="*", default=[], help="add summaries from earlier --json runs")
     a = p.parse_args(argv)
-    n, n_init, seeds, skopt_n, skopt_seeds = 500, 200, a.seeds, a.skopt_n, a.skopt_seeds
+    n, n_init, seeds, skopt_n, skopt_seeds = a.n, a.n_initial, a.seeds, a.skopt_n, a.skopt_seeds
     if a.quick:
         n, n_init, seeds, skopt_n, skopt_seeds = 120, 40, 2, 120, 1
-    checkpoints = (250, 400, 500) if not a.quick else (60, 100, 120)
+    checkpoints = (250, 300, 400, 500) if not a.quick else (60, 100, 120)
     warnings.filterwarnings("ignore")
     rows: list[dict] = []
     for path in a.load:
@@ -213,9 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     for method in [m for m in a.methods.split(",") if m]:
         k = skopt_seeds if method == "skopt" else seeds
         results = []
-        for s in range(k):
+        for s in range(a.first_seed, a.first_seed + k):
             t = time.perf_counter()
-            r = run_method(method, s, n, n_init, skopt_n, a.progress)
+            r = run_method(method, s, n, n_init, skopt_n, a.progress, a.noise_sd)
             print(
                 f"  {method} seed {s}: {time.perf_counter() - t:.1f} s wall, optimiser "
                 f"{r.seconds_optimizer:.1f} s wall / {r.cpu_seconds_optimizer:.1f} s CPU, "
@@ -225,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             results.append(r)
         row = summarise(method, results, checkpoints)
+        row["noise_sd"] = a.noise_sd
         rows.append(row)
         dump["rows"].append(row)
         dump["results"][method] = [r.to_dict() for r in results]
