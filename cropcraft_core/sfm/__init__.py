@@ -1,0 +1,29 @@
+"""Photos to poses: image ingest (``ingest_images``) and structure from motion / pose import."""
+
+from cropcraft_core.sfm.ingest import IngestedImage, IngestManifest, ingest_images
+from cropcraft_core.sfm.poses import (
+    Poses,
+    SfmError,
+    SfmResult,
+    export_colmap_text,
+    export_transforms_json,
+    import_colmap,
+    import_transforms_json,
+    run_sfm,
+    umeyama,
+)
+
+__all__ = [
+    "IngestManifest",
+    "IngestedImage",
+    "Poses",
+    "SfmError",
+    "SfmResult",
+    "export_colmap_text",
+    "export_transforms_json",
+    "import_colmap",
+    "import_transforms_json",
+    "ingest_images",
+    "run_sfm",
+    "umeyama",
+]

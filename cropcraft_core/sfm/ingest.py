@@ -1,0 +1,276 @@
+"""Image ingest: a folder or fsspec URL of photos → checked, normalised images and a manifest.
+
+Every JPEG/PNG file is decoded in full (``Image.load()``), so a corrupt or truncated file fails
+here, named, rather than deep inside SfM. EXIF orientation is applied to the pixels (the written
+images carry no orientation tag), images are optionally downscaled so that their longer side is at
+most ``max_size`` pixels, and exact duplicates are dropped.
+
+Two hashes per image, both SHA-256:
+
+* ``sha256_file``: of the source file's bytes (provenance: which file was read);
+* ``sha256_pixels``: of the decoded, orientation-corrected RGB pixels plus their size. Duplicates
+  are decided on this one, so the same photo saved twice (different names or metadata) counts
+  once; the first in name order is kept.
+
+``manifest.json`` in the destination lists both hashes, sizes, the source names and the dropped
+duplicates and ignored files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path, PurePosixPath
+
+from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
+
+from cropcraft_core.errors import InputError, OutputError
+
+#: Extensions read as photos (case-insensitive).
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
+#: Extensions of image formats CropCraft recognises but does not read: an error, not ignored.
+UNSUPPORTED_EXTENSIONS = (
+    ".heic", ".heif", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".dng", ".cr2", ".cr3", ".nef",
+    ".arw", ".raw", ".jxl", ".avif",
+)  # fmt: skip
+_FORMATS = {"JPEG", "PNG", "MPO"}  # MPO: multi-picture JPEG some phones write
+MANIFEST_NAME = "manifest.json"
+
+
+@dataclass(frozen=True)
+class IngestedImage:
+    """One written image. Sizes in pixels; ``scale`` = written / decoded size."""
+
+    name: str
+    source: str
+    sha256_file: str
+    sha256_pixels: str
+    width: int
+    height: int
+    source_width: int
+    source_height: int
+    exif_orientation: int
+    scale: float
+    format: str
+
+
+@dataclass(frozen=True)
+class IngestManifest:
+    """What ``ingest_images`` read and wrote.
+
+    images: written images, in name order.  duplicates: ``{"source", "duplicate_of"}`` records of
+    dropped files.  ignored: source files that are not photos (other extensions, hidden files).
+    """
+
+    source: str
+    dest_dir: str
+    max_size: int | None
+    images: list[IngestedImage]
+    duplicates: list[dict[str, str]] = field(default_factory=list)
+    ignored: list[str] = field(default_factory=list)
+    duplicate_key: str = "sha256 of the decoded RGB pixels (after EXIF orientation) and their size"
+
+    @property
+    def names(self) -> list[str]:
+        return [im.name for im in self.images]
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["n_images"] = len(self.images)
+        return d
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> IngestManifest:
+        p = Path(path)
+        if p.is_dir():
+            p = p / MANIFEST_NAME
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+            d.pop("n_images", None)
+            d["images"] = [IngestedImage(**im) for im in d["images"]]
+            return cls(**d)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(f"cannot read the ingest manifest {p}: {e}") from None
+
+
+def _list_source(source: str) -> tuple[object, list[str], str]:
+    """(filesystem, sorted file paths directly in the source folder, root path)."""
+    import fsspec
+
+    try:
+        fs, root = fsspec.core.url_to_fs(source)
+    except (ValueError, ImportError) as e:
+        raise InputError(f"cannot open image source {source!r}: {e}") from None
+    try:
+        if not fs.isdir(root):
+            what = "is a file, not a folder" if fs.isfile(root) else "does not exist"
+            raise InputError(f"image source {source!r} {what}")
+        entries = fs.ls(root, detail=True)
+    except InputError:
+        raise
+    except (OSError, PermissionError) as e:
+        raise InputError(f"cannot list image source {source!r}: {e}") from None
+    files = sorted(e["name"] for e in entries if e.get("type") == "file")
+    return fs, files, root
+
+
+def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
+    """Fully decode ``data``; return (RGB image with EXIF orientation applied, format, the EXIF
+    orientation tag (1 if none)). Raises ``InputError`` naming ``label``."""
+    if not data:
+        raise InputError(f"image {label} is empty (0 bytes)")
+    if ImageFile.LOAD_TRUNCATED_IMAGES:
+        raise InputError(
+            "PIL.ImageFile.LOAD_TRUNCATED_IMAGES is set in this process, so truncated images "
+            "cannot be detected; unset it"
+        )
+    try:
+        img = Image.open(io.BytesIO(data))
+        fmt = img.format or "?"
+        if fmt not in _FORMATS:
+            raise InputError(f"image {label} is {fmt}, not JPEG or PNG: convert it first")
+        img.load()
+        orientation = int(img.getexif().get(0x0112, 1) or 1)
+        img = ImageOps.exif_transpose(img)
+        if img.mode != "RGB":
+            img = img.convert("RGB")
+    except InputError:
+        raise
+    except UnidentifiedImageError:
+        raise InputError(f"image {label} is not a readable JPEG or PNG (corrupt?)") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise InputError(f"image {label} cannot be decoded (corrupt or truncated): {e}") from None
+    return img, fmt, orientation
+
+
+def ingest_images(
+    source: str | os.PathLike,
+    dest_dir: str | os.PathLike,
+    max_size: int | None = None,
+    *,
+    min_images: int = 3,
+    output_format: str = "png",
+) -> IngestManifest:
+    """Read every photo in the folder or fsspec URL ``source`` (``s3://bucket/plot1/``, ...),
+    check and normalise it, and write it to ``dest_dir`` with ``manifest.json``.
+
+    max_size: downscale (Lanczos) so that the longer side is at most this many pixels; None keeps
+    the size.  min_images: fewer distinct images than this is an error.  output_format: 'png'
+    (lossless, default) or 'jpg' (quality 95). Written names are the source stems plus the
+    output extension (a numeric suffix separates stems that collide).
+
+    Raises ``InputError`` naming the file for an empty, corrupt, truncated or unsupported image,
+    and for fewer than ``min_images`` distinct images; ``OutputError`` if ``dest_dir`` cannot be
+    written.
+    """
+    if output_format not in ("png", "jpg"):
+        raise InputError(f"output format must be png or jpg, got {output_format!r}")
+    if max_size is not None and int(max_size) < 16:
+        raise InputError(f"max_size must be at least 16 pixels, got {max_size}")
+    source = os.fspath(source)
+    fs, files, _ = _list_source(source)
+    dest = Path(dest_dir)
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create {dest}: {e}") from None
+
+    photos, ignored = [], []
+    for f in files:
+        base = PurePosixPath(f).name
+        ext = PurePosixPath(base).suffix.lower()
+        if base.startswith("."):
+            ignored.append(base)
+        elif ext in IMAGE_EXTENSIONS:
+            photos.append(f)
+        elif ext in UNSUPPORTED_EXTENSIONS:
+            raise InputError(
+                f"image {base} in {source} is {ext[1:].upper()}, which CropCraft does not read: "
+                "convert it to JPEG or PNG"
+            )
+        else:
+            ignored.append(base)
+
+    seen: dict[str, str] = {}
+    used_names: set[str] = set()
+    images: list[IngestedImage] = []
+    duplicates: list[dict[str, str]] = []
+    for f in photos:
+        base = PurePosixPath(f).name
+        try:
+            with fs.open(f, "rb") as fh:
+                data = fh.read()
+        except OSError as e:
+            raise InputError(f"cannot read image {base} from {source}: {e}") from None
+        img, fmt, orientation = _decode(data, base)
+        sw, sh = img.size
+        px = hashlib.sha256(f"{sw}x{sh}:".encode() + img.tobytes()).hexdigest()
+        if px in seen:
+            duplicates.append({"source": base, "duplicate_of": seen[px]})
+            continue
+        seen[px] = base
+        scale = 1.0
+        if max_size is not None and max(sw, sh) > int(max_size):
+            scale = int(max_size) / max(sw, sh)
+            size = (max(1, round(sw * scale)), max(1, round(sh * scale)))
+            img = img.resize(size, Image.Resampling.LANCZOS)
+            scale = size[0] / sw
+        stem = PurePosixPath(base).stem
+        name = f"{stem}.{output_format}"
+        k = 1
+        while name in used_names:
+            name = f"{stem}_{k}.{output_format}"
+            k += 1
+        used_names.add(name)
+        out = dest / name
+        tmp = dest / f".{name}.tmp"
+        try:
+            if output_format == "png":
+                img.save(tmp, format="PNG")
+            else:
+                img.save(tmp, format="JPEG", quality=95, subsampling=0)
+            os.replace(tmp, out)
+        except OSError as e:
+            raise OutputError(f"cannot write {out}: {e}") from None
+        images.append(
+            IngestedImage(
+                name=name,
+                source=base,
+                sha256_file=hashlib.sha256(data).hexdigest(),
+                sha256_pixels=px,
+                width=img.size[0],
+                height=img.size[1],
+                source_width=sw,
+                source_height=sh,
+                exif_orientation=orientation,
+                scale=float(scale),
+                format=fmt,
+            )
+        )
+    if len(images) < min_images:
+        extra = f" after dropping {len(duplicates)} duplicate(s)" if duplicates else ""
+        raise InputError(
+            f"{source} holds {len(images)} distinct JPEG/PNG image(s){extra}; at least "
+            f"{min_images} are needed"
+        )
+    manifest = IngestManifest(
+        source=source,
+        dest_dir=str(dest),
+        max_size=None if max_size is None else int(max_size),
+        images=images,
+        duplicates=duplicates,
+        ignored=ignored,
+    )
+    tmp = dest / f".{MANIFEST_NAME}.tmp"
+    try:
+        tmp.write_text(json.dumps(manifest.to_dict(), indent=2), encoding="utf-8")
+        os.replace(tmp, dest / MANIFEST_NAME)
+    except OSError as e:
+        raise OutputError(f"cannot write {dest / MANIFEST_NAME}: {e}") from None
+    return manifest

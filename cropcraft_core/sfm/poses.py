@@ -1,0 +1,659 @@
+"""Camera poses: structure from motion with pycolmap, and COLMAP / nerfstudio import and export.
+
+Every pose in CropCraft is a ``PinholeCamera`` (OpenCV axes: x right, y down, z forward; pixel
+centres at +0.5, the same convention as COLMAP; ``cam_to_world`` (4, 4)). A ``Poses`` record is the
+ordered list of ``(image name, PinholeCamera)``; lens distortion, where an importer or SfM found
+any, is kept beside it in ``Poses.distortion`` (the pinhole part is in the camera).
+
+Conventions of the file formats handled here:
+
+* COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``): ``images.txt`` holds the
+  world-to-camera rotation as a unit quaternion ``QW QX QY QZ`` (Hamilton, scalar first) and the
+  world-to-camera translation ``TX TY TZ``; camera axes are OpenCV's.
+* nerfstudio ``transforms.json``: ``frames[].transform_matrix`` is camera-to-world with OpenGL
+  camera axes (x right, y up, z back), i.e. ``c2w_gl = c2w_cv @ diag(1, -1, -1, 1)``; intrinsics
+  ``fl_x, fl_y, cx, cy, w, h`` at the top level or per frame, distortion ``k1 k2 k3 k4 p1 p2``.
+
+``run_sfm`` runs pycolmap on the CPU: SIFT features, exhaustive matching for up to
+``EXHAUSTIVE_MAX_IMAGES`` images (sequential matching with a quadratic overlap beyond), incremental
+mapping, and keeps the model with the most registered images. Poses from SfM are in SfM's own
+arbitrary similarity frame; ``umeyama`` aligns them to a metric frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cropcraft_core.errors import CropCraftError, InputError, OutputError
+from cropcraft_core.geometry.camera import PinholeCamera
+
+#: Image extensions ``run_sfm`` reads.
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
+#: Up to this many images ``matcher='auto'`` matches every pair; beyond, sequential matching.
+EXHAUSTIVE_MAX_IMAGES = 60
+#: Fewer registered images than this fraction make ``run_sfm`` fail.
+MIN_REGISTERED_FRACTION = 0.5
+
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z (its own inverse)
+
+
+class SfmError(CropCraftError, RuntimeError):
+    """Structure from motion failed: no model, or too few images registered."""
+
+
+# --------------------------------------------------------------------------- records
+
+
+@dataclass(frozen=True, eq=False)
+class Poses:
+    """An ordered list of ``(image name, PinholeCamera)``, metres where the frame is metric.
+
+    ``distortion`` maps an image name to its lens distortion coefficients (e.g. ``{"k1": ...}``);
+    images without distortion are absent from it.
+    """
+
+    views: tuple[tuple[str, PinholeCamera], ...]
+    distortion: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        views = tuple((str(n), c) for n, c in self.views)
+        names = [n for n, _ in views]
+        if len(set(names)) != len(names):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            raise InputError(f"poses name the same image more than once: {', '.join(dup[:5])}")
+        for n, c in views:
+            if not isinstance(c, PinholeCamera):
+                raise InputError(f"pose of {n!r} is not a PinholeCamera")
+        object.__setattr__(self, "views", views)
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __iter__(self) -> Iterator[tuple[str, PinholeCamera]]:
+        return iter(self.views)
+
+    @property
+    def names(self) -> list[str]:
+        return [n for n, _ in self.views]
+
+    @property
+    def cameras(self) -> list[PinholeCamera]:
+        return [c for _, c in self.views]
+
+    def camera(self, name: str) -> PinholeCamera:
+        for n, c in self.views:
+            if n == name:
+                return c
+        raise InputError(f"no pose for image {name!r}")
+
+    def centers(self) -> np.ndarray:
+        """(n, 3) float64 camera centres in the poses' world frame."""
+        return np.array([c.center for _, c in self.views]).reshape(-1, 3)
+
+    def transformed(self, scale: float, rotation: np.ndarray, translation: np.ndarray) -> Poses:
+        """The poses moved by the similarity x ↦ scale · R x + t (e.g. from ``umeyama``): camera
+        centres map like points, orientations rotate by R, intrinsics stay."""
+        r = np.asarray(rotation, float)
+        t = np.asarray(translation, float)
+        out = []
+        for n, c in self.views:
+            m = np.eye(4)
+            m[:3, :3] = r @ c.cam_to_world[:3, :3]
+            m[:3, 3] = scale * r @ c.cam_to_world[:3, 3] + t
+            out.append((n, PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, m)))
+        return Poses(tuple(out), dict(self.distortion))
+
+    def to_dict(self) -> dict:
+        return {
+            "views": [{"name": n, "camera": c.to_dict()} for n, c in self.views],
+            "distortion": self.distortion,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Poses:
+        try:
+            views = tuple((v["name"], PinholeCamera.from_dict(v["camera"])) for v in d["views"])
+        except (KeyError, TypeError) as e:
+            raise InputError(f"poses record is malformed: {e}") from None
+        return cls(views, dict(d.get("distortion", {})))
+
+
+@dataclass(frozen=True, eq=False)
+class SfmResult:
+    """What ``run_sfm`` found.
+
+    poses: registered images only, in SfM's arbitrary similarity frame.
+    registered_fraction: registered / input images.  mean_reprojection_error_px: over all
+    observations of the kept model.  points: (n, 3) float64 sparse points (same frame).
+    colors: (n, 3) uint8 their RGB colours.  unregistered: names of images left out.
+    camera_model / camera_params: the COLMAP camera of the first registered image (distortion is
+    also in ``poses.distortion``).  seconds: wall time per stage.  model_dir: the kept model as a
+    COLMAP text model.
+    """
+
+    poses: Poses
+    registered_fraction: float
+    mean_reprojection_error_px: float
+    points: np.ndarray
+    colors: np.ndarray
+    n_images: int
+    unregistered: list[str]
+    matcher: str
+    camera_model: str
+    camera_params: list[float]
+    seconds: dict[str, float]
+    model_dir: Path | None = None
+
+    @property
+    def n_registered(self) -> int:
+        return len(self.poses)
+
+    def summary(self) -> dict:
+        """JSON-ready figures (no arrays)."""
+        return {
+            "n_images": self.n_images,
+            "n_registered": self.n_registered,
+            "registered_fraction": self.registered_fraction,
+            "mean_reprojection_error_px": self.mean_reprojection_error_px,
+            "n_points": int(len(self.points)),
+            "unregistered": list(self.unregistered),
+            "matcher": self.matcher,
+            "camera_model": self.camera_model,
+            "camera_params": list(self.camera_params),
+            "seconds": dict(self.seconds),
+            "model_dir": None if self.model_dir is None else str(self.model_dir),
+        }
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def rotation_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix → (4,) unit quaternion (w, x, y, z), w ≥ 0 (Shepperd's method)."""
+    r = np.asarray(r, dtype=np.float64)
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    if tr > 0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
+    """(4,) quaternion (w, x, y, z), normalised here → (3, 3) rotation matrix."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _rigid(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = t
+    return m
+
+
+def _invert_rigid(m: np.ndarray) -> np.ndarray:
+    r, t = m[:3, :3], m[:3, 3]
+    return _rigid(r.T, -r.T @ t)
+
+
+def umeyama(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = True
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity dst ≈ s · R @ src + t (Umeyama 1991).
+
+    src, dst: (n, 3) corresponding points, n ≥ 3 not collinear.
+    Returns (s, R (3, 3) proper rotation, t (3,)).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise InputError(f"umeyama needs two (n ≥ 3, 3) arrays, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    sgn = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sgn[2] = -1.0
+    r = u @ np.diag(sgn) @ vt
+    var_s = (xs**2).sum() / len(src)
+    if var_s <= 0:
+        raise InputError("umeyama: source points are all identical")
+    s = float((d * sgn).sum() / var_s) if with_scale else 1.0
+    t = mu_d - s * r @ mu_s
+    return s, r, t
+
+
+# --------------------------------------------------------------------------- COLMAP text
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def _camera_key(c: PinholeCamera) -> tuple:
+    return (c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+
+
+def export_colmap_text(
+    poses: Poses,
+    out_dir: str | os.PathLike,
+    points: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """Write ``poses`` as a COLMAP text model (PINHOLE cameras, one per distinct intrinsics) in
+    ``out_dir``: cameras.txt, images.txt (no 2D points), points3D.txt (``points`` (n, 3) with
+    ``colors`` (n, 3) uint8, empty tracks; or empty). Floats are written with full precision, so a
+    round trip is exact. Distortion is not written (PINHOLE). Returns ``out_dir``."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create COLMAP model folder {out}: {e}") from None
+    cam_ids: dict[tuple, int] = {}
+    for _, c in poses:
+        cam_ids.setdefault(_camera_key(c), len(cam_ids) + 1)
+    lines = [
+        "# Camera list with one line of data per camera:",
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+        f"# Number of cameras: {len(cam_ids)}",
+    ]
+    for (w, h, fx, fy, cx, cy), i in cam_ids.items():
+        lines.append(f"{i} PINHOLE {w} {h} {_fmt(fx)} {_fmt(fy)} {_fmt(cx)} {_fmt(cy)}")
+    _write_text(out / "cameras.txt", "\n".join(lines) + "\n")
+    lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+        f"# Number of images: {len(poses)}, mean observations per image: 0",
+    ]
+    for i, (name, c) in enumerate(poses, start=1):
+        if any(ch.isspace() for ch in name):
+            raise OutputError(f"COLMAP image names cannot hold white space: {name!r}")
+        w2c = c.world_to_cam
+        q = rotation_to_quaternion(w2c[:3, :3])
+        t = w2c[:3, 3]
+        vals = " ".join(_fmt(v) for v in (*q, *t))
+        lines.append(f"{i} {vals} {cam_ids[_camera_key(c)]} {name}")
+        lines.append("")
+    _write_text(out / "images.txt", "\n".join(lines) + "\n")
+    lines = [
+        "# 3D point list with one line of data per point:",
+        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+    ]
+    if points is not None and len(points):
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        col = (
+            np.full((len(p), 3), 128, np.uint8)
+            if colors is None
+            else np.asarray(colors).reshape(-1, 3).astype(np.uint8)
+        )
+        lines.append(f"# Number of points: {len(p)}, mean track length: 0")
+        for i, (x, rgb) in enumerate(zip(p, col, strict=True), start=1):
+            lines.append(f"{i} {_fmt(x[0])} {_fmt(x[1])} {_fmt(x[2])} {rgb[0]} {rgb[1]} {rgb[2]} 0")
+    else:
+        lines.append("# Number of points: 0, mean track length: 0")
+    _write_text(out / "points3D.txt", "\n".join(lines) + "\n")
+    return out
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as e:
+        raise OutputError(f"cannot write {path}: {e}") from None
+
+
+def _camera_from_colmap(cam, cam_to_world: np.ndarray) -> tuple[PinholeCamera, dict[str, float]]:
+    """pycolmap camera → (PinholeCamera, distortion coefficients by name, empty if none)."""
+    pc = PinholeCamera(
+        int(cam.width),
+        int(cam.height),
+        float(cam.focal_length_x),
+        float(cam.focal_length_y),
+        float(cam.principal_point_x),
+        float(cam.principal_point_y),
+        cam_to_world,
+    )
+    params = [float(v) for v in cam.params]
+    named = set(cam.focal_length_idxs()) | set(cam.principal_point_idxs())
+    extra = [i for i in range(len(params)) if i not in named]
+    info = cam.params_info.split(", ") if cam.params_info else []
+    dist = {info[i] if i < len(info) else f"p{i}": params[i] for i in extra}
+    return pc, {k: v for k, v in dist.items() if v != 0.0}
+
+
+def _poses_from_reconstruction(rec) -> Poses:
+    views, dist = [], {}
+    for image_id in sorted(rec.reg_image_ids()):
+        im = rec.image(image_id)
+        w2c = np.eye(4)
+        w2c[:3, :] = im.cam_from_world().matrix()
+        cam, d = _camera_from_colmap(rec.camera(im.camera_id), _invert_rigid(w2c))
+        views.append((im.name, cam))
+        if d:
+            dist[im.name] = d
+    views.sort(key=lambda v: v[0])
+    return Poses(tuple(views), dist)
+
+
+def import_colmap(model_dir: str | os.PathLike) -> Poses:
+    """Read a COLMAP model (text or binary: cameras, images, points3D) → ``Poses`` of its
+    registered images, sorted by name. Lens distortion goes to ``Poses.distortion``."""
+    import pycolmap
+
+    d = Path(model_dir)
+    found = [p for p in ("cameras.txt", "cameras.bin") if (d / p).is_file()]
+    if not found:
+        raise InputError(f"{d} holds no COLMAP model (cameras.txt or cameras.bin)")
+    try:
+        rec = pycolmap.Reconstruction(str(d))
+    except Exception as e:  # pycolmap raises ValueError/RuntimeError with its own text
+        raise InputError(f"cannot read the COLMAP model in {d}: {e}") from None
+    poses = _poses_from_reconstruction(rec)
+    if not len(poses):
+        raise InputError(f"the COLMAP model in {d} has no registered images")
+    return poses
+
+
+# --------------------------------------------------------------------------- nerfstudio
+
+_NS_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def export_transforms_json(
+    poses: Poses,
+    path: str | os.PathLike,
+    image_prefix: str = "images/",
+    extra: dict | None = None,
+) -> Path:
+    """Write ``poses`` as a nerfstudio ``transforms.json`` (camera_model OPENCV, zero distortion
+    unless ``poses.distortion`` has it). Intrinsics shared by every view go to the top level,
+    otherwise into each frame. ``file_path`` = ``image_prefix + name``. ``extra`` keys are added at
+    the top level (nerfstudio ignores unknown keys). Returns the path."""
+    if not len(poses):
+        raise OutputError("no poses to write")
+    keys = {_camera_key(c) for _, c in poses}
+    shared = len(keys) == 1 and not poses.distortion
+
+    def intr(c: PinholeCamera, name: str | None) -> dict:
+        d = {"fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
+        dist = poses.distortion.get(name, {}) if name else {}
+        d.update({k: float(dist.get(k, 0.0)) for k in _NS_DISTORTION})
+        return d
+
+    doc: dict = {"camera_model": "OPENCV"}
+    if shared:
+        doc.update(intr(poses.cameras[0], None))
+    frames = []
+    for name, c in poses:
+        f = {"file_path": f"{image_prefix}{name}"}
+        if not shared:
+            f.update(intr(c, name))
+        f["transform_matrix"] = (c.cam_to_world @ _GL_FROM_CV).tolist()
+        frames.append(f)
+    doc["frames"] = frames
+    if extra:
+        doc.update(extra)
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    _write_text(p, json.dumps(doc, indent=2))
+    return p
+
+
+def import_transforms_json(path: str | os.PathLike) -> Poses:
+    """Read a nerfstudio ``transforms.json`` → ``Poses`` in OpenCV camera axes, named by the
+    base name of each frame's ``file_path``. Intrinsics per frame override the top level's;
+    ``camera_angle_x`` stands in for ``fl_x`` where that is missing. Non-zero distortion
+    coefficients go to ``Poses.distortion``."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"cannot read {p}: {e}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list) or not doc["frames"]:
+        raise InputError(f"{p} has no frames")
+    views, dist = [], {}
+    for i, f in enumerate(doc["frames"]):
+        g = {**doc, **f}
+        where = f"{p} frame {i}"
+        try:
+            w, h = int(g["w"]), int(g["h"])
+            if "fl_x" in g:
+                fx = float(g["fl_x"])
+            else:
+                fx = 0.5 * w / math.tan(0.5 * float(g["camera_angle_x"]))
+            fy = float(g.get("fl_y", fx))
+            cx, cy = float(g.get("cx", w / 2)), float(g.get("cy", h / 2))
+            m = np.asarray(f["transform_matrix"], dtype=np.float64)
+            name = Path(str(f["file_path"])).name
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"{where} is missing or has a malformed {e}") from None
+        if m.shape == (3, 4):
+            m = np.vstack([m, [0, 0, 0, 1.0]])
+        if m.shape != (4, 4):
+            raise InputError(f"{where}: transform_matrix must be 4×4, got {m.shape}")
+        views.append((name, PinholeCamera(w, h, fx, fy, cx, cy, m @ _GL_FROM_CV)))
+        d = {k: float(g[k]) for k in _NS_DISTORTION if float(g.get(k, 0.0) or 0.0) != 0.0}
+        if d:
+            dist[name] = d
+    return Poses(tuple(views), dist)
+
+
+# --------------------------------------------------------------------------- SfM
+
+
+def list_images(image_dir: str | os.PathLike) -> list[str]:
+    """Sorted names of the JPEG/PNG files directly in ``image_dir``."""
+    d = Path(image_dir)
+    if not d.is_dir():
+        raise InputError(f"image folder {d} does not exist")
+    return sorted(
+        p.name
+        for p in d.iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".")
+    )
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except OSError as e:
+        raise InputError(f"cannot read image {path.name}: {e}") from None
+
+
+def choose_matcher(n_images: int, matcher: str = "auto") -> str:
+    """'exhaustive' or 'sequential': ``auto`` matches every pair up to ``EXHAUSTIVE_MAX_IMAGES``
+    images (cost grows as n²), sequential (each image with its nearest neighbours in name order,
+    for ordered captures) beyond."""
+    if matcher not in ("auto", "exhaustive", "sequential"):
+        raise InputError(f"unknown matcher {matcher!r}: choose auto, exhaustive or sequential")
+    if matcher != "auto":
+        return matcher
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+
+
+def run_sfm(
+    image_dir: str | os.PathLike,
+    work_dir: str | os.PathLike,
+    matcher: str = "auto",
+    num_threads: int = 2,
+    *,
+    camera_model: str = "SIMPLE_RADIAL",
+    single_camera: bool = True,
+    max_num_features: int = 8192,
+    sequential_overlap: int = 12,
+    guided_matching: bool = True,
+    focal_length_px: float | None = None,
+    min_images: int = 3,
+    min_registered_fraction: float = MIN_REGISTERED_FRACTION,
+    seed: int = 0,
+) -> SfmResult:
+    """Structure from motion on the JPEG/PNG images in ``image_dir`` with pycolmap on the CPU.
+
+    SIFT features (``max_num_features`` per image), matching by ``choose_matcher`` (sequential:
+    ``sequential_overlap`` neighbours, quadratic overlap, no loop detection), incremental mapping;
+    the model with the most registered images is kept and written as a text model to
+    ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
+    longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images.
+    ``focal_length_px``: prior focal length (e.g. from a calibration or EXIF), still refined by
+    bundle adjustment; without it COLMAP starts at 1.2 × the longer side, which a short capture
+    may not recover from. ``guided_matching``: re-match each verified pair under its epipolar
+    geometry (more matches on
+    hard canopy views; roughly doubles matching time). The mapper accepts weaker evidence than
+    COLMAP's defaults (initial pair ≥ 50 inliers, new image ≥ 15 inliers at ratio ≥ 0.15).
+
+    Raises ``InputError`` for fewer than ``min_images`` images, ``SfmError`` when no model is
+    built or fewer than ``min_registered_fraction`` of the images are registered.
+    """
+    import pycolmap
+
+    names = list_images(image_dir)
+    if len(names) < min_images:
+        raise InputError(
+            f"{image_dir} holds {len(names)} JPEG/PNG image(s); structure from motion needs at "
+            f"least {min_images}"
+        )
+    mode = choose_matcher(len(names), matcher)
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "database.db"
+    if db.exists():
+        db.unlink()
+    sparse = work / "sparse"
+    shutil.rmtree(sparse, ignore_errors=True)
+    sparse.mkdir()
+    pycolmap.set_random_seed(int(seed))
+    seconds: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = int(num_threads)
+    ext.use_gpu = False
+    ext.sift.max_num_features = int(max_num_features)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    if focal_length_px is not None:
+        if camera_model not in ("SIMPLE_RADIAL", "SIMPLE_PINHOLE", "PINHOLE"):
+            raise InputError(
+                f"focal_length_px needs a SIMPLE_RADIAL/PINHOLE model, not {camera_model}"
+            )
+        w, h = _image_size(Path(image_dir) / names[0])
+        f = float(focal_length_px)
+        prior = {
+            "SIMPLE_RADIAL": [f, w / 2, h / 2, 0.0],
+            "SIMPLE_PINHOLE": [f, w / 2, h / 2],
+            "PINHOLE": [f, f, w / 2, h / 2],
+        }[camera_model]
+        reader.camera_params = ",".join(repr(v) for v in prior)
+    try:
+        pycolmap.extract_features(
+            str(db),
+            str(image_dir),
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
+            reader_options=reader,
+            extraction_options=ext,
+            device=pycolmap.Device.cpu,
+        )
+        seconds["features"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        mopt = pycolmap.FeatureMatchingOptions()
+        mopt.num_threads = int(num_threads)
+        mopt.use_gpu = False
+        mopt.guided_matching = bool(guided_matching)
+        if mode == "exhaustive":
+            pycolmap.match_exhaustive(str(db), matching_options=mopt, device=pycolmap.Device.cpu)
+        else:
+            pair = pycolmap.SequentialPairingOptions()
+            pair.overlap = int(sequential_overlap)
+            pair.quadratic_overlap = True
+            pair.loop_detection = False
+            pycolmap.match_sequential(
+                str(db), matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu
+            )
+        seconds["matching"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        popt = pycolmap.IncrementalPipelineOptions()
+        popt.num_threads = int(num_threads)
+        popt.random_seed = int(seed)
+        popt.min_model_size = 3
+        # canopies are hard to match (thin leaves, parallax, occlusion): accept weaker but still
+        # geometrically verified evidence than COLMAP's defaults (100 / 30 inliers, ratio 0.25)
+        popt.mapper.init_min_num_inliers = 50
+        popt.mapper.abs_pose_min_num_inliers = 15
+        popt.mapper.abs_pose_min_inlier_ratio = 0.15
+        models = pycolmap.incremental_mapping(str(db), str(image_dir), str(sparse), popt)
+        seconds["mapping"] = time.perf_counter() - t0
+    except Exception as e:  # pycolmap raises RuntimeError/ValueError with COLMAP's text
+        raise SfmError(f"pycolmap structure from motion on {image_dir} failed: {e}") from e
+
+    if not models:
+        raise SfmError(
+            f"structure from motion on {len(names)} images in {image_dir} built no model: the "
+            "images share too few matching features (too little overlap or texture?)"
+        )
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = _poses_from_reconstruction(rec)
+    frac = len(poses) / len(names)
+    unregistered = sorted(set(names) - set(poses.names))
+    if frac < min_registered_fraction:
+        raise SfmError(
+            f"structure from motion registered only {len(poses)} of {len(names)} images "
+            f"({100 * frac:.0f} %, need {100 * min_registered_fraction:.0f} %); not registered: "
+            f"{', '.join(unregistered[:10])}{' ...' if len(unregistered) > 10 else ''}"
+        )
+    ids = list(rec.point3D_ids())
+    pts = np.array([rec.point3D(i).xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    cols = np.array([rec.point3D(i).color for i in ids], dtype=np.uint8).reshape(-1, 3)
+    model_dir = work / "model"
+    model_dir.mkdir(exist_ok=True)
+    rec.write_text(str(model_dir))
+    first = rec.camera(rec.image(sorted(rec.reg_image_ids())[0]).camera_id)
+    return SfmResult(
+        poses=poses,
+        registered_fraction=float(frac),
+        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+        points=pts,
+        colors=cols,
+        n_images=len(names),
+        unregistered=unregistered,
+        matcher=mode,
+        camera_model=str(first.model.name),
+        camera_params=[float(v) for v in first.params],
+        seconds=seconds,
+        model_dir=model_dir,
+    )

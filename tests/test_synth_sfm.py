@@ -1,0 +1,383 @@
+"""Synthetic scenes, image ingest, pose formats and real pycolmap SfM on a rendered scene."""
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cropcraft_core.errors import CropCraftError, InputError
+from cropcraft_core.geometry import PinholeCamera
+from cropcraft_core.sfm import (
+    Poses,
+    SfmError,
+    export_colmap_text,
+    export_transforms_json,
+    import_colmap,
+    import_transforms_json,
+    ingest_images,
+    run_sfm,
+    umeyama,
+)
+from cropcraft_core.sfm.poses import quaternion_to_rotation, rotation_to_quaternion
+from cropcraft_core.synth import make_scene
+from cropcraft_core.synth.scene import camera_from_angles
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """12 views at 320 × 240 over a 40° arc of the walk (dense enough for SfM with few views)."""
+    out = tmp_path_factory.mktemp("synth") / "soy"
+    summary = make_scene("soybean", out, seed=3, views=12, resolution=(320, 240), walk_arc_deg=40.0)
+    return out, summary
+
+
+def _same_camera(a: PinholeCamera, b: PinholeCamera, atol=1e-12):
+    assert (a.width, a.height) == (b.width, b.height)
+    np.testing.assert_allclose([a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], atol=atol)
+    np.testing.assert_allclose(a.cam_to_world, b.cam_to_world, atol=atol)
+
+
+# --------------------------------------------------------------------------- synthetic scene
+
+
+def test_scene_files(scene):
+    out, s = scene
+    names = [f"view_{i:03d}" for i in range(12)]
+    for n in names:
+        assert (out / "images" / f"{n}.jpg").is_file()
+        d = np.load(out / "depth" / f"{n}.npy")
+        assert d.shape == (240, 320) and d.dtype == np.float32
+    for f in ("cameras.txt", "images.txt", "points3D.txt"):
+        assert (out / "colmap" / "sparse" / "0" / f).is_file()
+    for f in ("transforms.json", "scene.json", "truth/params.json", "truth/metrics.json"):
+        json.loads((out / f).read_text())
+    assert (out / "truth" / "canopy.ply").stat().st_size > 1000
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["crop"] == "soybean" and meta["resolution"] == [320, 240]
+    assert meta["world_frame"].startswith("z up")
+    lo, hi = meta["camera_height_range_m"]
+    assert 1.0 <= lo <= hi <= 1.8
+    metrics = json.loads((out / "truth" / "metrics.json").read_text())
+    assert metrics["lai"] > 0
+    img = np.asarray(Image.open(out / "images" / "view_000.jpg"))
+    assert img.shape == (240, 320, 3) and img.std() > 10  # textured, not flat
+
+
+def test_scene_colours(scene):
+    """Soil pixels are brown (a* > 0), canopy pixels green (a* < 0)."""
+    import cv2
+
+    out, _ = scene
+    img = np.asarray(Image.open(out / "images" / "view_004.jpg"))
+    lab = cv2.cvtColor(img, cv2.COLOR_RGB2LAB).astype(float)
+    a = lab[..., 1] - 128
+    cam = import_colmap(out / "colmap" / "sparse" / "0").camera("view_004.jpg")
+    pts = cam.unproject(np.load(out / "depth" / "view_004.npy").astype(np.float64))
+    ground = pts[..., 2] < 1e-6
+    plant = pts[..., 2] > 0.05
+    assert ground.mean() > 0.02 and plant.mean() > 0.2
+    assert np.median(a[ground]) > 0 > np.median(a[plant])
+
+
+def test_depth_consistent_with_camera_and_canopy(scene):
+    """Unprojected truth depth lands on the ground plane or on (near) a canopy triangle."""
+    out, _ = scene
+    from cropcraft_core.export import read_ply
+
+    poses = import_transforms_json(out / "transforms.json")
+    cam = poses.camera("view_006.jpg")
+    depth = np.load(out / "depth" / "view_006.npy").astype(np.float64)
+    assert np.isfinite(depth).all()  # looking down: no sky
+    pts = cam.unproject(depth)
+    # projecting the points back gives the pixel centres and the depth
+    rng = np.random.default_rng(0)
+    ij = rng.integers(0, [240, 320], size=(200, 2))
+    p = pts[ij[:, 0], ij[:, 1]]
+    uv, z = cam.project(p)
+    np.testing.assert_allclose(uv, ij[:, ::-1] + 0.5, atol=1e-6)
+    np.testing.assert_allclose(z, depth[ij[:, 0], ij[:, 1]], rtol=1e-6)
+    # every point is on the ground or on the surface of the canopy
+    assert p[:, 2].min() > -1e-4
+    above = p[p[:, 2] > 1e-4]
+    assert len(above) > 50
+    mesh = read_ply(out / "truth" / "canopy.ply")  # plot plants only; test those within it
+    import open3d as o3d
+
+    scene_o3d = o3d.t.geometry.RaycastingScene()
+    scene_o3d.add_triangles(
+        o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+        o3d.core.Tensor(mesh.faces.astype(np.uint32)),
+    )
+    d = scene_o3d.compute_distance(o3d.core.Tensor(above.astype(np.float32))).numpy()
+    lo, hi = mesh.vertices[:, :2].min(0) + 0.3, mesh.vertices[:, :2].max(0) - 0.3
+    inside = np.all((above[:, :2] > lo) & (above[:, :2] < hi), axis=1)
+    if inside.sum() >= 10:
+        assert np.median(d[inside]) < 1e-3
+
+
+def test_trajectories_look_down_and_inward():
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.synth import drone_trajectory, walk_trajectory
+
+    rng = np.random.default_rng(0)
+    lay = default_layout("soybean")
+    cams = walk_trajectory(lay, 30, rng, canopy_top=0.6)
+    for c in cams:
+        fwd = c.cam_to_world[:3, 2]
+        assert 1.0 <= c.center[2] <= 1.8
+        assert fwd[2] < -math.sin(math.radians(44))
+        # the optical axis meets the ground near the plot
+        hit = c.center - fwd * c.center[2] / fwd[2]
+        assert np.abs(hit[:2]).max() < 2.0
+    drone = drone_trajectory(default_layout("maize"), 20, rng, canopy_top=2.0)
+    assert all(12.5 < c.center[2] < 13.5 and c.cam_to_world[2, 2] < -0.95 for c in drone)
+    # right-handed, orthonormal rotations
+    c = camera_from_angles(np.zeros(3), 0.3, 0.9, 0.1, (64, 48), 50)
+    r = c.cam_to_world[:3, :3]
+    np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) > 0
+
+
+# --------------------------------------------------------------------------- pose formats
+
+
+def _random_poses(n=6, seed=0):
+    rng = np.random.default_rng(seed)
+    views = []
+    for i in range(n):
+        c = camera_from_angles(
+            rng.normal(0, 2, 3), rng.uniform(-3, 3), rng.uniform(-1.5, 1.5),
+            rng.uniform(-3, 3), (640, 480), 50,
+        )  # fmt: skip
+        if i % 2:  # a second set of intrinsics
+            c = PinholeCamera(320, 240, 250.5, 251.0, 161.2, 119.7, c.cam_to_world)
+        views.append((f"img_{i}.png", c))
+    return Poses(tuple(views))
+
+
+def test_quaternion_round_trip():
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        q = q if q[0] >= 0 else -q
+        r = quaternion_to_rotation(q)
+        np.testing.assert_allclose(rotation_to_quaternion(r), q, atol=1e-12)
+    # COLMAP's own conversion agrees (pycolmap quat is x, y, z, w)
+    import pycolmap
+
+    r = quaternion_to_rotation(q)
+    xyzw = pycolmap.Rotation3d(r).quat
+    w = np.array([xyzw[3], *xyzw[:3]])
+    np.testing.assert_allclose(w * np.sign(w[0]), q, atol=1e-12)
+
+
+def test_colmap_and_transforms_round_trips(tmp_path):
+    poses = _random_poses()
+    export_colmap_text(poses, tmp_path / "model")
+    back = import_colmap(tmp_path / "model")
+    assert back.names == sorted(poses.names)
+    for n, c in poses:
+        _same_camera(back.camera(n), c, atol=1e-12)
+    export_transforms_json(poses, tmp_path / "transforms.json")
+    ns = import_transforms_json(tmp_path / "transforms.json")
+    for n, c in poses:
+        _same_camera(ns.camera(n), c, atol=1e-12)
+    # nerfstudio camera axes are OpenGL: the camera looks down its -z axis
+    doc = json.loads((tmp_path / "transforms.json").read_text())
+    m = np.array(doc["frames"][0]["transform_matrix"])
+    np.testing.assert_allclose(-m[:3, 2], poses.cameras[0].cam_to_world[:3, 2], atol=1e-12)
+    np.testing.assert_allclose(m[:3, 1], -poses.cameras[0].cam_to_world[:3, 1], atol=1e-12)
+
+
+def test_scene_formats_agree(scene):
+    out, _ = scene
+    a = import_colmap(out / "colmap" / "sparse" / "0")
+    b = import_transforms_json(out / "transforms.json")
+    doc = json.loads((out / "transforms.json").read_text())
+    assert {"fl_x", "fl_y", "cx", "cy", "w", "h"} <= set(doc)
+    assert a.names == b.names and len(a) == 12
+    for n, c in a:
+        _same_camera(b.camera(n), c, atol=1e-12)
+        # projection of the plot centre agrees between the formats
+        uv_a, _ = c.project(np.zeros((1, 3)))
+        uv_b, _ = b.camera(n).project(np.zeros((1, 3)))
+        np.testing.assert_allclose(uv_a, uv_b, atol=1e-9)
+
+
+def test_umeyama_recovers_similarity():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(20, 3))
+    r = quaternion_to_rotation(rng.normal(size=4))
+    dst = 2.5 * src @ r.T + [1.0, -2.0, 0.5]
+    s, r2, t = umeyama(src, dst)
+    assert s == pytest.approx(2.5)
+    np.testing.assert_allclose(r2, r, atol=1e-10)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-10)
+
+
+def test_import_errors(tmp_path):
+    with pytest.raises(InputError, match="no COLMAP model"):
+        import_colmap(tmp_path)
+    (tmp_path / "t.json").write_text('{"frames": [{"file_path": "a.png"}]}')
+    with pytest.raises(InputError, match="frame 0"):
+        import_transforms_json(tmp_path / "t.json")
+
+
+# --------------------------------------------------------------------------- ingest
+
+
+def _png(color, size=(40, 30)):
+    rng = np.random.default_rng(sum(color))
+    a = np.clip(rng.normal(color, 20, (size[1], size[0], 3)), 0, 255).astype(np.uint8)
+    return Image.fromarray(a)
+
+
+def test_ingest_dedup_manifest_and_exif(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    for i, col in enumerate([(200, 30, 30), (30, 200, 30), (30, 30, 200)]):
+        _png(col).save(src / f"p{i}.png")
+    (src / "p0_copy.png").write_bytes((src / "p0.png").read_bytes())
+    _png((200, 30, 30)).save(src / "p0_resaved.jpg", quality=100)  # not pixel-identical
+    (src / "notes.txt").write_text("field notes")
+    # an EXIF-rotated JPEG: stored 40 × 30, orientation 6 (rotate 90° clockwise to view)
+    img = _png((120, 120, 20))
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    img.save(src / "rot.jpg", exif=exif.tobytes(), quality=95)
+    man = ingest_images(str(src), tmp_path / "out", max_size=32)
+    names = man.names
+    assert "p0_copy.png" not in names and names.count("p0.png") == 1
+    assert man.duplicates == [{"source": "p0_copy.png", "duplicate_of": "p0.png"}]
+    assert "notes.txt" in man.ignored
+    rot = next(im for im in man.images if im.source == "rot.jpg")
+    assert (rot.source_width, rot.source_height) == (30, 40)  # transposed
+    assert rot.exif_orientation == 6 and max(rot.width, rot.height) == 32
+    with Image.open(tmp_path / "out" / rot.name) as im:
+        assert im.size == (24, 32)
+    doc = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert doc["n_images"] == len(names) == 5
+    import hashlib
+
+    e = doc["images"][0]
+    assert e["sha256_file"] == hashlib.sha256((src / e["source"]).read_bytes()).hexdigest()
+    assert len(e["sha256_pixels"]) == 64
+
+
+def test_ingest_names_corrupt_and_truncated(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    for i in range(3):
+        _png((50 * i, 100, 100), size=(64, 64)).save(src / f"ok{i}.jpg", quality=90)
+    data = (src / "ok0.jpg").read_bytes()
+    (src / "trunc.jpg").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=r"trunc\.jpg"):
+        ingest_images(str(src), tmp_path / "o1")
+    (src / "trunc.jpg").unlink()
+    buf = io.BytesIO()
+    _png((10, 10, 10)).save(buf, format="PNG")
+    (src / "garbage.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    with pytest.raises(InputError, match=r"garbage\.png"):
+        ingest_images(str(src), tmp_path / "o2")
+    (src / "garbage.png").write_bytes(buf.getvalue()[:-30])  # truncated PNG
+    with pytest.raises(InputError, match=r"garbage\.png"):
+        ingest_images(str(src), tmp_path / "o3")
+    (src / "garbage.png").unlink()
+    (src / "x.heic").write_bytes(b"ftypheic")
+    with pytest.raises(InputError, match=r"x\.heic"):
+        ingest_images(str(src), tmp_path / "o4")
+    (src / "x.heic").unlink()
+    assert len(ingest_images(f"file://{src}", tmp_path / "o5")) == 3
+    with pytest.raises(InputError, match="at least 4"):
+        ingest_images(str(src), tmp_path / "o6", min_images=4)
+    with pytest.raises(InputError, match="does not exist"):
+        ingest_images(str(tmp_path / "nope"), tmp_path / "o7")
+
+
+def test_ingest_memory_filesystem(tmp_path):
+    import fsspec
+
+    fs = fsspec.filesystem("memory")
+    for i in range(3):
+        buf = io.BytesIO()
+        _png((60 * i, 80, 90)).save(buf, format="PNG")
+        fs.pipe(f"/plot7/im{i}.png", buf.getvalue())
+    man = ingest_images("memory://plot7", tmp_path / "out")
+    assert man.names == ["im0.png", "im1.png", "im2.png"]
+
+
+# --------------------------------------------------------------------------- SfM
+
+
+def _check_sfm(result, truth: Poses, n_views: int):
+    assert result.registered_fraction >= 0.95
+    assert result.n_registered >= math.ceil(0.95 * n_views)
+    assert result.mean_reprojection_error_px < 1.0
+    assert len(result.points) > 100 and result.colors.shape == result.points.shape
+    names = result.poses.names
+    src = np.array([result.poses.camera(n).center for n in names])
+    dst = np.array([truth.camera(n).center for n in names])
+    s, r, t = umeyama(src, dst)
+    resid = np.linalg.norm(s * src @ r.T + t - dst, axis=1)
+    spread = np.linalg.norm(dst - dst.mean(0), axis=1).max()
+    assert resid.max() < 0.02 * max(spread, 0.5)  # < 1 cm on a ~0.5-1 m baseline
+    # orientations agree after the alignment
+    for n in names:
+        ra = r @ result.poses.camera(n).cam_to_world[:3, :3]
+        rb = truth.camera(n).cam_to_world[:3, :3]
+        ang = math.degrees(math.acos(np.clip((np.trace(ra.T @ rb) - 1) / 2, -1, 1)))
+        assert ang < 0.5
+    return resid
+
+
+def _sfm_scene(tmp_path, views, arc, seed):
+    out = tmp_path / f"soy{views}"
+    make_scene(
+        "soybean", out, seed=seed, views=views, resolution=(640, 480), walk_arc_deg=arc,
+        metrics=False,
+    )  # fmt: skip
+    return out, import_colmap(out / "colmap" / "sparse" / "0")
+
+
+def test_sfm_small_scene(tmp_path):
+    """Real pycolmap SfM, kept as fast as it can be: 8 views at 640 × 480 along 20° of the walk
+    (at 320 × 240 the canopy's SIFT features are too few to register such a short capture)."""
+    out, truth = _sfm_scene(tmp_path, 8, 20.0, seed=5)
+    # a focal-length prior 3 % off (as from EXIF); bundle adjustment refines it
+    f0 = 1.03 * truth.cameras[0].fx
+    res = run_sfm(out / "images", tmp_path / "work", num_threads=2, focal_length_px=f0)
+    assert res.matcher == "exhaustive"
+    _check_sfm(res, truth, 8)
+    assert res.camera_params[0] == pytest.approx(truth.cameras[0].fx, rel=0.05)
+    assert (tmp_path / "work" / "model" / "images.txt").is_file()
+
+
+@pytest.mark.slow
+def test_sfm_longer_walk_both_matchers(tmp_path):
+    """16 views along 60° of the walk; exhaustive and sequential matching, no focal prior."""
+    out, truth = _sfm_scene(tmp_path, 16, 60.0, seed=7)
+    res = run_sfm(out / "images", tmp_path / "w1", num_threads=2)
+    _check_sfm(res, truth, 16)
+    res = run_sfm(out / "images", tmp_path / "w2", matcher="sequential", num_threads=2)
+    assert res.matcher == "sequential"
+    _check_sfm(res, truth, 16)
+
+
+def test_sfm_errors(tmp_path):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    _png((10, 20, 30)).save(d / "a.png")
+    with pytest.raises(InputError, match="at least 3"):
+        run_sfm(d, tmp_path / "w")
+    rng = np.random.default_rng(0)
+    for i in range(4):  # unrelated noise images: nothing to reconstruct
+        Image.fromarray(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)).save(d / f"n{i}.png")
+    with pytest.raises(SfmError) as e:
+        run_sfm(d, tmp_path / "w")
+    assert isinstance(e.value, CropCraftError)
+    with pytest.raises(InputError, match="unknown matcher"):
+        run_sfm(d, tmp_path / "w", matcher="vocab")
