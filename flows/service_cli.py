@@ -255,7 +255,9 @@ def ensure_demo_inputs(store) -> None:
     from pathlib import Path
 
     from cropcraft_core.store import SceneKey
-    from cropcraft_core.synth import make_scene
+    from tasks.common import core
+
+    make_scene = core("demo", "cropcraft_core.synth", "make_scene")
 
     scene = SceneKey(*DEMO_SCENE)
     if store.isfile(f"{scene.prefix}/truth/metrics.json") and store.isfile(

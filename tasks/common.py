@@ -184,6 +184,24 @@ def get_task(stage: str) -> Any:
     return getattr(importlib.import_module(module), attr)
 
 
+def core(stage: str, module: str, *names: str) -> Any:
+    """Import ``names`` from the core module a stage needs; CropCraftError("stage X not
+    available: ...") when that part of ``cropcraft_core`` is missing from this installation."""
+    import importlib
+
+    from cropcraft_core.errors import CropCraftError
+
+    try:
+        mod = importlib.import_module(module)
+        values = tuple(getattr(mod, n) for n in names)
+    except (ImportError, AttributeError) as exc:
+        raise CropCraftError(
+            f"stage {stage} not available: {module} cannot provide {', '.join(names)} ({exc}); "
+            "install a CropCraft version that includes it"
+        ) from exc
+    return values[0] if len(values) == 1 else values
+
+
 # --------------------------------------------------------------------------- store plumbing
 
 

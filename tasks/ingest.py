@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tasks.common import Timer, artefact, make_record, open_store, stage_task, workdir
+from tasks.common import Timer, artefact, core, make_record, open_store, stage_task, workdir
 
 
 @stage_task("ingest")
@@ -17,8 +17,7 @@ def ingest(
     config: ``max_size`` (longer image side, pixels, or None), ``min_images``.
     upstream: ``{"inputs": fingerprint of the photos}`` (cache identity only).
     """
-    from cropcraft_core.sfm import ingest_images
-
+    ingest_images = core("ingest", "cropcraft_core.sfm", "ingest_images")
     store = open_store(store_root)
     with Timer() as t, workdir("ingest") as tmp:
         manifest = ingest_images(

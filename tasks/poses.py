@@ -8,13 +8,12 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from cropcraft_core.errors import InputError
-from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+from tasks.common import Timer, artefact, core, key_of, make_record, open_store, stage_task, workdir
 
 
 def _rename_to_ingested(poses, manifest: dict):
     """Poses named by the source photos → named by the ingested images (same stems)."""
-    from cropcraft_core.sfm import Poses
-
+    Poses = core("poses", "cropcraft_core.sfm", "Poses")
     by_source = {im["source"]: im["name"] for im in manifest["images"]}
     by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
     views, missing = [], []
@@ -65,8 +64,9 @@ def poses(
     whether the frame is metric and gravity-aligned (``config["imported_metric"]``). Without:
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``).
     """
-    from cropcraft_core.sfm import import_colmap, import_transforms_json, run_sfm
-
+    import_colmap, import_transforms_json, run_sfm = core(
+        "poses", "cropcraft_core.sfm", "import_colmap", "import_transforms_json", "run_sfm"
+    )
     store = open_store(store_root)
     ing = upstream["ingest"]
     manifest = store.get_json(key_of(ing, "manifest"))

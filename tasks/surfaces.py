@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from cropcraft_core.errors import CropCraftError
-from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+from tasks.common import Timer, artefact, core, key_of, make_record, open_store, stage_task, workdir
 
 
 def _surfaces_api():
@@ -34,8 +34,7 @@ def surfaces(
     """
     from PIL import Image
 
-    from cropcraft_core.sfm import Poses
-
+    Poses = core("surfaces", "cropcraft_core.sfm", "Poses")
     SurfacesConfig, make_backend = _surfaces_api()
     store = open_store(store_root)
     cfg = dict(config)

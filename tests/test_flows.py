@@ -108,6 +108,14 @@ def _task_run_states(flow_run_id: str, expect: int, timeout_s: float = 60.0) -> 
             time.sleep(0.5)
 
 
+def _same_result(a: dict, b: dict) -> None:
+    """Same fitted parameters and metrics, up to floating-point reduction order (BLAS threads
+    differ between a thread pool and Dask worker processes): relative 1e-6."""
+    assert a["params"] == pytest.approx(b["params"], rel=1e-6)
+    for k, v in b["metrics"].items():
+        assert a["metrics"][k] == (pytest.approx(v, rel=1e-6) if isinstance(v, float) else v), k
+
+
 def _executed(states: dict[str, str]) -> list[str]:
     return sorted(k for k, v in states.items() if v != "Cached")
 
@@ -219,7 +227,7 @@ def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, mo
 
     clean = fit_observation(obs, cfg, default_layout(CROP))
     for k, v in clean.params.items():
-        assert out["params"][k] == pytest.approx(v, rel=0, abs=1e-12), k
+        assert out["params"][k] == pytest.approx(v, rel=1e-6), k
 
 
 def _copy_without_late_results(src: Path, dst: Path) -> None:
@@ -238,8 +246,7 @@ def test_dask_runner_gives_the_same_result_as_threads(base_run, scene_dir, tmp_p
     assert _executed(out["states"]) == sorted(
         [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
     )
-    assert out["params"] == base_run["first"]["params"]
-    assert out["metrics"] == base_run["first"]["metrics"]
+    _same_result(out, base_run["first"])
 
 
 def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  # noqa: F811
@@ -262,8 +269,7 @@ def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  
     assert _executed(first["states"]) == sorted(
         [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
     )
-    assert first["params"] == base_run["first"]["params"]
-    assert first["metrics"] == base_run["first"]["metrics"]
+    _same_result(first, base_run["first"])
     second = _run("plotA", root, scene_dir)
     assert set(second["states"].values()) == {"Cached"}
     results = fs.find(f"{s3_server.bucket}/flows/plotA/{CROP}/{DATE}/.prefect")
