@@ -169,18 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("rest", nargs=argparse.REMAINDER, help="the benchmark's own options")
     b.set_defaults(func=cmd_bench)
 
-    d = sub.add_parser("demo", help="the main job on the built-in demo scene")
-    d.add_argument("--out", default="cropcraft-data/demo", metavar="DIR")
-    d.set_defaults(func=cmd_demo)
+    from flows.service_cli import add_service_commands
+
+    add_service_commands(sub)
     return p
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    """Until the photo pipeline lands: the forward model on the demo soybean canopy."""
-    ns = argparse.Namespace(
-        crop="soybean", param=None, seed=0, plot=None, row_spacing=None, density=None, out=args.out
-    )
-    return cmd_generate(ns)
 
 
 def main(argv: list[str] | None = None) -> int:

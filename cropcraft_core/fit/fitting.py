@@ -30,6 +30,7 @@ from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
 
 METHODS = ("bo", "trust-region", "random", "mlp")
+DEFAULT_CANOPIES = {"soybean": 2, "maize": 1}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 
 
@@ -50,10 +51,21 @@ class FitConfig:
     """Same canopy seed for every evaluation of an optimiser seed (see module docstring)."""
     refit_every: int = 10
     """GP hyper-parameter refit period of BO."""
+    canopies_per_eval: int | None = None
+    """Procedural canopies (seeds) whose histograms are averaged per evaluation, so that the
+    predicted statistics estimate the parameters' expected statistics with 1/K of the variance.
+    None: the crop's default, ``DEFAULT_CANOPIES`` (measured on a soybean observation at its
+    true parameters over 6 draws: loss 0.123 ± 0.064 with K = 1, 0.079 ± 0.023 with K = 2,
+    0.072 ± 0.028 with K = 4; maize's loss noise is ~0.0002, so K = 1)."""
+
+    def canopies(self, crop: str) -> int:
+        return self.canopies_per_eval or DEFAULT_CANOPIES[crop]
 
     def validate(self) -> FitConfig:
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
+        if self.canopies_per_eval is not None and self.canopies_per_eval < 1:
+            raise ConfigError(f"canopies_per_eval must be at least 1, got {self.canopies_per_eval}")
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
         if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
@@ -78,13 +90,15 @@ def canopy_seed(optimiser_seed: int, eval_index: int, crn: bool) -> int:
 
 
 def make_objective(
-    forward: ForwardModel, optimiser_seed: int, crn: bool
+    forward: ForwardModel, optimiser_seed: int, crn: bool, canopies: int = 1
 ) -> Callable[[np.ndarray, int], float]:
     crop = forward.crop
 
     def objective(x: np.ndarray, eval_index: int) -> float:
         params = params_from_vector(crop, np.clip(x, *param_bounds(crop).T))
-        return forward.loss(params, canopy_seed(optimiser_seed, eval_index, crn))
+        base = canopy_seed(optimiser_seed, eval_index, crn)
+        seeds = [base + 104_729 * k for k in range(canopies)]
+        return forward.loss(params, seeds)
 
     return objective
 
@@ -102,7 +116,9 @@ def fit_seed(
     if cfg.method == "mlp":
         raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
     forward = ForwardModel(observation, layout)
-    objective = make_objective(forward, seed, cfg.common_random_numbers)
+    objective = make_objective(
+        forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop)
+    )
     b = param_bounds(observation.crop)
     if cfg.method == "bo":
         res = run_seed(
@@ -119,6 +135,8 @@ def fit_seed(
             seed=seed,
             n_starts=1,
             maxiter=cfg.n_evals,
+            # the same evaluation budget as a BO seed (uncapped, one start made ~13,700 calls)
+            max_evals=cfg.n_evals,
             checkpoint=checkpoint,
             callback=callback,
         )

@@ -10,8 +10,8 @@ background is rendered (supplementary "Mask and Histogram Details").
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -70,18 +70,36 @@ class ForwardModel:
         self.timings["render"] += time.perf_counter() - t1
         return d
 
-    def stats(self, params: Mapping[str, float], seed: int) -> HistogramStats:
-        d = self.depth(params, seed)
-        t = time.perf_counter()
-        s = self.observation.predicted_stats(d)
-        self.timings["stats"] += time.perf_counter() - t
-        self.timings["calls"] += 1
-        return s
+    def stats(self, params: Mapping[str, float], seed: int | Sequence[int]) -> HistogramStats:
+        """Statistics of the canopy built with ``seed``; with several seeds, the mean of their
+        statistics (histograms and mask area averaged bin by bin)."""
+        seeds = [seed] if isinstance(seed, int | np.integer) else list(seed)
+        out = []
+        for s in seeds:
+            d = self.depth(params, int(s))
+            t = time.perf_counter()
+            out.append(self.observation.predicted_stats(d))
+            self.timings["stats"] += time.perf_counter() - t
+            self.timings["calls"] += 1
+        return out[0] if len(out) == 1 else mean_stats(out)
 
-    def loss(self, params: Mapping[str, float], seed: int) -> float:
+    def loss(self, params: Mapping[str, float], seed: int | Sequence[int]) -> float:
         from cropcraft_core.observe import loss
 
         return loss(self.observation.stats, self.stats(params, seed), self.observation.preset).total
+
+
+def mean_stats(stats: Sequence[HistogramStats]) -> HistogramStats:
+    """Bin-by-bin mean of statistics computed with one spec."""
+    first = stats[0]
+    return replace(
+        first,
+        depth=np.mean([s.depth for s in stats], axis=0),
+        lateral=np.mean([s.lateral for s in stats], axis=0),
+        sobel=np.mean([s.sobel for s in stats], axis=0),
+        mask_area=float(np.mean([s.mask_area for s in stats])),
+        n_foreground=int(round(np.mean([s.n_foreground for s in stats]))),
+    )
 
 
 def observe_canopy(
