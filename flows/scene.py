@@ -130,7 +130,7 @@ def stage_configs(cfg: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),
         "surfaces": dict(cfg["surfaces"]),
-        "rowfit": dict(cfg["rowfit"]),
+        "rowfit": {**cfg["rowfit"], **layout},
         "observe": dict(cfg["observe"]),
         "fit_seed": {**cfg["fit"], **layout},
         "aggregate": {**cfg["fit"], **layout},

@@ -15,12 +15,16 @@ def rowfit(
     stores ``{scene}/rowfit/rowfit.json`` (``RowFit.to_dict()`` plus ``camera_in_scene``, the
     row camera in the poses' frame, which the observe stage renders the surfaces from).
 
-    config: ``preset`` (RowFitPreset overrides), ``seed``, ``scale`` (metres per scene unit;
-    default 1 with metric poses). The scale source is ``metric_poses`` when the poses stage
-    imported metric poses, ``user_hint`` when ``scale`` is given, else ``assumed_metric``.
+    config: ``preset`` (RowFitPreset overrides), ``seed``, ``scale`` (metres per scene unit),
+    ``layout`` (planting; its row spacing is the known one). The scale source is
+    ``metric_poses`` when the poses stage imported metric poses, ``user_hint`` when ``scale``
+    is given, else ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
+    ``assumed_metric`` when it cannot be measured). The known row spacing also snaps the best
+    row onto the periodic row pattern (``RowFitPreset.row_spacing``).
     """
-    from cropcraft_core.rowfit import fit_ground_and_rows
+    from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
+    from tasks.fit_seed import layout_of
 
     store = open_store(store_root)
     crop = scene.split("/")[1]
@@ -28,15 +32,17 @@ def rowfit(
         cloud = store.get_npz(key_of(upstream["surfaces"], "points"))
         metric = bool(upstream["poses"].get("summary", {}).get("metric"))
         scale = config.get("scale")
-        source = "user_hint" if scale else ("metric_poses" if metric else "assumed_metric")
-        fit = fit_ground_and_rows(
+        spacing = layout_of(crop, config).row_spacing
+        overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
+        fit = fit_rows_with_scale(
             cloud["points"],
             cloud["colors"],
             crop,
-            rowfit_preset(crop, **dict(config.get("preset") or {})),
+            rowfit_preset(crop, **overrides),
             rng=int(config.get("seed", 0)),
-            scale=float(scale or 1.0),
-            scale_source=source,
+            metric_scale=1.0 if metric and not scale else None,
+            scale_hint=float(scale) if scale else None,
+            known_row_spacing=spacing,
         )
         record = {**fit.to_dict(), "camera_in_scene": fit.camera_in_scene().to_dict()}
         key = artefact(scene, "rowfit", "rowfit.json")
