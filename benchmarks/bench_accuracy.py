@@ -68,11 +68,13 @@ def run(
     scenes: int | None,
     crn_ablation: bool = False,
     log=print,
+    overrides: dict | None = None,
+    scale: float | None = None,
 ) -> dict:
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
-    b0 = budget(quick, scenes, "bo")
+    b0 = budget(quick, scenes, "bo", overrides=overrides, scale=scale)
     size = {"image_width": round(994 * b0.scale), "image_height": round(738 * b0.scale)}
     p = preset(crop, **size)
     truths, observations = [], []
@@ -80,9 +82,15 @@ def run(
         params, canopy = scene_truth(crop, i)
         truths.append({"params": params, **canopy_metrics(canopy, gap_fraction=False)})
         observations.append(observe_canopy(canopy, p, meta={"scene": i}))
-    out = {"crop": crop, "quick": quick, "scenes": b0.scenes, "methods": {}}
+    out = {
+        "crop": crop,
+        "quick": quick,
+        "scenes": b0.scenes,
+        "methods": {},
+        "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
+    }
     for label, method, crn in runs:
-        b = budget(quick, scenes, method, crn)
+        b = budget(quick, scenes, method, crn, overrides, scale)
         preds, seconds = [], []
         for i, obs in enumerate(observations):
             t = time.perf_counter()
@@ -142,9 +150,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--crn-ablation", action="store_true")
     ap.add_argument("--json")
+    ap.add_argument("--seeds", type=int, help="override optimiser seeds per scene")
+    ap.add_argument("--evals", type=int, help="override evaluations per seed")
+    ap.add_argument("--initial", type=int, help="override random initial evaluations")
+    ap.add_argument("--canopies", type=int, help="override canopies averaged per evaluation")
+    ap.add_argument("--image-scale", type=float, help="row camera resolution / 994x738")
     a = ap.parse_args(argv)
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
-    res = run(a.crop, methods, a.quick, a.scenes, a.crn_ablation)
+    overrides = {
+        "n_seeds": a.seeds,
+        "n_evals": a.evals,
+        "n_initial": a.initial,
+        "canopies_per_eval": a.canopies,
+    }
+    res = run(
+        a.crop, methods, a.quick, a.scenes, a.crn_ablation, overrides=overrides, scale=a.image_scale
+    )
     print_table(res)
     if a.json:
         with open(a.json, "w") as f:
