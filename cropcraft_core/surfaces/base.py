@@ -71,15 +71,26 @@ class SurfacesConfig:
     """tsdf: image scale for stereo (0.5: 640×480 photos are matched at 320×240)."""
     n_depths: int = 128
     """tsdf: depth hypotheses per view, uniform in inverse depth."""
-    window: int = 7
+    window: int = 5
     """tsdf: side of the NCC matching window (pixels at ``mvs_scale``, odd)."""
+    sweep: str = "horizontal"
+    """tsdf: plane hypotheses: 'horizontal' (world planes z = h over the bounding box's height
+    range, uniform in height: ground and near-horizontal leaves seen obliquely match on their own
+    plane, and the smoothing favours flat surfaces; needs a bounding box, else fronto-parallel)
+    or 'fronto' (fronto-parallel planes uniform in inverse depth over the view's depth range)."""
+    colour: bool = True
+    """tsdf: match on RGB (the mean of the per-channel NCCs) rather than on grey."""
+    sgm_p1: float = 0.05
+    """tsdf: semi-global matching penalty for a one-plane step between neighbouring pixels."""
+    sgm_p2: float = 0.3
+    """tsdf: semi-global matching penalty for a larger jump (0: no smoothing)."""
     min_ncc: float = 0.4
     """tsdf: a depth is kept where its aggregated NCC matching score reaches this (−1 … 1)."""
-    min_consistent: int = 2
+    min_consistent: int = 1
     """tsdf: a depth is kept where at least this many other views' depth maps agree with it."""
     consistency_rel: float = 0.01
     """tsdf: relative z-depth tolerance of that agreement (0.01 = 1 %)."""
-    weight_threshold: float = 2.0
+    weight_threshold: float = 1.0
     """tsdf: minimum fused weight (views) of a voxel on the extracted surface."""
     nerf_iterations: int = 20000
     """nerfacto: training iterations (the paper: 20K)."""
@@ -113,6 +124,14 @@ class SurfacesConfig:
             raise ConfigError(f"surfaces neighbours must be in [2, 8], got {self.neighbours}")
         if int(self.n_depths) < 8:
             raise ConfigError(f"surfaces n_depths must be ≥ 8, got {self.n_depths}")
+        if self.sweep not in ("horizontal", "fronto"):
+            raise ConfigError(
+                f"surfaces sweep must be 'horizontal' or 'fronto', got {self.sweep!r}"
+            )
+        if not (0 <= float(self.sgm_p1) <= float(self.sgm_p2) or float(self.sgm_p2) == 0):
+            raise ConfigError(
+                f"surfaces sgm penalties need 0 ≤ sgm_p1 ≤ sgm_p2, got {self.sgm_p1}, {self.sgm_p2}"
+            )
         if int(self.window) < 3 or int(self.window) % 2 == 0:
             raise ConfigError(f"surfaces window must be odd and ≥ 3, got {self.window}")
         if not -1.0 <= self.min_ncc < 1.0:

@@ -119,27 +119,78 @@ def to_grey(image: np.ndarray, camera: PinholeCamera, scale: float) -> np.ndarra
     return g.astype(np.float32) / 255.0
 
 
+def to_colour(image: np.ndarray, camera: PinholeCamera, scale: float) -> np.ndarray:
+    """(h, w, 3) float32 RGB in [0, 1] at ``scale`` of (H, W, 3) uint8 ``image`` (area
+    resampling), matching ``camera.scaled(scale)``."""
+    return _resize_rgb(image, camera.scaled(scale)).astype(np.float32) / 255.0
+
+
 def _resize_rgb(image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     if image.shape[:2] == (camera.height, camera.width):
         return image
     return cv2.resize(image, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
 
 
-def plane_homography(ref: PinholeCamera, src: PinholeCamera, depth: float) -> np.ndarray:
+def plane_homography(
+    ref: PinholeCamera, src: PinholeCamera, normal: np.ndarray, offset: float
+) -> np.ndarray:
     """(3, 3) homography taking reference pixel index coordinates to source pixel index
-    coordinates (OpenCV: pixel centres at integers) for points on the fronto-parallel plane at
-    z-depth ``depth`` of the reference camera."""
+    coordinates (OpenCV: pixel centres at integers) for points X on the plane
+    ``normal · X = offset`` (X, normal (3,) in reference camera coordinates, offset in metres;
+    the fronto-parallel plane at z-depth d is normal (0, 0, 1), offset d)."""
     rel = src.world_to_cam @ ref.cam_to_world  # ref camera → src camera
     r, t = rel[:3, :3], rel[:3, 3]
-    n = np.array([0.0, 0.0, 1.0])
-    h = src.K @ (r + np.outer(t, n) / depth) @ np.linalg.inv(ref.K)
+    h = src.K @ (r + np.outer(t, np.asarray(normal, np.float64)) / offset) @ np.linalg.inv(ref.K)
     return _T_IDX_INV @ h @ _T_IDX
 
 
-def plane_sweep(
-    ref_grey: np.ndarray,
+def sweep_planes(
     ref: PinholeCamera,
-    src_greys: list[np.ndarray],
+    n_planes: int,
+    near: float,
+    far: float,
+    heights: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plane hypotheses of one reference view.
+
+    Fronto-parallel (``heights`` None): ``n_planes`` planes uniform in inverse z-depth over
+    [near, far]. Horizontal (``heights`` = (z_lo, z_hi), world metres): planes z = h uniform in h
+    over that range (below the camera), so that neighbouring pixels on the ground or on a flat leaf
+    share a hypothesis and the spacing is uniform in height.
+
+    Returns (normals (P, 3) and offsets (P,) of the planes ``normal · X = offset`` in reference
+    camera coordinates, params (P,): the swept parameter, inverse depth or height, uniform).
+    """
+    n = int(n_planes)
+    if heights is None:
+        inv = np.linspace(1.0 / near, 1.0 / far, n)
+        normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+        return normals, 1.0 / inv, inv
+    cz = float(ref.center[2])
+    lo, hi = float(heights[0]), min(float(heights[1]), cz - 0.05)
+    if hi <= lo:
+        raise InputError(f"camera at z = {cz:.2f} m is not above the height range {heights}")
+    hs = np.linspace(lo, hi, n)
+    up = ref.cam_to_world[2, :3]  # world z of camera coordinates: z_w = up · X + c_z
+    return np.tile(up, (n, 1)), hs - cz, hs
+
+
+def plane_depth(ref: PinholeCamera, params: np.ndarray, horizontal: bool) -> np.ndarray:
+    """(h, w) float32 z-depth of reference pixels on the plane of (fractional) swept parameter
+    ``params`` (h, w) (inverse depth, or height for horizontal planes); NaN where the ray does
+    not go down to a horizontal plane."""
+    if not horizontal:
+        return (1.0 / params).astype(np.float32)
+    dz = ref.ray_directions(normalized=False)[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = (params - ref.center[2]) / dz
+    return np.where((dz < -1e-6) & (d > 0), d, np.nan).astype(np.float32)
+
+
+def plane_sweep(
+    ref_img: np.ndarray,
+    ref: PinholeCamera,
+    src_imgs: list[np.ndarray],
     srcs: list[PinholeCamera],
     near: float,
     far: float,
@@ -147,66 +198,76 @@ def plane_sweep(
     window: int = 7,
     p1: float = 0.05,
     p2: float = 1.0,
+    heights: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plane-sweep stereo of one reference view with semi-global cost aggregation.
 
-    ref_grey: (h, w) float32 grey reference image matching ``ref``; src_greys: (h_j, w_j) images
-    matching ``srcs``. Depth hypotheses: ``n_depths`` fronto-parallel planes uniform in inverse
-    depth over [near, far]. Matching cost: 1 − NCC over a ``window`` × ``window`` window, the mean
-    of the best half of the sources; aggregated along 4 image paths (SGM, penalties ``p1`` for a
-    one-plane step, ``p2`` for a jump). Returns (depth (h, w) float32 z-depth, refined to sub-plane
-    precision by a parabola; score (h, w) float32, the aggregated NCC at the winning plane, −1
-    where no source sees the pixel or the winner is the first or last plane).
+    ref_img: (h, w) or (h, w, c) float32 reference image matching ``ref``; src_imgs: (h_j, w_j[,
+    c]) images matching ``srcs``. Hypotheses: ``n_depths`` planes (``sweep_planes``:
+    fronto-parallel uniform in inverse depth over [near, far], or horizontal z = h over
+    ``heights``). Matching cost: 1 − NCC over a ``window`` × ``window`` window (the mean over
+    channels), the mean of the best half of the sources; aggregated along 4 image paths (SGM,
+    penalties ``p1`` for a one-plane step, ``p2`` for a jump). Returns (depth (h, w) float32
+    z-depth, refined to sub-plane precision by a parabola, NaN where no plane is valid; score
+    (h, w) float32, the aggregated NCC at the winning plane, −1 where no source sees the pixel or
+    the winner is the first or last plane).
     """
-    h, w = ref_grey.shape
-    inv = np.linspace(1.0 / near, 1.0 / far, int(n_depths))
-    homs = np.array([[plane_homography(ref, c, 1.0 / q) for c in srcs] for q in inv])
-    hs = max(g.shape[0] for g in src_greys)
-    ws = max(g.shape[1] for g in src_greys)
-    stack = np.zeros((len(srcs), hs, ws), np.float32)
-    for s, g in enumerate(src_greys):
-        stack[s, : g.shape[0], : g.shape[1]] = g
-    hw = np.array([g.shape[:2] for g in src_greys], np.int64)
-    vol = np.empty((h, w, len(inv)), np.float32)
+    ref_img = ref_img if ref_img.ndim == 3 else ref_img[..., None]
+    src_imgs = [g if g.ndim == 3 else g[..., None] for g in src_imgs]
+    h, w, nc = ref_img.shape
+    normals, offsets, params = sweep_planes(ref, n_depths, near, far, heights)
+    homs = np.array(
+        [[plane_homography(ref, c, nv, o) for c in srcs] for nv, o in zip(normals, offsets)]
+    )
+    hs = max(g.shape[0] for g in src_imgs)
+    ws = max(g.shape[1] for g in src_imgs)
+    stack = np.zeros((len(srcs), nc, hs, ws), np.float32)
+    for s, g in enumerate(src_imgs):
+        stack[s, :, : g.shape[0], : g.shape[1]] = np.moveaxis(g, 2, 0)
+    hw = np.array([g.shape[:2] for g in src_imgs], np.int64)
+    vol = np.empty((h, w, len(params)), np.float32)
     _sweep_ncc(
-        np.ascontiguousarray(ref_grey, np.float32), stack, hw, homs, int(window) // 2,
-        max(1, (len(srcs) + 1) // 2), vol,
+        np.ascontiguousarray(np.moveaxis(ref_img, 2, 0), np.float32), stack, hw, homs,
+        int(window) // 2, max(1, (len(srcs) + 1) // 2), vol,
     )  # fmt: skip
     agg = _sgm(1.0 - vol, float(p1), float(p2)) if p2 > 0 else 1.0 - vol
+    n_p = len(params)
     best = np.argmin(agg, axis=2)
     s0 = np.take_along_axis(agg, best[..., None], 2)[..., 0]
     lo = np.take_along_axis(agg, np.maximum(best - 1, 0)[..., None], 2)[..., 0]
-    hi = np.take_along_axis(agg, np.minimum(best + 1, len(inv) - 1)[..., None], 2)[..., 0]
+    hi = np.take_along_axis(agg, np.minimum(best + 1, n_p - 1)[..., None], 2)[..., 0]
     denom = lo - 2 * s0 + hi
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where(denom > 1e-9, 0.5 * (lo - hi) / denom, 0.0)
-    inner = (best > 0) & (best < len(inv) - 1)
+    inner = (best > 0) & (best < n_p - 1)
     off = np.where(inner, np.clip(off, -0.5, 0.5), 0.0)
-    idepth = inv[0] + (best + off) * (inv[1] - inv[0])
-    depth = (1.0 / idepth).astype(np.float32)
+    q = params[0] + (best + off) * (params[1] - params[0])
+    depth = plane_depth(ref, q, heights is not None)
     score = np.take_along_axis(vol, best[..., None], 2)[..., 0]
-    score = np.where(inner, score, -1.0).astype(np.float32)
+    score = np.where(inner & np.isfinite(depth), score, -1.0).astype(np.float32)
     return depth, score
 
 
 @njit(cache=True, parallel=True, fastmath=True)
 def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover - numba
-    """ref (h, w) float32; srcs (S, hs, ws) float32; src_hw (S, 2) int64 real sizes;
+    """ref (C, h, w) float32; srcs (S, C, hs, ws) float32; src_hw (S, 2) int64 real sizes;
     homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32 aggregated
-    NCC (mean of the best m_best sources; -1 where fewer sources see the pixel)."""
-    h, w = ref.shape
+    NCC (per source the mean over the C channels of their NCC; the mean of the best m_best
+    sources; -1 where fewer sources see the pixel)."""
+    n_c, h, w = ref.shape
     n_d, n_s = homs.shape[0], homs.shape[1]
     # reference window statistics (integral images)
-    ir = np.zeros((h + 1, w + 1))
-    ir2 = np.zeros((h + 1, w + 1))
-    for y in range(h):
-        for x in range(w):
-            r = ref[y, x]
-            ir[y + 1, x + 1] = ir[y, x + 1] + ir[y + 1, x] - ir[y, x] + r
-            ir2[y + 1, x + 1] = ir2[y, x + 1] + ir2[y + 1, x] - ir2[y, x] + r * r
+    ir = np.zeros((n_c, h + 1, w + 1))
+    ir2 = np.zeros((n_c, h + 1, w + 1))
+    for c in range(n_c):
+        for y in range(h):
+            for x in range(w):
+                r = ref[c, y, x]
+                ir[c, y + 1, x + 1] = ir[c, y, x + 1] + ir[c, y + 1, x] - ir[c, y, x] + r
+                ir2[c, y + 1, x + 1] = ir2[c, y, x + 1] + ir2[c, y + 1, x] - ir2[c, y, x] + r * r
     for k in prange(n_d):
         scores = np.full((n_s, h, w), -1.0, np.float32)
-        wimg = np.zeros((h, w))
+        wimg = np.zeros((n_c, h, w))
         seen = np.zeros((h, w), np.bool_)
         iw = np.zeros((h + 1, w + 1))
         iw2 = np.zeros((h + 1, w + 1))
@@ -217,7 +278,6 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover 
             for y in range(h):
                 for x in range(w):
                     pz = m[2, 0] * x + m[2, 1] * y + m[2, 2]
-                    val = 0.0
                     ok = False
                     if pz > 1e-9:
                         u = (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / pz
@@ -227,39 +287,53 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover 
                             y0 = min(int(v), hs - 2)
                             fx = u - x0
                             fy = v - y0
-                            a = srcs[s, y0, x0] * (1 - fx) + srcs[s, y0, x0 + 1] * fx
-                            b = srcs[s, y0 + 1, x0] * (1 - fx) + srcs[s, y0 + 1, x0 + 1] * fx
-                            val = a * (1 - fy) + b * fy
+                            for c in range(n_c):
+                                a = srcs[s, c, y0, x0] * (1 - fx) + srcs[s, c, y0, x0 + 1] * fx
+                                b = (
+                                    srcs[s, c, y0 + 1, x0] * (1 - fx)
+                                    + srcs[s, c, y0 + 1, x0 + 1] * fx
+                                )
+                                wimg[c, y, x] = a * (1 - fy) + b * fy
                             ok = True
-                    wimg[y, x] = val
+                    if not ok:
+                        for c in range(n_c):
+                            wimg[c, y, x] = 0.0
                     seen[y, x] = ok
             for y in range(h):
                 for x in range(w):
-                    q = wimg[y, x]
-                    iw[y + 1, x + 1] = iw[y, x + 1] + iw[y + 1, x] - iw[y, x] + q
-                    iw2[y + 1, x + 1] = iw2[y, x + 1] + iw2[y + 1, x] - iw2[y, x] + q * q
-                    irw[y + 1, x + 1] = irw[y, x + 1] + irw[y + 1, x] - irw[y, x] + q * ref[y, x]
-            for y in range(h):
-                y0 = max(0, y - half)
-                y1 = min(h, y + half + 1)
-                for x in range(w):
-                    if not seen[y, x]:
-                        continue
-                    x0 = max(0, x - half)
-                    x1 = min(w, x + half + 1)
-                    n = (y1 - y0) * (x1 - x0)
-                    sr = ir[y1, x1] - ir[y0, x1] - ir[y1, x0] + ir[y0, x0]
-                    sr2 = ir2[y1, x1] - ir2[y0, x1] - ir2[y1, x0] + ir2[y0, x0]
-                    sw = iw[y1, x1] - iw[y0, x1] - iw[y1, x0] + iw[y0, x0]
-                    sw2 = iw2[y1, x1] - iw2[y0, x1] - iw2[y1, x0] + iw2[y0, x0]
-                    srw = irw[y1, x1] - irw[y0, x1] - irw[y1, x0] + irw[y0, x0]
-                    vr = sr2 / n - (sr / n) ** 2 + 1e-5
-                    vw = sw2 / n - (sw / n) ** 2 + 1e-5
-                    if vr < 1e-5:
-                        vr = 1e-5
-                    if vw < 1e-5:
-                        vw = 1e-5
-                    scores[s, y, x] = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
+                    if seen[y, x]:
+                        scores[s, y, x] = 0.0
+            for c in range(n_c):
+                for y in range(h):
+                    for x in range(w):
+                        q = wimg[c, y, x]
+                        iw[y + 1, x + 1] = iw[y, x + 1] + iw[y + 1, x] - iw[y, x] + q
+                        iw2[y + 1, x + 1] = iw2[y, x + 1] + iw2[y + 1, x] - iw2[y, x] + q * q
+                        irw[y + 1, x + 1] = (
+                            irw[y, x + 1] + irw[y + 1, x] - irw[y, x] + q * ref[c, y, x]
+                        )
+                for y in range(h):
+                    y0 = max(0, y - half)
+                    y1 = min(h, y + half + 1)
+                    for x in range(w):
+                        if not seen[y, x]:
+                            continue
+                        x0 = max(0, x - half)
+                        x1 = min(w, x + half + 1)
+                        n = (y1 - y0) * (x1 - x0)
+                        sr = ir[c, y1, x1] - ir[c, y0, x1] - ir[c, y1, x0] + ir[c, y0, x0]
+                        sr2 = ir2[c, y1, x1] - ir2[c, y0, x1] - ir2[c, y1, x0] + ir2[c, y0, x0]
+                        sw = iw[y1, x1] - iw[y0, x1] - iw[y1, x0] + iw[y0, x0]
+                        sw2 = iw2[y1, x1] - iw2[y0, x1] - iw2[y1, x0] + iw2[y0, x0]
+                        srw = irw[y1, x1] - irw[y0, x1] - irw[y1, x0] + irw[y0, x0]
+                        vr = sr2 / n - (sr / n) ** 2 + 1e-5
+                        vw = sw2 / n - (sw / n) ** 2 + 1e-5
+                        if vr < 1e-5:
+                            vr = 1e-5
+                        if vw < 1e-5:
+                            vw = 1e-5
+                        ncc = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
+                        scores[s, y, x] += ncc / n_c
         # aggregate: mean of the best m_best sources
         for y in range(h):
             for x in range(w):
@@ -373,6 +447,9 @@ class TsdfSurfaces(SurfaceBackend):
         self.faces = np.zeros((0, 3), np.int32)
         self.vertex_colors = np.zeros((0, 3))
         self.depth_maps: list[np.ndarray] = []
+        """after ``fit``: per view the (h, w) float32 z-depth map fused (at ``mvs_scale``)"""
+        self.raw_depth_maps: list[np.ndarray] = []
+        """after ``fit``: per view the (h, w) float32 stereo depth before consistency filtering"""
         self._scene = None
 
     # ------------------------------------------------------------------ fit
@@ -382,19 +459,24 @@ class TsdfSurfaces(SurfaceBackend):
         say = progress or (lambda stage, frac: None)
         t0 = time.perf_counter()
         small = [c.scaled(cfg.mvs_scale) for c in cams]
-        greys = [to_grey(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
+        prep = to_colour if cfg.colour else to_grey
+        greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
+        heights = None
+        if cfg.sweep == "horizontal" and box is not None:
+            heights = (float(box[0, 2]), float(box[1, 2]))
         nbrs = select_neighbours(cams, int(cfg.neighbours), box)
         limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
 
         raw: list[np.ndarray] = []
         for i in range(len(cams)):
             if not nbrs[i]:
-                raw.append(np.full(greys[i].shape, np.nan, np.float32))
+                raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
                 continue
             near, far = limits[i]
             depth, score = plane_sweep(
                 greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
-                near, far, int(cfg.n_depths), int(cfg.window),
+                near, far, int(cfg.n_depths), int(cfg.window), float(cfg.sgm_p1),
+                float(cfg.sgm_p2), heights,
             )  # fmt: skip
             depth[score < cfg.min_ncc] = np.nan
             raw.append(depth)
@@ -423,6 +505,7 @@ class TsdfSurfaces(SurfaceBackend):
         t3 = time.perf_counter()
         self.cameras = cams
         self.depth_maps = filtered
+        self.raw_depth_maps = raw
         self._scene = None
         n_valid = [float(np.isfinite(d).mean()) for d in filtered]
         self.timings = {
