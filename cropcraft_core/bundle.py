@@ -50,9 +50,10 @@ def check_output_dir(out_dir: str | os.PathLike) -> Path:
 
 def gap_fraction_canopy(canopy: Canopy) -> Canopy:
     """The same plants with a border wide enough for gap-fraction rays at 68° zenith to stay
-    inside the canopy (height · tan 68°), capped at 8 m."""
+    inside the canopy (height · tan 68°, plus a row spacing because rows are discrete), capped at
+    8 m."""
     height = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.0
-    border = min(8.0, height * math.tan(math.radians(68.0)) + 0.2)
+    border = min(8.0, height * math.tan(math.radians(68.0)) + 0.2 + canopy.layout.row_spacing)
     region = plot_region(canopy.layout, border)
     if all(abs(a) >= abs(b) for a, b in zip(canopy.info["region"], region, strict=True)):
         return canopy

@@ -1,0 +1,106 @@
+"""`cropcraft generate`: the bundle it writes and its errors (one line, exit 2, nothing written)."""
+
+import json
+
+import pytest
+
+from flows.cli import main
+
+REQUIRED_METRICS = {
+    "lai",
+    "lai_gap_fraction",
+    "leaf_area_m2",
+    "ground_area_m2",
+    "leaf_angle_mean_deg",
+    "leaf_angle_std_deg",
+    "leaf_angle_hist",
+    "node_count",
+    "internode_mean_m",
+    "plant_height_m",
+    "n_plants",
+    "n_faces",
+    "definitions",
+}
+
+
+@pytest.mark.parametrize("crop,plot", [("soybean", "1.6,1.0"), ("maize", "1.6,1.6")])
+def test_generate_writes_every_file(tmp_path, crop, plot, capsys):
+    out = tmp_path / "out"
+    rc = main(
+        [
+            "generate",
+            crop,
+            "--param",
+            "num_nodes=6",
+            "--seed",
+            "3",
+            "--plot",
+            plot,
+            "--out",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    for name in (
+        "canopy.ply",
+        "canopy.obj",
+        "canopy.mtl",
+        "canopy.glb",
+        "canopy.helios.xml",
+        "params.json",
+        "metrics.json",
+        "preview.png",
+    ):
+        assert (out / name).stat().st_size > 0, name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert REQUIRED_METRICS <= set(metrics)
+    assert metrics["definitions"]["lai"]["unit"]
+    params = json.loads((out / "params.json").read_text())
+    assert params["params"]["num_nodes"] == 6.0 and params["seed"] == 3
+    # parameters not given take the middle of their range
+    assert params["params"]["leaf_length"] == pytest.approx(1.0)
+    assert "written to" in capsys.readouterr().out
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["generate", "wheat"], "unknown crop 'wheat'"),
+        (["generate", "soybean", "--param", "leaf_width=1"], "unknown soybean parameter"),
+        (["generate", "soybean", "--param", "num_nodes=20"], "outside its range [1, 14]"),
+        (["generate", "maize", "--param", "leaf_length"], "--param expects NAME=VALUE"),
+        (["generate", "soybean", "--plot", "0,2"], "plot width must be a positive number"),
+        (["generate", "soybean", "--row-spacing", "-0.76"], "row spacing must be a positive"),
+        (["generate", "soybean", "--density", "0"], "density must be a positive number"),
+    ],
+)
+def test_generate_bad_input(tmp_path, capsys, args, message):
+    out = tmp_path / "out"
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cropcraft: error:") and message in err and "\n" not in err
+    assert not out.exists()
+
+
+def test_generate_unwritable_output(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    assert main(["generate", "soybean", "--out", str(blocker / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write output directory" in err and str(blocker) in err
+    assert blocker.read_text() == "not a directory"
+
+
+def test_generate_keeps_old_bundle_when_writing_fails(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    assert main(["generate", "soybean", "--plot", "1.6,0.5", "--out", str(out)]) == 0
+    before = (out / "metrics.json").read_bytes()
+
+    def broken(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("cropcraft_core.export.write_glb", broken)
+    assert main(["generate", "soybean", "--plot", "1.6,0.5", "--seed", "9", "--out", str(out)]) == 2
+    assert (out / "metrics.json").read_bytes() == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
