@@ -66,17 +66,9 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _print_summary(out: str, metrics: dict) -> None:
-    keys = [
-        "lai",
-        "lai_gap_fraction",
-        "leaf_angle_mean_deg",
-        "leaf_angle_std_deg",
-        "node_count",
-        "internode_mean_m",
-        "plant_height_m",
-        "n_plants",
-        "n_faces",
-    ]
+    from cropcraft_core.metrics import HEADLINE_TRAITS
+
+    keys = [*HEADLINE_TRAITS, "n_faces"]
     width = max(len(k) for k in keys)
     for k in keys:
         v = metrics.get(k)

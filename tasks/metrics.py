@@ -4,20 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from cropcraft_core.metrics import HEADLINE_TRAITS
 from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task
 from tasks.generate import canopy_from_recipe
-
-#: Traits copied into the stage record's summary (the full set is in metrics.json).
-SUMMARY_KEYS = (
-    "lai",
-    "lai_gap_fraction",
-    "leaf_angle_mean_deg",
-    "leaf_angle_std_deg",
-    "node_count",
-    "internode_mean_m",
-    "plant_height_m",
-    "n_plants",
-)
 
 
 @stage_task("metrics")
@@ -45,5 +34,5 @@ def metrics(
         )
         key = artefact(scene, "metrics", "metrics.json")
         digest = store.put_json(key, values)
-    summary = {k: values.get(k) for k in SUMMARY_KEYS}
+    summary = {k: values.get(k) for k in HEADLINE_TRAITS}
     return make_record("metrics", scene, {"metrics": key}, {key: digest}, summary, t.seconds)

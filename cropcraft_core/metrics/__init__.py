@@ -24,6 +24,7 @@ from cropcraft_core.metrics.gap_fraction import (
     sensor_points,
 )
 from cropcraft_core.metrics.traits import (
+    HEADLINE_TRAITS,
     LEAFLETS_PER_NODE,
     REFERENCE_DISTRIBUTIONS,
     Trait,
@@ -38,6 +39,7 @@ from cropcraft_core.metrics.traits import (
 )
 
 __all__ = [
+    "HEADLINE_TRAITS",
     "ERROR_KEYS",
     "LEAFLETS_PER_NODE",
     "REFERENCE_DISTRIBUTIONS",

@@ -41,6 +41,19 @@ ANGLE_BIN_DEG = 5.0
 """Width of the leaf-angle histogram bins (degrees); the bins cover 0–90°."""
 
 
+#: The traits a person looks at first (CLI summaries, stage records); metrics.json has them all.
+HEADLINE_TRAITS = (
+    "lai",
+    "lai_gap_fraction",
+    "leaf_angle_mean_deg",
+    "leaf_angle_std_deg",
+    "node_count",
+    "internode_mean_m",
+    "plant_height_m",
+    "n_plants",
+)
+
+
 @dataclass(frozen=True)
 class Trait:
     """One measured quantity: ``value`` in ``unit``, obtained as ``method`` says.

@@ -31,8 +31,9 @@ SKY_ZENITH_RGB = (118, 162, 218)
 BACKGROUND_RGB = (128, 128, 128)
 
 
-def _hash01(keys: np.ndarray, seed: int) -> np.ndarray:
-    """Deterministic pseudo-random numbers in [0, 1), one per integer key (splitmix64)."""
+def hash01(keys: np.ndarray, seed: int) -> np.ndarray:
+    """Deterministic pseudo-random numbers in [0, 1), one per integer key (splitmix64): a
+    texture or tint that depends only on what it colours, not on draw order."""
     with np.errstate(over="ignore"):
         x = keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(seed % 2**63)
         x ^= x >> np.uint64(30)
@@ -56,7 +57,7 @@ def _soil_texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     checker = ((np.floor(x / 0.25) + np.floor(y / 0.25)) % 2) * 0.06 - 0.03
     cx = np.floor(x / 0.02).astype(np.int64)
     cy = np.floor(y / 0.02).astype(np.int64)
-    clod = _hash01(cx * 1_000_003 + cy, seed + 17) * 0.24 - 0.12
+    clod = hash01(cx * 1_000_003 + cy, seed + 17) * 0.24 - 0.12
     return 1.0 + checker + clod
 
 
@@ -102,8 +103,8 @@ def shade_rgb(
     organ = np.clip(mesh.organ[fid].astype(np.int64), 0, 2)
     col = base[organ]
     plant = mesh.plant[fid].astype(np.int64)
-    jitter = (_hash01(plant, seed) - 0.5) * 2 * plant_variation
-    hue = (_hash01(plant, seed + 1) - 0.5) * 2 * plant_variation
+    jitter = (hash01(plant, seed) - 0.5) * 2 * plant_variation
+    hue = (hash01(plant, seed + 1) - 0.5) * 2 * plant_variation
     col *= (1.0 + jitter)[:, None]
     col[:, 0] *= 1.0 + 0.8 * hue  # shift between bluish and yellowish green
     col[:, 2] *= 1.0 - 0.8 * hue

@@ -40,6 +40,7 @@ from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.geometry.mesh import CanopyMesh, Organ
 from cropcraft_core.procedural.canopy import generate_canopy, max_reach, plot_region
 from cropcraft_core.procedural.structure import Canopy
+from cropcraft_core.render.preview import hash01
 from cropcraft_core.render.result import RenderResult
 from cropcraft_core.sfm.poses import Poses, export_colmap_text, export_transforms_json
 
@@ -444,18 +445,6 @@ def _srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
 
 
-def _hash01(keys: np.ndarray, seed: int) -> np.ndarray:
-    """(n,) uniforms in [0, 1) from integer keys (splitmix64)."""
-    with np.errstate(over="ignore"):
-        x = keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(seed % 2**63)
-        x ^= x >> np.uint64(30)
-        x *= np.uint64(0xBF58476D1CE4E5B9)
-        x ^= x >> np.uint64(27)
-        x *= np.uint64(0x94D049BB133111EB)
-        x ^= x >> np.uint64(31)
-    return (x >> np.uint64(11)).astype(np.float64) / float(2**53)
-
-
 def face_colors(canopy: Canopy, seed: int) -> np.ndarray:
     """(m, 3) float64 linear-light reflectance of every face of ``canopy.mesh``: leaves between a
     yellowish and a dark green by plant tint, varied per leaf (plant, node) and per face;
@@ -464,17 +453,17 @@ def face_colors(canopy: Canopy, seed: int) -> np.ndarray:
     m = mesh.n_faces
     tint = np.asarray(canopy.info.get("plant_tint", []), dtype=np.float64)
     if len(tint) != len(canopy.plant_xy):
-        tint = _hash01(np.arange(len(canopy.plant_xy)), seed + 1)
+        tint = hash01(np.arange(len(canopy.plant_xy)), seed + 1)
     pt = tint[mesh.plant]
     leaf_key = mesh.plant.astype(np.int64) * 4096 + mesh.node.astype(np.int64)
-    lt = _hash01(leaf_key, seed + 2)
-    ft = _hash01(np.arange(m, dtype=np.int64), seed + 3)
+    lt = hash01(leaf_key, seed + 2)
+    ft = hash01(np.arange(m, dtype=np.int64), seed + 3)
     yellow, dark, base = (np.array(c) for c in (_LEAF_YELLOW, _LEAF_DARK, _LEAF))
     w_y = np.clip(pt - 0.5, 0, None)[:, None] * 1.4
     w_d = np.clip(0.5 - pt, 0, None)[:, None] * 1.4
     rgb = base * (1 - w_y - w_d) + yellow * w_y + dark * w_d
     rgb = rgb * (0.8 + 0.4 * lt)[:, None] * (0.9 + 0.2 * ft)[:, None]
-    rgb[:, 0] *= 0.85 + 0.3 * _hash01(leaf_key, seed + 4)
+    rgb[:, 0] *= 0.85 + 0.3 * hash01(leaf_key, seed + 4)
     pet = mesh.organ == Organ.PETIOLE
     stem = mesh.organ == Organ.STEM
     rgb[pet] = np.array(_PETIOLE) * (0.85 + 0.3 * lt[pet])[:, None]
