@@ -42,16 +42,22 @@ class Budget:
     scale: float  # image resolution relative to the paper's 994 × 738
 
 
-def budget(quick: bool, scenes: int | None, method: str, crn: bool = True) -> Budget:
+def budget(
+    quick: bool,
+    scenes: int | None,
+    method: str,
+    crn: bool = True,
+    overrides: dict | None = None,
+    scale: float | None = None,
+) -> Budget:
+    """The quick or default budget, with optional FitConfig overrides (n_seeds, n_evals, ...)."""
+    o = {k: v for k, v in (overrides or {}).items() if v is not None}
     if quick:
-        return Budget(
-            scenes or 6,
-            FitConfig(
-                method=method, n_seeds=2, n_evals=60, n_initial=25, common_random_numbers=crn
-            ),
-            0.25,
-        )
-    return Budget(scenes or 30, FitConfig(method=method, common_random_numbers=crn), 1.0)
+        fit = {"n_seeds": 2, "n_evals": 60, "n_initial": 25, **o}
+        cfg = FitConfig(method=method, common_random_numbers=crn, **fit)
+        return Budget(scenes or 6, cfg, scale or 0.25)
+    cfg = FitConfig(method=method, common_random_numbers=crn, **o)
+    return Budget(scenes or 30, cfg, scale or 1.0)
 
 
 def scene_truth(crop: str, index: int, seed: int = 2024):
@@ -125,9 +131,12 @@ def run(
 
 def print_table(res: dict) -> None:
     crop = res["crop"]
+    b = res.get("budget", {})
     print(
         f"\nSynthetic accuracy, {crop}, {res['scenes']} scenes"
-        f"{' (quick budget)' if res['quick'] else ''}"
+        f"{' (quick budget)' if res['quick'] else ''}: {b.get('n_seeds')} seeds x "
+        f"{b.get('n_evals')} evaluations ({b.get('n_initial')} initial), row camera at "
+        f"{b.get('image_scale')} x 994x738"
     )
     head = f"{'method':<16}" + "".join(f"{c:>13}" for c in COLUMNS) + f"{'s/scene':>10}"
     print(head)
