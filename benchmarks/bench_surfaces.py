@@ -12,6 +12,11 @@ along the row, 994 × 738) of the fitted surfaces with the true mesh's:
 * ``hist_l1_image``: the same with counts divided by the image's pixel count (the loss's default
   normalisation: it also sees a difference in foreground area).
 * ``median_abs_depth_err_m``: where both renders hit.
+* ``stereo_vs_truth``: per-stage check of the tsdf backend's per-view depth maps (at
+  ``mvs_scale``) against the scene's true depth (``depth/*.npy``), over true points inside the row
+  camera's footprint (|x| < 0.7 m, |y| < 0.55 m), split by true height (ground < 3 cm, low leaves
+  3–25 cm, upper > 25 cm): ``complete`` (fraction with a depth) and ``dz_lt_2cm`` (fraction
+  within 2 cm of the true height), for the raw stereo and the consistency-filtered maps.
 """
 
 from __future__ import annotations
@@ -50,6 +55,44 @@ def _truth_mesh(scene_dir: Path):
         s["crop"], s["params"], layout, seed=s["seed"], region=tuple(s["rendered_region_row_frame"])
     )
     return canopy.mesh
+
+
+def stereo_vs_truth(backend, cams: list, truths: list[np.ndarray]) -> dict:
+    """Mean over views of completeness and height accuracy of the raw and filtered depth maps
+    (h, w) of a fitted tsdf backend against true full-size depth maps (H, W) (NaN: sky)."""
+    scale = backend.config.mvs_scale
+    k = round(1 / scale)
+    acc: dict = {}
+    for cam, td, raw, flt in zip(
+        cams, truths, backend.raw_depth_maps, backend.depth_maps, strict=True
+    ):
+        small = cam.scaled(scale)
+        h, w = raw.shape
+        if k * h > td.shape[0] or k * w > td.shape[1] or abs(k * scale - 1) > 1e-6:
+            continue  # only integer down-scales are compared
+        b = td[: h * k, : w * k].reshape(h, k, w, k)
+        t = b.mean(axis=(1, 3))
+        t[b.max(axis=(1, 3)) - b.min(axis=(1, 3)) > 0.02 * t] = np.nan  # depth edges
+        pt = small.unproject(t)
+        ok = np.isfinite(t) & (np.abs(pt[..., 0]) < 0.7) & (np.abs(pt[..., 1]) < 0.55)
+        z = pt[..., 2]
+        for stage, d in (("raw", raw), ("filtered", flt)):
+            dz = small.unproject(d)[..., 2] - z
+            for part, sel in (
+                ("ground", ok & (z < 0.03)),
+                ("low_3_25cm", ok & (z >= 0.03) & (z < 0.25)),
+                ("upper", ok & (z >= 0.25)),
+            ):
+                if sel.sum() == 0:
+                    continue
+                r = acc.setdefault(stage, {}).setdefault(part, {"complete": [], "dz_lt_2cm": []})
+                r["complete"].append(float(np.isfinite(d[sel]).mean()))
+                with np.errstate(invalid="ignore"):
+                    r["dz_lt_2cm"].append(float((np.abs(dz[sel]) < 0.02).mean()))
+    return {
+        st: {p: {m: round(float(np.mean(v)), 3) for m, v in r.items()} for p, r in parts.items()}
+        for st, parts in acc.items()
+    }
 
 
 def run(
@@ -102,6 +145,10 @@ def run(
         t = time.perf_counter()
         backend.save(tmp)
         sec["save"] = time.perf_counter() - t
+
+    if getattr(backend, "raw_depth_maps", None):
+        truths = [np.load(root / "depth" / (Path(n).stem + ".npy")) for n, _ in poses]
+        out["stereo_vs_truth"] = stereo_vs_truth(backend, cams, truths)
 
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
     d_true, _ = truth.render(row_cam)

@@ -88,10 +88,35 @@ def test_tsdf_renders_new_downward_view(scene, fitted):
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=mesh)
     d_true, _ = truth.render(cam)
     both = np.isfinite(depth) & np.isfinite(d_true)
-    assert both.mean() > 0.15, f"the fused surface covers only {both.mean():.0%} of the view"
+    # measured (horizontal sweep, RGB, 5×5, voxel 7.5 mm): 63 % both hit, median error 16 mm
+    assert both.mean() > 0.5, f"the fused surface covers only {both.mean():.0%} of the view"
     err = np.median(np.abs(depth[both] - d_true[both]))
-    assert err < 0.03, f"median depth error {err:.3f} m"
+    assert err < 0.025, f"median depth error {err:.3f} m"
     assert depth.dtype == np.float32 and rgb.dtype == np.uint8 and rgb.shape == (150, 200, 3)
+
+
+@pytest.mark.parametrize("heights", [None, (-0.1, 0.9)])
+def test_sweep_plane_homography_maps_plane_points(scene, heights):
+    """Every plane hypothesis (fronto-parallel or horizontal z = h): a reference pixel's point on
+    the plane (``plane_depth``) projects into the source where the plane's homography sends it."""
+    from cropcraft_core.surfaces.tsdf import plane_depth, plane_homography, sweep_planes
+
+    _, cams, _, _ = scene
+    ref, src = cams[3], cams[5]
+    normals, offsets, params = sweep_planes(ref, 9, 0.8, 3.0, heights)
+    px = np.array([[10.5, 20.5], [160.5, 120.5], [300.5, 200.5]])  # PinholeCamera pixel coords
+    for nv, o, q in zip(normals, offsets, params, strict=True):
+        full = plane_depth(ref, np.full((ref.height, ref.width), q), heights is not None)
+        d = full[px[:, 1].astype(int), px[:, 0].astype(int)]
+        pts = ref.unproject(np.where(np.isfinite(full), full, 0.0))
+        pts = pts[px[:, 1].astype(int), px[:, 0].astype(int)]
+        if heights is not None:
+            np.testing.assert_allclose(pts[np.isfinite(d), 2], q, atol=1e-5)  # float32 depth
+        uv, _ = src.project(pts)
+        hom = plane_homography(ref, src, nv, o)
+        a = np.c_[px - 0.5, np.ones(3)] @ hom.T  # OpenCV index coordinates
+        ok = np.isfinite(d)
+        np.testing.assert_allclose((a[:, :2] / a[:, 2:] + 0.5)[ok], uv[ok], rtol=0, atol=1e-3)
 
 
 def test_point_cloud_coloured(fitted):

@@ -58,7 +58,7 @@ class SurfacesConfig:
     backend: str = "tsdf"
     """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'nerfacto' (nerfstudio, CUDA)
     or 'truth' (the true mesh, for tests and benchmarks)."""
-    voxel_size: float = 0.01
+    voxel_size: float = 0.0075
     """tsdf: TSDF voxel edge (m)."""
     trunc_voxels: float = 4.0
     """tsdf: truncation distance of the signed distance, in voxels."""

@@ -6,12 +6,16 @@ Pipeline (``TsdfSurfaces.fit``):
    reference view's look-at point is closest to ~12° (at least ~2°, the point in their frustum),
    ``config.neighbours`` of them.
 2. **Plane-sweep stereo** per reference view at ``config.mvs_scale`` of the photo size:
-   ``config.n_depths`` fronto-parallel planes uniform in inverse depth over the view's depth range
-   (from the bounding box); each source image is warped onto each plane by the plane-induced
-   homography (OpenCV) and compared with the reference by windowed normalised cross-correlation
-   (box filters). The per-source scores are aggregated by the mean of the best half (robust to
-   occlusion in some sources); the best plane per pixel wins, refined to sub-plane precision by a
-   parabola. Pixels whose score is below ``config.min_ncc`` are dropped.
+   ``config.n_depths`` plane hypotheses, by default horizontal world planes z = h uniform in height
+   over the bounding box (``config.sweep='horizontal'``: ground and near-horizontal leaves seen
+   obliquely match on their own plane, the smoothing favours flat surfaces, no hypothesis is
+   wasted outside the box's heights), else fronto-parallel planes uniform in inverse depth; each
+   source image is warped onto each plane by the plane-induced homography and compared with the
+   reference by windowed normalised cross-correlation (box filters), on RGB (the mean of the
+   channels' NCC; ``config.colour``) or grey. The per-source scores are aggregated by the mean of
+   the best half (robust to occlusion in some sources); semi-global matching along 4 paths
+   (``config.sgm_p1``/``sgm_p2``); the best plane per pixel wins, refined to sub-plane precision by
+   a parabola. Pixels whose score is below ``config.min_ncc`` are dropped.
 3. **Consistency.** A depth survives where at least ``config.min_consistent`` neighbour depth maps
    agree with its reprojection within ``config.consistency_rel`` relative z-depth; depths outside
    the bounding box are dropped.
@@ -217,7 +221,10 @@ def plane_sweep(
     h, w, nc = ref_img.shape
     normals, offsets, params = sweep_planes(ref, n_depths, near, far, heights)
     homs = np.array(
-        [[plane_homography(ref, c, nv, o) for c in srcs] for nv, o in zip(normals, offsets)]
+        [
+            [plane_homography(ref, c, nv, o) for c in srcs]
+            for nv, o in zip(normals, offsets, strict=True)
+        ]
     )
     hs = max(g.shape[0] for g in src_imgs)
     ws = max(g.shape[1] for g in src_imgs)
