@@ -194,3 +194,16 @@ def test_bad_layout():
         default_layout("soybean", row_spacing=0.0)
     with pytest.raises(ConfigError, match="plot width"):
         default_layout("soybean", plot_width=0.5)
+
+
+@pytest.mark.parametrize("crop,height", [("soybean", 1.25), ("maize", 5.0)])
+def test_default_border_hides_the_canopy_edge_from_the_row_camera(crop, height):
+    """Every plant that could appear in the row camera's view over the plot centre is planted
+    by default, for the largest plants: the camera sees no artificial edge."""
+    lay = default_layout(crop)
+    biggest = {s.name: s.high for s in param_space(crop)}
+    cam = PinholeCamera.look_down(height_m=height)
+    needed = view_region(cam, lay, max_reach(crop, biggest))
+    built = plot_region(lay)
+    assert built[0] <= needed[0] and built[1] >= needed[1]
+    assert built[2] <= needed[2] and built[3] >= needed[3]
