@@ -282,6 +282,22 @@ class SurfaceBackend(ABC):
     def fitted(self) -> bool:
         return bool(self.cameras)
 
+    def rendered_point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+        """``point_cloud`` for backends that only render (the paper samples its NeRF this way):
+        every fitted view rendered at quarter size and unprojected, cropped to the bounding box,
+        then a seeded subset of at most ``n_max``."""
+        self._require_fitted()
+        pts, cols = [], []
+        for cam in self.cameras:
+            small = cam.scaled(0.25)
+            depth, rgb = self.render(small)
+            ok = np.isfinite(depth)
+            pts.append(small.unproject(depth)[ok])
+            cols.append(rgb[ok].astype(np.float64) / 255.0)
+        p, c = np.concatenate(pts), np.concatenate(cols)
+        keep = in_bbox(p, self.bbox)
+        return subsample(p[keep], c[keep], n_max, self.config.seed)
+
     def _require_fitted(self) -> None:
         if not self.fitted:
             raise SurfacesError(f"the {self.name} surfaces are not fitted: call fit() or load()")

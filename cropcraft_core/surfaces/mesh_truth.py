@@ -22,8 +22,6 @@ from cropcraft_core.surfaces.base import (
     SurfaceBackend,
     SurfacesConfig,
     check_inputs,
-    in_bbox,
-    subsample,
 )
 
 MESH_FILE = "truth_canopy.ply"
@@ -113,17 +111,7 @@ class TruthSurfaces(SurfaceBackend):
         return depth, rgb
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
-        self._require_fitted()
-        pts, cols = [], []
-        for cam in self.cameras:
-            small = cam.scaled(0.25)
-            depth, rgb = self.render(small)
-            ok = np.isfinite(depth)
-            pts.append(small.unproject(depth)[ok])
-            cols.append(rgb[ok].astype(np.float64) / 255.0)
-        p, c = np.concatenate(pts), np.concatenate(cols)
-        keep = in_bbox(p, self.bbox)
-        return subsample(p[keep], c[keep], n_max, self.config.seed)
+        return self.rendered_point_cloud(n_max)
 
     def _save_payload(self, folder: Path) -> dict:
         from cropcraft_core.export import write_ply

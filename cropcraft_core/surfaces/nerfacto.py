@@ -33,8 +33,6 @@ from cropcraft_core.surfaces.base import (
     SurfacesConfig,
     SurfacesError,
     check_inputs,
-    in_bbox,
-    subsample,
 )
 
 UNAVAILABLE = "nerfacto needs nerfstudio and a CUDA GPU; use the CPU backend: --surfaces tsdf"
@@ -177,17 +175,7 @@ class NerfactoSurfaces(SurfaceBackend):
         return depth, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
-        self._require_fitted()
-        pts, cols = [], []
-        for cam in self.cameras:
-            small = cam.scaled(0.25)
-            depth, rgb = self.render(small)
-            ok = np.isfinite(depth)
-            pts.append(small.unproject(depth)[ok])
-            cols.append(rgb[ok].astype(np.float64) / 255.0)
-        p, c = np.concatenate(pts), np.concatenate(cols)
-        keep = in_bbox(p, self.bbox)
-        return subsample(p[keep], c[keep], n_max, self.config.seed)
+        return self.rendered_point_cloud(n_max)
 
     # ------------------------------------------------------------------ persistence
     def _save_payload(self, folder: Path) -> dict:
