@@ -214,6 +214,27 @@ def _score_subset(n: int, cap: int, rng: np.random.Generator) -> np.ndarray | No
     return None if n <= cap else rng.choice(n, cap, replace=False)
 
 
+def _best_hypothesis(
+    score: np.ndarray,
+    nrm: np.ndarray,
+    off: np.ndarray,
+    valid: np.ndarray,
+    threshold: float,
+    chunk: int,
+) -> int | None:
+    """Index of the RANSAC hypothesis ``nrm · p + off = 0`` (nrm (k, d) unit, off (k,)) with the
+    most ``score`` points (n, d) within ``threshold``, first on ties; invalid (degenerate)
+    hypotheses never win; None when all are invalid. Scored ``chunk`` hypotheses at a time."""
+    k = len(nrm)
+    counts = np.full(k, -1, dtype=np.int64)
+    for s in range(0, k, chunk):
+        e = min(k, s + chunk)
+        dist = np.abs(score @ nrm[s:e].T + off[s:e])
+        counts[s:e] = np.where(valid[s:e], (dist < threshold).sum(axis=0), -1)
+    best = int(np.argmax(counts))
+    return None if counts[best] < 0 else best
+
+
 def ransac_plane(
     points: np.ndarray,
     threshold: float,
@@ -238,13 +259,8 @@ def ransac_plane(
     valid = length > 1e-12
     nrm = nrm / np.where(valid, length, 1.0)[:, None]
     off = -np.einsum("ij,ij->i", nrm, a)
-    counts = np.full(iterations, -1, dtype=np.int64)
-    for s in range(0, iterations, 64):
-        e = min(iterations, s + 64)
-        dist = np.abs(score @ nrm[s:e].T + off[s:e])
-        counts[s:e] = np.where(valid[s:e], (dist < threshold).sum(axis=0), -1)
-    best = int(np.argmax(counts))
-    if counts[best] < 0:
+    best = _best_hypothesis(score, nrm, off, valid, threshold, chunk=64)
+    if best is None:
         raise RowFitError("all ground-plane hypotheses were degenerate (collinear points)")
     normal, offset = nrm[best], float(off[best])
     inliers = np.abs(points @ normal + offset) < threshold
@@ -280,13 +296,8 @@ def ransac_line_2d(
     d = d / np.where(valid, length, 1.0)[:, None]
     nrm = np.column_stack([-d[:, 1], d[:, 0]])
     off = -np.einsum("ij,ij->i", nrm, p0)
-    counts = np.full(iterations, -1, dtype=np.int64)
-    for s in range(0, iterations, 128):
-        e = min(iterations, s + 128)
-        dist = np.abs(score @ nrm[s:e].T + off[s:e])
-        counts[s:e] = np.where(valid[s:e], (dist < threshold).sum(axis=0), -1)
-    best = int(np.argmax(counts))
-    if counts[best] < 0:
+    best = _best_hypothesis(score, nrm, off, valid, threshold, chunk=128)
+    if best is None:
         raise RowFitError("all row-line hypotheses were degenerate (coincident points)")
     inliers = np.abs(xy @ nrm[best] + off[best]) < threshold
     return d[best], p0[best], inliers
