@@ -80,6 +80,39 @@ def test_seed_is_deterministic_and_initial_design_from_default_rng():
     assert not np.array_equal(r1.X, r3.X)
 
 
+def test_concurrent_seeds_in_threads_match_sequential_seeds():
+    """Seeds on threads of one process (Prefect's thread pool) give the sequential results even
+    when BLAS has more threads: the 1-thread limit holds until the last seed is done (OpenBLAS
+    with 2 threads rounds differently, and a BO trajectory amplifies the last bit)."""
+    import threading
+
+    from threadpoolctl import threadpool_limits
+
+    def wavy(x: np.ndarray, eval_index: int) -> float:
+        return float(np.sin(3 * x).sum() + 0.01 * (x**2).sum())
+
+    b = np.array([[0.0, 2.0]] * 5)
+    short, long = BOConfig(n_evals=12, n_initial=10), BOConfig(n_evals=40, n_initial=10)
+    with threadpool_limits(limits=2):
+        alone = run_seed(wavy, b, long, seed=0)
+        out: dict[str, object] = {}
+        go = threading.Barrier(2)
+
+        def run(name, cfg, seed):
+            go.wait()
+            out[name] = run_seed(wavy, b, cfg, seed=seed)
+
+        ts = [
+            threading.Thread(target=run, args=("short", short, 1)),
+            threading.Thread(target=run, args=("long", long, 0)),
+        ]
+        for t in ts:
+            t.start()
+        for t in ts:
+            t.join()
+    np.testing.assert_array_equal(out["long"].X, alone.X)
+
+
 @pytest.mark.parametrize("kill_at", [5, 23, 30])
 def test_resume_after_interrupt_equals_uninterrupted(tmp_path, kill_at):
     b = np.array([[0.0, 1.0], [0.0, 2.0], [-1.0, 1.0]])

@@ -38,6 +38,7 @@ import json
 import math
 import os
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
@@ -517,18 +518,52 @@ def load_checkpoint(
     return r
 
 
+_BLAS_LOCK = threading.Lock()
+_BLAS_HOLDERS: dict[int, int] = {}
+"""Seeds now inside :func:`_blas_threads`, by limit."""
+_BLAS_LIMITER: Any = None
+
+
 @contextlib.contextmanager
 def _blas_threads(n: int | None):
+    """Hold the process's BLAS/OpenMP pools at ``n`` threads while any seed runs.
+
+    The limit is process-wide (threadpoolctl sets it in the libraries), so seeds running on
+    threads of one process share it: the first seed in sets it, the last one out restores it. A
+    plain ``threadpool_limits`` per seed restores the old limit when the first seed finishes,
+    under the feet of the others, and OpenBLAS with 2 threads gives other last bits than with 1
+    — which, over a BO trajectory, makes another fit (measured: the CI failure of session 1).
+    threadpoolctl ≥ 3.8 lets only one "controlling" thread limit a pthreads OpenBLAS and
+    silently ignores the others, so the thread that sets or restores takes control first
+    (``clear_controlling_thread(force=True)``, its documented escape hatch), under our lock.
+    """
+    global _BLAS_LIMITER
     if n is None:
         yield
         return
+    from threadpoolctl import OpenBLASController, threadpool_limits
+
+    with _BLAS_LOCK:
+        others = {k: v for k, v in _BLAS_HOLDERS.items() if v > 0 and k != n}
+        if others:
+            raise RuntimeError(
+                f"seeds with blas_threads={sorted(others)} are running in this process; "
+                f"a seed with blas_threads={n} would change their results"
+            )
+        if _BLAS_HOLDERS.get(n, 0) == 0:
+            OpenBLASController.clear_controlling_thread(force=True)
+            _BLAS_LIMITER = threadpool_limits(limits=n)
+        _BLAS_HOLDERS[n] = _BLAS_HOLDERS.get(n, 0) + 1
     try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl ships with scikit-learn
         yield
-        return
-    with threadpool_limits(limits=n):
-        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_HOLDERS[n] -= 1
+            if _BLAS_HOLDERS[n] == 0:
+                OpenBLASController.clear_controlling_thread(force=True)
+                _BLAS_LIMITER.restore_original_limits()
+                OpenBLASController.clear_controlling_thread(force=True)
+                _BLAS_LIMITER = None
 
 
 # --------------------------------------------------------------------------------------------
