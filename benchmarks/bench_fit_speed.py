@@ -67,42 +67,57 @@ def _one_seed(args):
 
 def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
     t = time.perf_counter()
-    with ProcessPoolExecutor(workers) as ex:
+    with ProcessPoolExecutor(workers, initializer=_one_thread) as ex:
         seeds = list(ex.map(_one_seed, [(s, n_evals, n_initial) for s in range(n_seeds)]))
     return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
 
 
-def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int) -> dict:
+def _compare_one(args) -> tuple[str, dict]:
+    """One seed of one optimiser on the shared objective (run in a worker process)."""
+    method, s, n_evals, n_initial = args
     from cropcraft_core.optimize.skopt_reference import run_skopt
 
     obs = _observation()
-    rows = {"ours": [], "skopt": []}
-    for s in range(n_seeds):
-        fm = ForwardModel(obs)
-        obj = make_objective(fm, s, True)
-        t = time.perf_counter()
+    t = time.perf_counter()
+    if method == "ours":
         r = fit_seed(obs, s, FitConfig(n_evals=n_evals, n_initial=n_initial))
-        rows["ours"].append(
-            {
-                "wall_s": time.perf_counter() - t,
-                "best": float(r.best_y),
-                "optimizer_s": float(
-                    getattr(r, "cpu_seconds_optimizer", None) or r.seconds_optimizer
-                ),
-            }
-        )
-        t = time.perf_counter()
-        rs = run_skopt(obj, param_bounds("soybean"), n_evals=n_evals, n_initial=n_initial, seed=s)
-        rows["skopt"].append(
-            {
-                "wall_s": time.perf_counter() - t,
-                "best": float(rs.best_y),
-                "optimizer_s": float(
-                    getattr(rs, "cpu_seconds_optimizer", None) or rs.seconds_optimizer
-                ),
-            }
-        )
+    else:
+        obj = make_objective(ForwardModel(obs), s, True)
+        r = run_skopt(obj, param_bounds("soybean"), n_evals=n_evals, n_initial=n_initial, seed=s)
+    return method, {
+        "seed": s,
+        "wall_s": time.perf_counter() - t,
+        "best": float(r.best_y),
+        "optimizer_s": _optimizer_seconds(r),
+    }
+
+
+def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) -> dict:
+    """Each seed of each optimiser once; ``workers`` processes, one BLAS thread each (the
+    optimiser times are process CPU seconds, so they do not depend on the sharing)."""
+    jobs = [(m, s, n_evals, n_initial) for s in range(n_seeds) for m in ("skopt", "ours")]
+    rows: dict[str, list] = {"ours": [], "skopt": []}
+    if workers <= 1:
+        done = map(_compare_one, jobs)
+    else:
+        ex = ProcessPoolExecutor(workers, initializer=_one_thread)
+        done = ex.map(_compare_one, jobs)
+    for method, row in done:
+        rows[method].append(row)
+        print(f"    {method} seed {row['seed']}: {row}", flush=True)
+    if workers > 1:
+        ex.shutdown()
     return rows
+
+
+def _one_thread() -> None:
+    """Worker process initialiser: the parallelism is the processes, so one BLAS and one numba
+    thread each (two numba threads per process on 2 cores measurably oversubscribe)."""
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    numba.set_num_threads(1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,10 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--skopt-seeds", type=int, default=5)
     ap.add_argument("--skip-full", action="store_true")
+    ap.add_argument(
+        "--workers", type=int, default=os.cpu_count() or 2, help="processes for (a) and (b)"
+    )
     a = ap.parse_args(argv)
     out: dict = {}
     if not a.skip_full:
-        out["full"] = full_fit(a.seeds, a.evals, a.initial, workers=os.cpu_count() or 2)
+        out["full"] = full_fit(a.seeds, a.evals, a.initial, workers=a.workers)
         f = out["full"]
         per = np.mean([s["wall_s"] for s in f["seeds"]])
         print(
@@ -140,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
     if a.skopt_seeds:
-        out["compare"] = rows = skopt_vs_ours(a.evals, a.initial, a.skopt_seeds)
+        out["compare"] = rows = skopt_vs_ours(a.evals, a.initial, a.skopt_seeds, a.workers)
         print(f"(b) one seed, {a.evals} evals ({a.initial} initial), mean of {a.skopt_seeds}:")
         print(
             f"    {'optimiser':<12}{'wall s':>10}{'optimiser s':>14}{'s/iter':>10}{'best loss':>12}"

@@ -172,7 +172,7 @@ def run(
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=50)
     ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> None:
     w, h = (int(x) for x in a.resolution.lower().split("x"))
     res = run(a.views, (w, h), a.seed, a.scene_dir, overrides)
     print(json.dumps(res, indent=1))
+    return 0
 
 
 if __name__ == "__main__":

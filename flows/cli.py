@@ -111,6 +111,8 @@ BENCHMARKS = {
     "accuracy": "benchmarks.bench_accuracy",
     "fit-speed": "benchmarks.bench_fit_speed",
     "optimizer": "benchmarks.bench_optimizer",
+    "pipeline": "benchmarks.bench_pipeline",
+    "surfaces": "benchmarks.bench_surfaces",
 }
 
 

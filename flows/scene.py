@@ -37,9 +37,19 @@ from tasks.common import fingerprint, get_task, stage_key
 DEFAULTS: dict[str, dict[str, Any]] = {
     "layout": {},
     "ingest": {"max_size": None, "min_images": 3},
-    "poses": {"matcher": "auto", "seed": 0, "num_threads": 2, "imported_metric": True},
-    "surfaces": {"backend": "tsdf", "bbox": None, "n_points": 100_000},
-    "rowfit": {"seed": 0, "scale": None, "preset": {}},
+    "poses": {
+        "matcher": "auto",
+        "seed": 0,
+        "num_threads": 2,
+        "imported_metric": True,
+        # SfM (and non-metric imported) poses are levelled: z up, plot-centred, ~metres
+        "camera_height": None,  # measured median camera height (m): exact scale
+        "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
+    },
+    # bbox "auto": the crop's scene box around the levelled frame's origin
+    "surfaces": {"backend": "tsdf", "bbox": "auto", "n_points": 100_000},
+    # the paper's row-fit scene box is in nerfstudio's normalised frame; ours is the surfaces'
+    "rowfit": {"seed": 0, "scale": None, "preset": {"box_center": None, "box_size": None}},
     "observe": {"image_scale": 1.0, "preset": {}},
     "fit": {
         "method": "bo",
@@ -115,8 +125,15 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     except ImportError:
         pass
     else:
+        from cropcraft_core.surfaces import resolve_bbox
+
         s = {k: v for k, v in cfg["surfaces"].items() if k not in ("bbox", "n_points")}
         SurfacesConfig.from_dict(s)
+        resolve_bbox(cfg["surfaces"]["bbox"], crop)
+    for key in ("camera_height", "prior_camera_height"):
+        v = cfg["poses"][key]
+        if v is not None and (not isinstance(v, int | float) or isinstance(v, bool) or v <= 0):
+            raise ConfigError(f"poses.{key} must be a positive number of metres or null, got {v!r}")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
     return cfg

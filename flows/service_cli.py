@@ -47,6 +47,21 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             "VALUE is JSON, else a string)",
         )
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument(
+            "--camera-height",
+            type=float,
+            metavar="M",
+            help="median height of the cameras above the ground (m): sets the metric scale of "
+            "SfM poses (else it is measured from the row spacing); = --set poses.camera_height=M",
+        )
+
+
+def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
+    """The config overrides of a ``run``/``season`` command line (``--set`` and the shortcuts)."""
+    out = parse_sets(args.set)
+    if getattr(args, "camera_height", None) is not None:
+        out["poses.camera_height"] = float(args.camera_height)
+    return out
 
 
 def parse_sets(items: list[str]) -> dict[str, Any]:
@@ -123,7 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from flows.scene import cached_result, prepare, run_scene
 
     scene = _parse_scene(args.scene)
-    overrides = parse_sets(args.set)
+    overrides = overrides_of(args)
     req = prepare(
         scene.site, scene.crop, scene.date, args.images, args.poses, overrides, args.store
     )
@@ -159,7 +174,7 @@ def cmd_season(args: argparse.Namespace) -> int:
     site, _, crop = args.site_crop.partition("/")
     _quiet_prefect()
     with progress_bar(not args.no_progress):
-        out = run_season(site, crop, args.store, parse_sets(args.set), runner=args.runner)
+        out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
         print(f"{date}  {state}")
     print(f"summary  {out.get('csv')}")
@@ -286,7 +301,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     site, crop, date = DEMO_SCENE
     store = SceneStore.connect(args.store)
-    overrides = {**DEMO_OVERRIDES, **parse_sets(args.set)}
+    overrides = {**DEMO_OVERRIDES, **overrides_of(args)}
     ensure_demo_inputs(store)
     req = prepare(site, crop, date, None, None, overrides, args.store)
     out = cached_result(req)

@@ -60,13 +60,36 @@ def poses(
     sparse points as ``points.npz``).
 
     With ``poses_uri``: :func:`~cropcraft_core.sfm.import_transforms_json` (a ``.json`` file) or
-    :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``metric`` in the summary says
-    whether the frame is metric and gravity-aligned (``config["imported_metric"]``). Without:
+    :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``config["imported_metric"]``
+    says they are metric and gravity-aligned (kept as they are). Without:
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``).
+    SfM and non-metric imported poses are then levelled by
+    :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred, metres from
+    ``config["camera_height"]`` if given, else provisional from ``prior_camera_height`` or the
+    crop's typical capture height); the summary's ``frame`` records how, and ``metric`` is true
+    when the scale is known (metric poses or a camera-height hint).
     """
-    import_colmap, import_transforms_json, run_sfm = core(
-        "poses", "cropcraft_core.sfm", "import_colmap", "import_transforms_json", "run_sfm"
+    import_colmap, import_transforms_json, run_sfm, level_poses = core(
+        "poses",
+        "cropcraft_core.sfm",
+        "import_colmap",
+        "import_transforms_json",
+        "run_sfm",
+        "level_poses",
     )
+    from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+
+    crop = scene.split("/")[1]
+    prior = config.get("prior_camera_height") or PRIOR_CAMERA_HEIGHT_M.get(crop, 1.4)
+    hint = config.get("camera_height")
+
+    def level(found, points):
+        out_poses, out_points, frame = level_poses(
+            found, points, camera_height_m=hint, prior_camera_height_m=float(prior)
+        )
+        info = {k: v for k, v in frame.to_dict().items() if k != "world_from_input"}
+        return out_poses, out_points, info
+
     store = open_store(store_root)
     ing = upstream["ingest"]
     manifest = store.get_json(key_of(ing, "manifest"))
@@ -81,12 +104,17 @@ def poses(
             else:
                 found = import_transforms_json(local)
             result = _rename_to_ingested(found, manifest)
+            metric = bool(config.get("imported_metric", True))
             summary = {
                 "source": "imported",
-                "metric": bool(config.get("imported_metric", True)),
+                "metric": metric,
                 "n_registered": len(result),
                 "n_images": len(manifest["images"]),
             }
+            if not metric:
+                result, _, frame = level(result, None)
+                summary["frame"] = frame
+                summary["metric"] = frame["scale_source"] == "camera_height"
         else:
             with store.open_local(key_of(ing, "images")) as image_dir:
                 sfm = run_sfm(
@@ -96,11 +124,12 @@ def poses(
                     num_threads=int(config.get("num_threads", 2)),
                     seed=int(config.get("seed", 0)),
                 )
-            result = sfm.poses
+            result, points, frame = level(sfm.poses, sfm.points)
             key = artefact(scene, "poses", "points.npz")
-            hashes[key] = store.put_npz(key, {"points": sfm.points, "colors": sfm.colors})
+            hashes[key] = store.put_npz(key, {"points": points, "colors": sfm.colors})
             arts["points"] = key
-            summary = {"source": "sfm", "metric": False, **sfm.summary()}
+            summary = {"source": "sfm", **sfm.summary(), "frame": frame}
+            summary["metric"] = frame["scale_source"] == "camera_height"
             summary.pop("model_dir", None)
         key = artefact(scene, "poses", "poses.json")
         hashes[key] = store.put_json(key, result.to_dict())

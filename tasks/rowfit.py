@@ -17,7 +17,8 @@ def rowfit(
 
     config: ``preset`` (RowFitPreset overrides), ``seed``, ``scale`` (metres per scene unit),
     ``layout`` (planting; its row spacing is the known one). The scale source is
-    ``metric_poses`` when the poses stage imported metric poses, ``user_hint`` when ``scale``
+    ``metric_poses`` when the poses stage imported metric poses, ``camera_height`` when it
+    levelled SfM poses with the user's camera height, ``user_hint`` when ``scale``
     is given, else ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
     ``assumed_metric`` when it cannot be measured). The known row spacing also snaps the best
     row onto the periodic row pattern (``RowFitPreset.row_spacing``).
@@ -30,7 +31,13 @@ def rowfit(
     crop = scene.split("/")[1]
     with Timer() as t:
         cloud = store.get_npz(key_of(upstream["surfaces"], "points"))
-        metric = bool(upstream["poses"].get("summary", {}).get("metric"))
+        poses_summary = upstream["poses"].get("summary", {})
+        metric = bool(poses_summary.get("metric"))
+        metric_source = (
+            "camera_height"
+            if poses_summary.get("frame", {}).get("scale_source") == "camera_height"
+            else "metric_poses"
+        )
         scale = config.get("scale")
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
@@ -41,6 +48,7 @@ def rowfit(
             rowfit_preset(crop, **overrides),
             rng=int(config.get("seed", 0)),
             metric_scale=1.0 if metric and not scale else None,
+            metric_source=metric_source,
             scale_hint=float(scale) if scale else None,
             known_row_spacing=spacing,
         )

@@ -30,15 +30,18 @@ def surfaces(
     ``{scene}/surfaces/points.npz``.
 
     config: ``SurfacesConfig`` fields, plus ``bbox`` ([[xmin, ymin, zmin], [xmax, ymax, zmax]]
-    in the poses' frame, or None) and ``n_points`` (point-cloud size).
+    in the poses' frame, ``"auto"`` for the crop's scene box in the levelled frame, or None)
+    and ``n_points`` (point-cloud size).
     """
     from PIL import Image
 
     Poses = core("surfaces", "cropcraft_core.sfm", "Poses")
     SurfacesConfig, make_backend = _surfaces_api()
+    from cropcraft_core.surfaces import resolve_bbox
+
     store = open_store(store_root)
     cfg = dict(config)
-    bbox = cfg.pop("bbox", None)
+    bbox = resolve_bbox(cfg.pop("bbox", None), scene.split("/")[1])
     n_points = int(cfg.pop("n_points", 100_000))
     poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
     hashes: dict[str, str] = {}
@@ -49,7 +52,7 @@ def surfaces(
                 with Image.open(image_dir / name) as im:
                     images.append(np.asarray(im.convert("RGB")))
         backend = make_backend(SurfacesConfig.from_dict(cfg))
-        backend.fit(images, poses.cameras, None if bbox is None else np.asarray(bbox, float))
+        backend.fit(images, poses.cameras, bbox)
         points, colors = backend.point_cloud(n_points)
         backend.save(tmp / "model")
         hashes.update(store.put_tree(tmp / "model", artefact(scene, "surfaces", "model")))

@@ -1,8 +1,6 @@
 """Row fitting on point clouds sampled from real procedural canopies (area-weighted on the faces,
 green) plus noisy brown soil on z = 0, moved into a random similarity frame like an SfM scene."""
 
-import math
-
 import cv2
 import numpy as np
 import pytest
@@ -19,6 +17,7 @@ from cropcraft_core.rowfit import (
     preset,
     srgb_to_lab,
 )
+from cropcraft_core.rowfit.truth import row_fit_errors
 
 GREEN = np.array([0.20, 0.42, 0.12])  # L* 41, a* -30: leaf
 BROWN = np.array([0.45, 0.34, 0.24])  # L* 39, a* +6, b* +16: soil
@@ -71,22 +70,12 @@ def to_scene(pts, seed, scale=0.37):
 def errors(fit, scene_from_true, lay):
     """Row direction error (deg), lateral offset of the camera from the nearest true row (m),
     relative camera-height error and ground-normal error (deg), all in the true metric frame."""
-    t_inv = np.linalg.inv(fit.world_from_scene @ scene_from_true)  # world → true
-    r = t_inv[:3, :3] / np.cbrt(np.linalg.det(t_inv[:3, :3]))
-    a = math.radians(lay.row_azimuth_deg)
-    d = r @ np.array([*fit.best_row.direction, 0.0])
-    dir_err = math.degrees(math.acos(min(1.0, abs(d @ [math.cos(a), math.sin(a), 0.0]))))
-    c = t_inv[:3, :3] @ fit.camera.center + t_inv[:3, 3]
-    y = -c[0] * math.sin(a) + c[1] * math.cos(a)
-    lateral = abs(y - round(y / lay.row_spacing) * lay.row_spacing)
-    height = abs(c[2] - fit.render_height) / fit.render_height
-    n = r @ np.array([0.0, 0.0, 1.0])
-    normal_err = math.degrees(math.acos(min(1.0, n[2])))
     # the camera's image x axis lies along the fitted row, looking straight down
     cam = fit.camera.cam_to_world
     assert np.allclose(cam[:3, 0], [*fit.best_row.direction, 0.0])
     assert np.allclose(cam[:3, 2], [0, 0, -1])
-    return dir_err, lateral, height, normal_err
+    e = row_fit_errors(fit, scene_from_true, lay)
+    return e.direction_deg, e.lateral_m, e.height_rel, e.ground_normal_deg
 
 
 # --------------------------------------------------------------------------- LAB

@@ -18,6 +18,7 @@ from cropcraft_core.sfm import (
     import_colmap,
     import_transforms_json,
     ingest_images,
+    level_poses,
     run_sfm,
     umeyama,
 )
@@ -354,6 +355,15 @@ def test_sfm_small_scene(tmp_path):
     _check_sfm(res, truth, 8)
     assert res.camera_params[0] == pytest.approx(truth.cameras[0].fx, rel=0.05)
     assert (tmp_path / "work" / "model" / "images.txt").is_file()
+    # levelled by the real sparse points (a 20° arc: the cameras alone would tilt it): z up,
+    # metres from the camera-height hint
+    true_h = float(np.median([c.center[2] for c in truth.cameras]))
+    levelled, _, frame = level_poses(res.poses, res.points, camera_height_m=true_h)
+    assert frame.up_source == "sparse_points"
+    names = levelled.names
+    s, r, _ = umeyama(levelled.centers(), np.array([truth.camera(n).center for n in names]))
+    assert math.degrees(math.acos(min(1.0, r[2, 2]))) < 3.0
+    assert s == pytest.approx(1.0, abs=0.1)
 
 
 @pytest.mark.slow

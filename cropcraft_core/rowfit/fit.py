@@ -25,7 +25,8 @@ ground, ``p_world = world_from_scene @ [p_scene, 1]`` where ``world_from_scene =
 [0, 1]]`` with R a rotation and s = ``scale`` (metres per scene unit).
 
 Metric scale (the chosen source is recorded in ``RowFit.scale_source``):
-``"metric_poses"`` (poses imported in metres), ``"user_hint"`` (a scale given by the user),
+``"metric_poses"`` (poses imported in metres), ``"camera_height"`` (SfM poses scaled by the
+user's camera height), ``"user_hint"`` (a scale given by the user),
 ``"row_spacing"`` (fitted row spacing against the known planting row spacing, see
 :func:`estimate_scale_from_rows` and :func:`fit_rows_with_scale`), or ``"assumed_metric"``
 (nothing known; the scene is taken to be in metres).
@@ -34,6 +35,7 @@ Metric scale (the chosen source is recorded in ``RowFit.scale_source``):
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -44,7 +46,7 @@ from cropcraft_core.rowfit.lab import srgb_to_lab
 from cropcraft_core.rowfit.presets import RowFitPreset
 from cropcraft_core.rowfit.presets import preset as make_preset
 
-SCALE_SOURCES = ("metric_poses", "user_hint", "row_spacing", "assumed_metric")
+SCALE_SOURCES = ("metric_poses", "camera_height", "user_hint", "row_spacing", "assumed_metric")
 
 
 class RowFitError(CropCraftError, ValueError):
@@ -241,11 +243,14 @@ def ransac_plane(
     iterations: int,
     rng: np.random.Generator,
     score_points: int = 20_000,
+    admissible: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """RANSAC plane through (n, 3) points, then one least-squares refit on the inliers.
 
     Returns (normal (3,) unit, offset, inliers (n,) bool) with ``normal · p + offset = 0``.
-    Hypotheses are scored on a random subset of at most ``score_points`` points.
+    Hypotheses are scored on a random subset of at most ``score_points`` points;
+    ``admissible(normals (k, 3)) -> (k,) bool`` rules hypotheses out (e.g. planes the cameras
+    could not be looking down on).
     """
     n = len(points)
     if n < 3:
@@ -259,9 +264,13 @@ def ransac_plane(
     valid = length > 1e-12
     nrm = nrm / np.where(valid, length, 1.0)[:, None]
     off = -np.einsum("ij,ij->i", nrm, a)
+    if admissible is not None:
+        valid &= np.asarray(admissible(nrm), bool)
     best = _best_hypothesis(score, nrm, off, valid, threshold, chunk=64)
     if best is None:
-        raise RowFitError("all ground-plane hypotheses were degenerate (collinear points)")
+        raise RowFitError(
+            "all plane hypotheses were degenerate (collinear points) or not admissible"
+        )
     normal, offset = nrm[best], float(off[best])
     inliers = np.abs(points @ normal + offset) < threshold
     if inliers.sum() >= 3:  # least-squares refit: the plane through the inliers' centroid
@@ -731,13 +740,15 @@ def fit_rows_with_scale(
     metric_scale: float | None = None,
     scale_hint: float | None = None,
     known_row_spacing: float | None = None,
+    metric_source: str = "metric_poses",
     max_passes: int = 3,
     tolerance: float = 0.01,
 ) -> RowFit:
     """:func:`fit_ground_and_rows` with the metric scale chosen by priority:
 
     1. ``metric_scale`` (metres per scene unit from metric imported poses, usually 1) →
-       ``"metric_poses"``;
+       ``metric_source`` (``"metric_poses"``, or ``"camera_height"`` for SfM poses scaled by
+       the user's camera height in :func:`cropcraft_core.sfm.level_poses`);
     2. ``scale_hint`` (a user-given metres per scene unit) → ``"user_hint"``;
     3. ``known_row_spacing`` (metres): fit at scale 1, measure the row spacing, rescale and refit
        until the correction is within ``tolerance`` (at most ``max_passes`` fits) →
@@ -750,7 +761,7 @@ def fit_rows_with_scale(
     """
     if metric_scale is not None:
         return fit_ground_and_rows(
-            points, colors, crop, preset, rng, scale=metric_scale, scale_source="metric_poses"
+            points, colors, crop, preset, rng, scale=metric_scale, scale_source=metric_source
         )
     if scale_hint is not None:
         return fit_ground_and_rows(

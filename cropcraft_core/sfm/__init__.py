@@ -1,5 +1,6 @@
 """Photos to poses: image ingest (``ingest_images``) and structure from motion / pose import."""
 
+from cropcraft_core.sfm.frame import GravityFrame, level_poses
 from cropcraft_core.sfm.ingest import IngestedImage, IngestManifest, ingest_images
 from cropcraft_core.sfm.poses import (
     Poses,
@@ -14,6 +15,7 @@ from cropcraft_core.sfm.poses import (
 )
 
 __all__ = [
+    "GravityFrame",
     "IngestManifest",
     "IngestedImage",
     "Poses",
@@ -24,6 +26,7 @@ __all__ = [
     "import_colmap",
     "import_transforms_json",
     "ingest_images",
+    "level_poses",
     "run_sfm",
     "umeyama",
 ]

@@ -12,6 +12,7 @@ from cropcraft_core.surfaces.base import (
     SurfacesError,
     load_surfaces,
     make_backend,
+    resolve_bbox,
 )
 
 __all__ = [
@@ -21,4 +22,5 @@ __all__ = [
     "SurfacesError",
     "load_surfaces",
     "make_backend",
+    "resolve_bbox",
 ]

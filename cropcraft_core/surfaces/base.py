@@ -40,6 +40,33 @@ from cropcraft_core.geometry.camera import PinholeCamera
 #: Backend names ``make_backend`` knows.
 BACKENDS = ("tsdf", "nerfacto", "truth")
 
+#: The scene box per crop in the levelled frame of :func:`cropcraft_core.sfm.level_poses` (z up,
+#: ground z = 0 at the plot centre, metres; m): the plot with a margin for a provisional scale
+#: off by up to ~30 % and for the tallest plants (soybean ~1 m; maize ~3 m).
+SCENE_BOX = {
+    "soybean": ((-1.3, -1.3, -0.15), (1.3, 1.3, 1.2)),
+    "maize": ((-3.0, -3.0, -0.3), (3.0, 3.0, 3.5)),
+}
+
+
+def resolve_bbox(bbox: Any, crop: str) -> np.ndarray | None:
+    """``"auto"`` → the crop's :data:`SCENE_BOX`; None → None; else a checked (2, 3) box."""
+    if bbox is None:
+        return None
+    if isinstance(bbox, str):
+        if bbox != "auto":
+            raise ConfigError(
+                f"surfaces bbox must be 'auto', null or [[x,y,z],[x,y,z]], got {bbox!r}"
+            )
+        if crop not in SCENE_BOX:
+            raise ConfigError(f"no scene box for crop {crop!r}: one of {', '.join(SCENE_BOX)}")
+        return np.array(SCENE_BOX[crop], dtype=np.float64)
+    box = np.asarray(bbox, dtype=np.float64)
+    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+        raise ConfigError(f"surfaces bbox must be [min corner, max corner], got {bbox!r}")
+    return box
+
+
 #: File every saved surface folder holds: backend name, config, cameras, backend metadata.
 META_FILE = "surfaces.json"
 

@@ -1,0 +1,218 @@
+"""Gravity and provisional metric frame of structure-from-motion poses.
+
+SfM returns poses in an arbitrary similarity frame: any rotation, origin and scale. The visible-
+surfaces stage needs a frame where the plot is roughly centred, z points up and lengths are
+roughly metres (its scene box, voxel size and horizontal plane sweep are set in that frame), and
+row fitting then measures the exact ground plane and the metric scale. :func:`level_poses` makes
+that frame (nerfstudio's data parsers do the same with their ``orientation_method`` and
+``center_method``; here the up direction comes from the scene itself where it can):
+
+* **up**: the normal of the sparse points' dominant plane (RANSAC, inliers within
+  ``plane_threshold`` × the median camera-to-point distance, after trimming outliers; the soil
+  between rows, or a canopy top — horizontal either way), signed so the cameras are above it;
+  only planes that at least 90 % of the cameras look down on by ``min_look_down_deg`` or more
+  compete (walk-around and drone captures do; a wall does not); with too few points, or no
+  such plane, minus the cameras' mean optical axis;
+* **origin**: on the ground (the sparse points' low-percentile height) below the point closest
+  to all optical axes (walk-around captures look at the plot), or below the points' median when
+  the axes do not converge (drone lawnmower); without points, at that point itself, or below
+  the cameras' centroid;
+* **scale**: 1 for metric poses; from a user's camera height above the ground
+  (``camera_height_m``, a precise hint: ``scale_source="camera_height"``); else provisional from
+  a typical capture height for the crop (``prior_camera_height_m``, ``"camera_height_prior"``),
+  which row fitting replaces by the scale measured from the row spacing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cropcraft_core.errors import InputError
+from cropcraft_core.rowfit.fit import RowFitError, ransac_plane
+from cropcraft_core.sfm.poses import Poses
+
+#: Typical height of the cameras above the ground per crop when nothing better is known (m):
+#: a phone held over a soybean plot; a drone over maize (the issue's captures).
+PRIOR_CAMERA_HEIGHT_M = {"soybean": 1.4, "maize": 13.0}
+
+FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_height_prior")
+
+
+@dataclass(frozen=True)
+class GravityFrame:
+    """How :func:`level_poses` moved the poses: ``world = scale · R · input + t``."""
+
+    world_from_input: np.ndarray
+    """(4, 4) similarity input frame → levelled frame (z up, ground z ≈ 0, ~metres)."""
+    scale: float
+    """Metres per input unit (exact for metric poses or a camera-height hint, else provisional)."""
+    scale_source: str
+    """One of ``FRAME_SCALE_SOURCES``."""
+    up_source: str
+    """'sparse_points' or 'cameras'."""
+    up_disagreement_deg: float
+    """Angle between the points' up and the cameras' mean up (NaN without points)."""
+    camera_height_m: float
+    """Median camera height above the estimated ground in the levelled frame."""
+
+    def to_dict(self) -> dict:
+        return {
+            "world_from_input": self.world_from_input.tolist(),
+            "scale": self.scale,
+            "scale_source": self.scale_source,
+            "up_source": self.up_source,
+            "up_disagreement_deg": self.up_disagreement_deg,
+            "camera_height_m": self.camera_height_m,
+        }
+
+
+def _rotation_to_z(up: np.ndarray) -> np.ndarray:
+    """Proper rotation taking unit ``up`` to +z (the shortest one)."""
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(up, z)
+    c = float(up @ z)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))
+
+
+def cameras_up(poses: Poses) -> np.ndarray:
+    """Unit up direction from the cameras: minus their mean optical axis (captures look down on
+    average), or the mean of their image-up axes when the optical axes cancel out."""
+    axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
+    m = axes.mean(axis=0)
+    if np.linalg.norm(m) > 0.3:
+        return -m / np.linalg.norm(m)
+    ups = -np.array([c.cam_to_world[:3, 1] for _, c in poses]).mean(axis=0)
+    n = np.linalg.norm(ups)
+    if n < 1e-6:
+        raise InputError("the cameras give no up direction (they look in all directions)")
+    return ups / n
+
+
+def _trimmed(points: np.ndarray, keep: float = 0.9) -> np.ndarray:
+    med = np.median(points, axis=0)
+    d = np.linalg.norm(points - med, axis=1)
+    return points[d <= np.quantile(d, keep)]
+
+
+def _axes_focus(poses: Poses) -> np.ndarray | None:
+    """The point closest (least squares) to every optical axis, or None if ill-conditioned."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for _, c in poses:
+        d = c.cam_to_world[:3, 2]
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c.center
+    w = np.linalg.eigvalsh(a)
+    if w[0] < 0.05 * len(poses):
+        return None
+    return np.linalg.solve(a, b)
+
+
+def level_poses(
+    poses: Poses,
+    points: np.ndarray | None = None,
+    *,
+    metric: bool = False,
+    camera_height_m: float | None = None,
+    prior_camera_height_m: float = 1.4,
+    min_look_down_deg: float = 10.0,
+    plane_threshold: float = 0.01,
+    ransac_iterations: int = 1000,
+    seed: int = 0,
+    min_points: int = 50,
+    ground_percentile: float = 5.0,
+) -> tuple[Poses, np.ndarray | None, GravityFrame]:
+    """Move ``poses`` (and the sparse ``points`` (n, 3) of the same frame) into a levelled,
+    centred, roughly metric frame; return (poses, points or None, :class:`GravityFrame`).
+
+    metric: the input is already in metres (only rotate and move). camera_height_m: the user's
+    measured median camera height above the ground (sets the scale exactly). prior_camera_height_m:
+    the assumed one otherwise (``PRIOR_CAMERA_HEIGHT_M``). Raises ``InputError`` for fewer than 3
+    cameras, a non-positive height, or a camera-height hint without a ground estimate.
+    """
+    if len(poses) < 3:
+        raise InputError(f"levelling needs at least 3 posed cameras, got {len(poses)}")
+    for name, v in (("camera_height_m", camera_height_m), ("prior", prior_camera_height_m)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} must be a positive number of metres, got {v!r}")
+    centres = poses.centers()
+    up_cam = cameras_up(poses)
+    pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
+    usable = pts is not None and len(pts) >= min_points
+    up, source, disagree = up_cam, "cameras", float("nan")
+    if usable:
+        core = _trimmed(pts)
+        axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
+        sin_min = math.sin(math.radians(min_look_down_deg))
+
+        def seen_from_above(normals: np.ndarray) -> np.ndarray:
+            n = normals * np.where(normals @ up_cam < 0, -1.0, 1.0)[:, None]
+            return np.mean(-(n @ axes.T) >= sin_min, axis=1) >= 0.9
+
+        some = centres[:: max(1, len(centres) // 20)]  # the scene's size: camera-point range
+        dist = float(np.median(np.linalg.norm(core[:, None, :] - some[None], axis=2)))
+        try:
+            n, _, _ = ransac_plane(
+                core,
+                plane_threshold * dist,
+                ransac_iterations,
+                np.random.default_rng(seed),
+                admissible=seen_from_above,
+            )
+        except RowFitError:
+            n = None
+        if n is not None:
+            n = n if n @ up_cam >= 0 else -n
+            disagree = math.degrees(math.acos(min(1.0, float(n @ up_cam))))
+            if seen_from_above(n[None])[0]:
+                up, source = n, "sparse_points"
+    r = _rotation_to_z(up)
+
+    ground_z: float | None
+    focus = _axes_focus(poses)
+    f = None if focus is None else r @ focus
+    if usable:
+        core_r = core @ r.T
+        ground_z = float(np.percentile(core_r[:, 2], ground_percentile))
+        centre_xy = np.median(core_r[:, :2], axis=0) if f is None else f[:2]
+    elif f is not None:
+        ground_z, centre_xy = float(f[2]), f[:2]
+    else:
+        ground_z, centre_xy = None, (centres @ r.T)[:, :2].mean(axis=0)
+    heights = (centres @ r.T)[:, 2] - (ground_z if ground_z is not None else 0.0)
+    med_h = float(np.median(heights))
+    if metric:
+        scale, scale_source = 1.0, "metric_poses"
+    elif ground_z is None or med_h <= 0:
+        if camera_height_m is not None:
+            raise InputError(
+                "a camera-height hint needs the ground under the cameras, but neither sparse "
+                "points nor converging optical axes locate it: give the scale instead"
+            )
+        scale, scale_source = 1.0, "camera_height_prior"
+    elif camera_height_m is not None:
+        scale, scale_source = camera_height_m / med_h, "camera_height"
+    else:
+        scale, scale_source = prior_camera_height_m / med_h, "camera_height_prior"
+
+    t = -scale * np.array([centre_xy[0], centre_xy[1], ground_z or 0.0])
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = scale * r, t
+    out_poses = poses.transformed(scale, r, t)
+    out_pts = None if pts is None else pts @ (scale * r).T + t
+    frame = GravityFrame(
+        world_from_input=m,
+        scale=float(scale),
+        scale_source=scale_source,
+        up_source=source,
+        up_disagreement_deg=disagree,
+        camera_height_m=float(med_h * scale),
+    )
+    return out_poses, out_pts, frame

@@ -1,0 +1,117 @@
+"""Levelling SfM poses (``cropcraft_core.sfm.level_poses``): up, origin and scale recovered from
+cameras and sparse points moved into a random similarity frame, like an SfM reconstruction."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cropcraft_core.config import default_layout
+from cropcraft_core.errors import InputError
+from cropcraft_core.sfm import Poses, level_poses
+from cropcraft_core.synth import drone_trajectory, walk_trajectory
+
+
+def _sparse_points(rng, half: float, top: float, n: int = 2000) -> np.ndarray:
+    """Soil (z ≈ 0) and a canopy slab up to ``top`` over a plot of half-side ``half``, with a
+    few SfM outliers far away."""
+    m = n // 2
+    soil = np.column_stack([rng.uniform(-half, half, (m, 2)), rng.normal(0, 0.005, m)])
+    leaves = np.column_stack([rng.uniform(-half, half, (m, 2)), rng.uniform(0.05, top, m)])
+    outliers = rng.normal(0, 20, (n // 50, 3))
+    return np.vstack([soil, leaves, outliers])
+
+
+def _scrambled(cams, pts, seed: int, scale: float):
+    """Truth cameras and points → a random similarity frame (``scale`` units per metre)."""
+    r = Rotation.random(random_state=seed).as_matrix()
+    t = np.random.default_rng(seed).normal(0, 3, 3)
+    poses = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams)))
+    return poses.transformed(scale, r, t), pts @ (scale * r).T + t
+
+
+def _truth_error(levelled: Poses, truth_cams) -> tuple[float, float, np.ndarray]:
+    """(tilt of the levelled z axis in degrees, scale factor levelled → truth, origin offset)."""
+    from cropcraft_core.sfm import umeyama
+
+    src = levelled.centers()
+    dst = np.array([c.center for c in truth_cams])
+    s, r, t = umeyama(src, dst)
+    return math.degrees(math.acos(min(1.0, r[2, 2]))), s, t
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_walk_with_points_and_camera_height_hint(seed):
+    rng = np.random.default_rng(seed)
+    lay = default_layout("soybean")
+    cams = walk_trajectory(lay, 40, rng, canopy_top=0.6)
+    pts = _sparse_points(rng, 1.0, 0.6)
+    poses, spts = _scrambled(cams, pts, seed, scale=0.37)
+    true_h = float(np.median([c.center[2] for c in cams]))
+    out, out_pts, frame = level_poses(poses, spts, camera_height_m=true_h)
+    tilt, s, t = _truth_error(out, cams)
+    assert frame.up_source == "sparse_points" and frame.scale_source == "camera_height"
+    assert tilt < 1.0
+    # the 5th-percentile ground is the soil's: exact scale; the origin lies where the cameras
+    # look (the walk aims within a few decimetres of the plot centre), on the ground
+    assert s == pytest.approx(1.0, abs=0.02)
+    assert np.abs(t[:2]).max() < 0.2 and abs(t[2]) < 0.03
+    assert frame.camera_height_m == pytest.approx(true_h, rel=1e-9)
+    # the points move with the poses
+    np.testing.assert_allclose(
+        np.median(out_pts[:-40, 2]), np.median(pts[:-40, 2]) / s, atol=0.05
+    )
+
+
+def test_provisional_scale_from_the_prior_and_metric_poses_keep_theirs():
+    rng = np.random.default_rng(5)
+    cams = walk_trajectory(default_layout("soybean"), 30, rng, canopy_top=0.6)
+    pts = _sparse_points(rng, 1.0, 0.6)
+    poses, spts = _scrambled(cams, pts, 5, scale=2.5)
+    out, _, frame = level_poses(poses, spts, prior_camera_height_m=1.4)
+    assert frame.scale_source == "camera_height_prior"
+    assert frame.camera_height_m == pytest.approx(1.4)
+    metric_in, mpts = _scrambled(cams, pts, 5, scale=1.0)
+    out, _, frame = level_poses(metric_in, mpts, metric=True)
+    tilt, s, _ = _truth_error(out, cams)
+    assert frame.scale == 1.0 and frame.scale_source == "metric_poses"
+    assert s == pytest.approx(1.0, abs=1e-9) and tilt < 1.0
+
+
+def test_cameras_only_walk_and_drone_with_points():
+    rng = np.random.default_rng(3)
+    cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)
+    poses, _ = _scrambled(cams, np.zeros((1, 3)), 3, scale=0.5)
+    out, pts, frame = level_poses(poses, None)
+    tilt, _, t = _truth_error(out, cams)
+    assert frame.up_source == "cameras" and pts is None
+    assert tilt < 3.0 and np.abs(t[:2]).max() < 0.2
+    # a drone lawnmower: parallel optical axes, the points give origin and up
+    lay = default_layout("maize")
+    drone = drone_trajectory(lay, 30, rng, canopy_top=2.0)
+    dpts = _sparse_points(rng, 2.5, 2.0)
+    poses, spts = _scrambled(drone, dpts, 4, scale=0.1)
+    out, _, frame = level_poses(poses, spts, camera_height_m=13.0)
+    tilt, s, t = _truth_error(out, drone)
+    assert frame.up_source == "sparse_points" and tilt < 1.0
+    assert s == pytest.approx(1.0, abs=0.03)
+
+
+def test_points_that_disagree_with_the_cameras_are_not_trusted():
+    rng = np.random.default_rng(7)
+    cams = walk_trajectory(default_layout("soybean"), 30, rng, canopy_top=0.6)
+    wall = np.column_stack([rng.uniform(-1, 1, 500), np.zeros(500), rng.uniform(0, 2, 500)])
+    poses, spts = _scrambled(cams, wall, 7, scale=1.0)
+    _, _, frame = level_poses(poses, spts)
+    assert frame.up_source == "cameras"  # no plane the cameras look down on
+
+
+def test_named_errors():
+    rng = np.random.default_rng(0)
+    cams = walk_trajectory(default_layout("soybean"), 4, rng, canopy_top=0.6)
+    poses = Poses(tuple((f"v{i}.png", c) for i, c in enumerate(cams)))
+    with pytest.raises(InputError, match="at least 3"):
+        level_poses(Poses(poses.views[:2]))
+    with pytest.raises(InputError, match="positive"):
+        level_poses(poses, camera_height_m=-1.0)
