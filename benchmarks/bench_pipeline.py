@@ -106,11 +106,23 @@ def run(a: argparse.Namespace) -> dict:
 
         t = time.perf_counter()
         if a.poses == "sfm":
-            sfm = run_sfm(work / "images", work / "sfm", **_kv(a.sfm))
+            sfm_dir = Path(a.sfm_dir) if a.sfm_dir else work / "sfm"
+            if (sfm_dir / "model" / "images.txt").is_file():  # an earlier run's, for iterating
+                import pycolmap
+
+                from cropcraft_core.sfm import import_colmap
+
+                found = import_colmap(sfm_dir / "model")
+                rec = pycolmap.Reconstruction(str(sfm_dir / "model"))
+                sparse = np.array([p.xyz for p in rec.points3D.values()])
+                out["sfm"] = {"reused": str(sfm_dir / "model"), "n_registered": len(found)}
+            else:
+                sfm = run_sfm(work / "images", sfm_dir, **_kv(a.sfm))
+                found, sparse = sfm.poses, sfm.points
+                out["sfm"] = {k: v for k, v in sfm.summary().items() if k != "model_dir"}
             poses, _, frame = level_poses(
-                sfm.poses, sfm.points, prior_camera_height_m=PRIOR_CAMERA_HEIGHT_M["soybean"]
+                found, sparse, prior_camera_height_m=PRIOR_CAMERA_HEIGHT_M["soybean"]
             )
-            out["sfm"] = {k: v for k, v in sfm.summary().items() if k != "model_dir"}
             out["frame"] = {k: v for k, v in frame.to_dict().items() if k != "world_from_input"}
         else:
             poses = truth_poses
@@ -144,6 +156,12 @@ def run(a: argparse.Namespace) -> dict:
             known_row_spacing=layout.row_spacing,
         )
         sec["rowfit"] = time.perf_counter() - t
+        if a.keep:
+            keep = Path(a.keep)
+            keep.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(keep / "points.npz", points=points, colors=colors)
+            (keep / "rowfit.json").write_text(json.dumps(fit.to_dict(), indent=1, default=float))
+            backend.save(keep / "surfaces")
 
         t = time.perf_counter()
         cam_world, cam_scene = fit.camera, fit.camera_in_scene()
@@ -221,7 +239,9 @@ def _print(out: dict) -> None:
     print(f"  {'stage':<24}{'seconds':>10}")
     for k, v in sec.items():
         print(f"  {k:<24}{v:>10.1f}")
-    if "sfm" in out:
+    if "sfm" in out and "reused" in out["sfm"]:
+        print(f"  SfM: reused {out['sfm']['reused']} (its time is not in the table)")
+    elif "sfm" in out:
         s = out["sfm"]
         print(
             f"  SfM: {s['n_registered']}/{s['n_images']} registered, "
@@ -253,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene-dir", default=None, help="reuse (or create) the scene here")
     ap.add_argument("--poses", choices=("sfm", "truth"), default="sfm")
     ap.add_argument("--sfm", action="append", default=[], help="run_sfm option KEY=VALUE")
+    ap.add_argument(
+        "--sfm-dir", default=None, help="keep SfM's work here; reuse its model if there (timing!)"
+    )
     ap.add_argument("--surfaces", action="append", default=[], help="SurfacesConfig KEY=VALUE")
     ap.add_argument("--image-scale", type=float, default=1.0, help="row-camera resolution")
     ap.add_argument(
@@ -263,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--keep", default=None, help="save points, row fit and surfaces here")
     a = ap.parse_args(argv)
     out = run(a)
     out.pop("_observation")
