@@ -190,7 +190,10 @@ def run(a: argparse.Namespace) -> dict:
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
     d_true, _ = truth.render(true_cam)
     d_obs = np.where(np.isfinite(depth_m), depth_m, np.inf)
-    out["hist_l1"] = float(np.abs(depth_histogram(d_obs) - depth_histogram(d_true)).sum())
+    h_obs, h_true = depth_histogram(d_obs), depth_histogram(d_true)
+    out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
+    out["hist_observation"] = h_obs.round(4).tolist()
+    out["hist_truth"] = h_true.round(4).tolist()
     out["foreground_fraction"] = {
         "observation": float(np.mean(d_obs <= FOREGROUND_MAX_DEPTH)),
         "truth": float(np.mean(d_true <= FOREGROUND_MAX_DEPTH)),

@@ -728,6 +728,9 @@ def estimate_scale_from_rows(
         h = gaussian_filter1d(h - uniform_filter1d(h, period_bins, mode="nearest"), 2.0)
         h -= h.mean()
         ac = np.correlate(h, h, "full")[len(h) - 1 :]
+        # per overlapping bin: the plain sum falls with the lag (fewer overlapping bins), which
+        # pulled peaks to shorter lags (0.7 % on an exact canopy cloud)
+        ac = ac / np.maximum(len(h) - np.arange(len(ac)), 1)
         return ac / ac[0] if ac[0] > 0 else None
 
     # plants stand on the rows, the soil shows between them: both profiles have the row period
