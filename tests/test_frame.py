@@ -59,9 +59,7 @@ def test_walk_with_points_and_camera_height_hint(seed):
     assert np.abs(t[:2]).max() < 0.2 and abs(t[2]) < 0.03
     assert frame.camera_height_m == pytest.approx(true_h, rel=1e-9)
     # the points move with the poses
-    np.testing.assert_allclose(
-        np.median(out_pts[:-40, 2]), np.median(pts[:-40, 2]) / s, atol=0.05
-    )
+    np.testing.assert_allclose(np.median(out_pts[:-40, 2]), np.median(pts[:-40, 2]) / s, atol=0.05)
 
 
 def test_provisional_scale_from_the_prior_and_metric_poses_keep_theirs():

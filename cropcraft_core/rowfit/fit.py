@@ -686,28 +686,28 @@ def estimate_scale_from_rows(
 ) -> ScaleEstimate:
     """Scale correction from the fitted rows against the known planting row spacing (metres).
 
-        Primary (``"profile_autocorrelation"``): the lateral profiles across the best row (1 cm
-        histograms of the offsets along its normal) of every plant point in the ROI and of the
-        ground plane's inliers are periodic with the row spacing (plants on the rows, soil between
-        them); each is high-passed (its moving average over one known spacing removed, then a 2-bin
-        Gaussian) and autocorrelated, and the spacing is the lag of the strongest *peak* (local
-        maximum) of their mean within ``search`` × ``known_row_spacing`` (parabolic sub-bin
-        refinement), accepted when the normalised autocorrelation there exceeds
-        ``min_correlation``. This uses every point,
-    not only the few fitted lines, and is immune to the biases of individual RANSAC bands.
+    Primary (``"profile_autocorrelation"``): the lateral profiles across the best row (1 cm
+    histograms of the offsets along its normal) of every plant point in the ROI and of the
+    ground plane's inliers are periodic with the row spacing (plants on the rows, soil between
+    them); each is high-passed (its moving average over one known spacing removed, then a 2-bin
+    Gaussian) and autocorrelated, and the spacing is the lag of the strongest *peak* (local
+    maximum) of their mean within ``search`` × ``known_row_spacing`` (parabolic sub-bin
+    refinement), accepted when the normalised autocorrelation there exceeds
+    ``min_correlation``. This uses every point, not only the few fitted lines, and is immune to
+    the biases of individual RANSAC bands.
 
-        Secondary (``"neighbour_median"``): fitted rows within ``max_angle_deg`` of the best row and
-        with at least ``min_inlier_fraction`` of its inliers are projected onto its normal; the gaps
-        between neighbours, each divided by its near-integer multiple of the median gap (rows missed
-        in between), give the spacing as their median. Always reported as ``neighbour_spacing``;
-        used only when the profile shows no period. On synthetic canopies it is the less reliable
-        of the two: band positions of neighbouring rows are biased by several cm on flat-topped
-        canopies, and leftovers between rows form spurious mid-row lines (half the spacing), which is
-        why only rows with at least half the best row's inliers count.
+    Secondary (``"neighbour_median"``): fitted rows within ``max_angle_deg`` of the best row and
+    with at least ``min_inlier_fraction`` of its inliers are projected onto its normal; the gaps
+    between neighbours, each divided by its near-integer multiple of the median gap (rows missed
+    in between), give the spacing as their median. Always reported as ``neighbour_spacing``;
+    used only when the profile shows no period. On synthetic canopies it is the less reliable
+    of the two: band positions of neighbouring rows are biased by several cm on flat-topped
+    canopies, and leftovers between rows form spurious mid-row lines (half the spacing), which
+    is why only rows with at least half the best row's inliers count.
 
-        Fallback (``"fallback_unchanged"``): when neither works -- one row only, no periodic profile --
-        the factor is 1 (scale unchanged); callers then keep their previous scale source or ask for a
-        scale hint.
+    Fallback (``"fallback_unchanged"``): when neither works -- one row only, no periodic
+    profile -- the factor is 1 (scale unchanged); callers then keep their previous scale source
+    or ask for a scale hint.
     """
     if not (math.isfinite(known_row_spacing) and known_row_spacing > 0):
         raise ConfigError(f"known row spacing must be positive, got {known_row_spacing!r}")

@@ -15,8 +15,9 @@ Conventions of the file formats handled here:
   ``fl_x, fl_y, cx, cy, w, h`` at the top level or per frame, distortion ``k1 k2 k3 k4 p1 p2``.
 
 ``run_sfm`` runs pycolmap on the CPU: SIFT features, exhaustive matching for up to
-``EXHAUSTIVE_MAX_IMAGES`` images (sequential matching with a quadratic overlap beyond), incremental
-mapping, and keeps the model with the most registered images. Poses from SfM are in SfM's own
+``EXHAUSTIVE_MAX_IMAGES`` images (beyond: sequential matching with a quadratic overlap first,
+completed by exhaustive matching when too few images register), incremental mapping, and keeps
+the model with the most registered images. Poses from SfM are in SfM's own
 arbitrary similarity frame; ``umeyama`` aligns them to a metric frame.
 """
 
@@ -38,8 +39,9 @@ from cropcraft_core.geometry.camera import PinholeCamera
 
 #: Image extensions ``run_sfm`` reads.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
-#: Up to this many images ``matcher='auto'`` matches every pair; beyond, sequential matching.
-EXHAUSTIVE_MAX_IMAGES = 60
+#: Up to this many images ``matcher='auto'`` matches every pair; beyond, sequential matching
+#: first, completed by exhaustive matching when it registers too few images.
+EXHAUSTIVE_MAX_IMAGES = 20
 #: Fewer registered images than this fraction make ``run_sfm`` fail.
 MIN_REGISTERED_FRACTION = 0.5
 
@@ -494,14 +496,14 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 
 def choose_matcher(n_images: int, matcher: str = "auto") -> str:
-    """'exhaustive' or 'sequential': ``auto`` matches every pair up to ``EXHAUSTIVE_MAX_IMAGES``
-    images (cost grows as n²), sequential (each image with its nearest neighbours in name order,
-    for ordered captures) beyond."""
+    """'exhaustive', 'sequential' or 'auto': ``auto`` matches every pair up to
+    ``EXHAUSTIVE_MAX_IMAGES`` images (cheap), beyond that each image with its neighbours in name
+    order first and every other pair only if that registers too few images (``run_sfm``)."""
     if matcher not in ("auto", "exhaustive", "sequential"):
         raise InputError(f"unknown matcher {matcher!r}: choose auto, exhaustive or sequential")
     if matcher != "auto":
         return matcher
-    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "auto"
 
 
 def run_sfm(
@@ -513,8 +515,9 @@ def run_sfm(
     camera_model: str = "SIMPLE_RADIAL",
     single_camera: bool = True,
     max_num_features: int = 8192,
-    sequential_overlap: int = 12,
+    sequential_overlap: int = 10,
     guided_matching: bool = True,
+    complete_below: float = 0.95,
     focal_length_px: float | None = None,
     min_images: int = 3,
     min_registered_fraction: float = MIN_REGISTERED_FRACTION,
@@ -523,16 +526,19 @@ def run_sfm(
     """Structure from motion on the JPEG/PNG images in ``image_dir`` with pycolmap on the CPU.
 
     SIFT features (``max_num_features`` per image), matching by ``choose_matcher`` (sequential:
-    ``sequential_overlap`` neighbours, quadratic overlap, no loop detection), incremental mapping;
+    ``sequential_overlap`` neighbours, quadratic overlap, no loop detection; auto: sequential,
+    then the remaining pairs exhaustively when fewer than ``complete_below`` of the images
+    registered — on the 50-view synthetic walk the verified pairs are 94 % within three
+    neighbours), incremental mapping;
     the model with the most registered images is kept and written as a text model to
     ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
     longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images.
     ``focal_length_px``: prior focal length (e.g. from a calibration or EXIF), still refined by
     bundle adjustment; without it COLMAP starts at 1.2 × the longer side, which a short capture
     may not recover from. ``guided_matching``: re-match each verified pair under its epipolar
-    geometry (more matches on
-    hard canopy views; roughly doubles matching time). The mapper accepts weaker evidence than
-    COLMAP's defaults (initial pair ≥ 50 inliers, new image ≥ 15 inliers at ratio ≥ 0.15).
+    geometry (more matches on hard canopy views; roughly doubles matching time). The mapper
+    accepts weaker evidence than COLMAP's defaults (initial pair ≥ 50 inliers, new image ≥ 15
+    inliers at ratio ≥ 0.15).
 
     Raises ``InputError`` for fewer than ``min_images`` images, ``SfmError`` when no model is
     built or fewer than ``min_registered_fraction`` of the images are registered.
@@ -589,24 +595,10 @@ def run_sfm(
         )
         seconds["features"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
         mopt = pycolmap.FeatureMatchingOptions()
         mopt.num_threads = int(num_threads)
         mopt.use_gpu = False
         mopt.guided_matching = bool(guided_matching)
-        if mode == "exhaustive":
-            pycolmap.match_exhaustive(str(db), matching_options=mopt, device=pycolmap.Device.cpu)
-        else:
-            pair = pycolmap.SequentialPairingOptions()
-            pair.overlap = int(sequential_overlap)
-            pair.quadratic_overlap = True
-            pair.loop_detection = False
-            pycolmap.match_sequential(
-                str(db), matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu
-            )
-        seconds["matching"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
         popt = pycolmap.IncrementalPipelineOptions()
         popt.num_threads = int(num_threads)
         popt.random_seed = int(seed)
@@ -616,8 +608,50 @@ def run_sfm(
         popt.mapper.init_min_num_inliers = 50
         popt.mapper.abs_pose_min_num_inliers = 15
         popt.mapper.abs_pose_min_inlier_ratio = 0.15
-        models = pycolmap.incremental_mapping(str(db), str(image_dir), str(sparse), popt)
-        seconds["mapping"] = time.perf_counter() - t0
+
+        def match(kind: str) -> None:
+            t0 = time.perf_counter()
+            if kind == "exhaustive":
+                # pairs already in the database (from a sequential pass) are not matched again
+                pycolmap.match_exhaustive(
+                    str(db), matching_options=mopt, device=pycolmap.Device.cpu
+                )
+            else:
+                pair = pycolmap.SequentialPairingOptions()
+                pair.overlap = int(sequential_overlap)
+                pair.quadratic_overlap = True
+                pair.loop_detection = False
+                pycolmap.match_sequential(
+                    str(db), matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu
+                )
+            seconds[f"matching_{kind}"] = time.perf_counter() - t0
+
+        def mapping() -> dict:
+            t0 = time.perf_counter()
+            shutil.rmtree(sparse, ignore_errors=True)
+            sparse.mkdir()
+            out = pycolmap.incremental_mapping(str(db), str(image_dir), str(sparse), popt)
+            seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t0
+            return out
+
+        def registered(found: dict) -> int:
+            return max((r.num_reg_images() for r in found.values()), default=0)
+
+        if mode == "auto":
+            # ordered captures (a walk, a drone line) share features with their neighbours in
+            # name order: match those first; complete every other pair only if that registers
+            # too few images
+            match("sequential")
+            models = mapping()
+            mode = "sequential"
+            if registered(models) < complete_below * len(names):
+                match("exhaustive")
+                models = mapping()
+                mode = "sequential+exhaustive"
+        else:
+            match(mode)
+            models = mapping()
+        seconds["matching"] = sum(v for k, v in seconds.items() if k.startswith("matching_"))
     except Exception as e:  # pycolmap raises RuntimeError/ValueError with COLMAP's text
         raise SfmError(f"pycolmap structure from motion on {image_dir} failed: {e}") from e
 
