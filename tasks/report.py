@@ -65,15 +65,28 @@ def report(
         fwd = ForwardModel(obs, layout_of(crop, {"layout": config.get("layout")}))
         predicted = fwd.depth(fit["params"], int(recipe["seed"]))
         preview = store.get_bytes(key_of(upstream["export"], "preview.png"))
+        ps = upstream["poses"]["summary"]
+        frame = ps.get("frame") or {}
+        rf = upstream["rowfit"]["summary"]
         info = {
             "crop": crop,
             "photos ingested": upstream["ingest"]["summary"].get("n_images"),
-            "poses": upstream["poses"]["summary"].get("source"),
+            "poses": ps.get("source"),
+            "registered": (
+                f"{ps['n_registered']} of {ps['n_images']}"
+                if ps.get("n_registered") is not None and ps.get("n_images")
+                else None
+            ),
+            "reprojection error (px)": ps.get("mean_reprojection_error_px"),
+            "matching": ps.get("matcher"),
+            "up direction from": frame.get("up_source"),
             "surfaces backend": upstream["surfaces"]["summary"].get("backend"),
-            "rows found": upstream["rowfit"]["summary"].get("n_rows"),
-            "row camera height (m)": upstream["rowfit"]["summary"].get("render_height_m"),
-            "scale source": upstream["rowfit"]["summary"].get("scale_source"),
+            "rows found": rf.get("n_rows"),
+            "row camera height (m)": rf.get("render_height_m"),
+            "scale (m per unit)": rf.get("scale"),
+            "scale source": rf.get("scale_source"),
         }
+        info = {k: v for k, v in info.items() if v is not None}
         page = scene_report_html(
             scene,
             thumbnails=thumbs,
