@@ -327,3 +327,26 @@ def test_report_builder_is_self_contained():
     assert "src='http" not in page
     csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
     assert csv.splitlines()[1].startswith("2024-06-01,1")
+
+
+@pytest.mark.slow
+def test_scene_flow_from_photos_alone(prefect_harness, tmp_path_factory):
+    """The user path without poses: real pycolmap SfM on 30 walk-around photos, levelled poses,
+    the crop's scene box, the metric scale measured from the rows (~6 min on 2 cores)."""
+    from cropcraft_core.synth import make_scene
+    from flows.scene import run_scene
+
+    scene_dir = tmp_path_factory.mktemp("sfm-scene")
+    make_scene(CROP, scene_dir, seed=1, views=30, resolution=(640, 480), metrics=False)
+    store = tmp_path_factory.mktemp("store-sfm")
+    overrides = {k: v for k, v in OVERRIDES.items() if not k.startswith(("surfaces", "rowfit"))}
+    out = run_scene("plotS", CROP, DATE, images=str(scene_dir / "images"), overrides=overrides,
+                    store=str(store))  # fmt: skip
+    assert set(out["states"].values()) == {"Completed"}
+    s = SceneStore(str(store))
+    rowfit = s.get_json(f"plotS/{CROP}/{DATE}/rowfit/rowfit.json")
+    assert rowfit["scale_source"] == "row_spacing"
+    # the levelled frame is metric within a few per cent already; the rows refine it
+    assert abs(rowfit["scale"] - 1) < 0.1
+    assert abs(rowfit["ground_normal"][2]) > math.cos(math.radians(3))
+    assert 0 < out["metrics"]["lai"] < 5

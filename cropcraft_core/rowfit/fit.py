@@ -686,15 +686,14 @@ def estimate_scale_from_rows(
 ) -> ScaleEstimate:
     """Scale correction from the fitted rows against the known planting row spacing (metres).
 
-    Primary (``"profile_autocorrelation"``): the lateral profiles across the best row (1 cm
-    histograms of the offsets along its normal) of every plant point in the ROI and of the
-    ground plane's inliers are periodic with the row spacing (plants on the rows, soil between
-    them); each is high-passed (its moving average over one known spacing removed, then a 2-bin
-    Gaussian) and autocorrelated, and the spacing is the lag of the strongest *peak* (local
-    maximum) of their mean within ``search`` × ``known_row_spacing`` (parabolic sub-bin
-    refinement), accepted when the normalised autocorrelation there exceeds
-    ``min_correlation``. This uses every point, not only the few fitted lines, and is immune to
-    the biases of individual RANSAC bands.
+    Primary (``"profile_autocorrelation"``): the lateral profile across the best row (1 cm
+    histogram of the offsets along its normal) of every plant point in the ROI (of the ground
+    plane's inliers when there are none) is periodic with the row spacing; it is high-passed (its
+    moving average over one known spacing removed, then a 2-bin Gaussian) and autocorrelated
+    (per overlapping bin), and the spacing is the lag of the strongest *peak* (local maximum)
+    within ``search`` × ``known_row_spacing`` (parabolic sub-bin refinement), accepted when the
+    normalised autocorrelation there exceeds ``min_correlation``. This uses every point, not
+    only the few fitted lines, and is immune to the biases of individual RANSAC bands.
 
     Secondary (``"neighbour_median"``): fitted rows within ``max_angle_deg`` of the best row and
     with at least ``min_inlier_fraction`` of its inliers are projected onto its normal; the gaps
@@ -733,13 +732,13 @@ def estimate_scale_from_rows(
         ac = ac / np.maximum(len(h) - np.arange(len(ac)), 1)
         return ac / ac[0] if ac[0] > 0 else None
 
-    # plants stand on the rows, the soil shows between them: both profiles have the row period
-    # (the soil's most clearly on real reconstructions); their autocorrelations are averaged
-    sources = [rowfit.plant_xy if len(rowfit.plant_xy) else rowfit.row_points, rowfit.ground_xy]
-    acs = [a for a in (profile_acf(xy) for xy in sources) if a is not None]
-    if acs:
-        n_lags = min(len(a) for a in acs)
-        ac = np.mean([a[:n_lags] for a in acs], axis=0)
+    # every plant point, at any height: the row period shows even through a closed canopy's
+    # fill; the soil between rows shows it more clearly but measured 1-2 % short (oblique views
+    # see the gaps' far sides), so it is only the fallback
+    ac = profile_acf(rowfit.plant_xy if len(rowfit.plant_xy) else rowfit.row_points)
+    if ac is None:
+        ac = profile_acf(rowfit.ground_xy)
+    if ac is not None:
         lags = np.arange(len(ac)) * 0.01
         window = np.flatnonzero(
             (lags >= search[0] * known_row_spacing) & (lags <= search[1] * known_row_spacing)
