@@ -35,7 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_surfaces import FOREGROUND_MAX_DEPTH, _truth_mesh, depth_histogram
+from benchmarks.bench_surfaces import (
+    FOREGROUND_MAX_DEPTH,
+    _truth_mesh,
+    add_scene_arguments,
+    depth_histogram,
+    parse_kv,
+)
 
 TARGETS = {
     "direction_deg": 2.0,
@@ -45,17 +51,6 @@ TARGETS = {
     "images_to_observation_s": 480.0,
     "lai_rel_err": 0.15,
 }
-
-
-def _kv(items: list[str]) -> dict:
-    out = {}
-    for kv in items:
-        k, v = kv.split("=", 1)
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
 
 
 def _scene_from_true(poses, truth_poses) -> np.ndarray:
@@ -117,7 +112,7 @@ def run(a: argparse.Namespace) -> dict:
                 sparse = np.array([p.xyz for p in rec.points3D.values()])
                 out["sfm"] = {"reused": str(sfm_dir / "model"), "n_registered": len(found)}
             else:
-                sfm = run_sfm(work / "images", sfm_dir, **_kv(a.sfm))
+                sfm = run_sfm(work / "images", sfm_dir, **parse_kv(a.sfm))
                 found, sparse = sfm.poses, sfm.points
                 out["sfm"] = {k: v for k, v in sfm.summary().items() if k != "model_dir"}
             poses, _, frame = level_poses(
@@ -134,7 +129,7 @@ def run(a: argparse.Namespace) -> dict:
             np.asarray(Image.open(work / "images" / by_stem[Path(n).stem]).convert("RGB"))
             for n, _ in poses
         ]
-        backend = make_backend(SurfacesConfig(**_kv(a.surfaces)))
+        backend = make_backend(SurfacesConfig(**parse_kv(a.surfaces)))
         backend.fit(images, poses.cameras, resolve_bbox(a.bbox, "soybean"))
         points, colors = backend.point_cloud(100_000)
         sec["surfaces"] = time.perf_counter() - t
@@ -269,11 +264,10 @@ def _print(out: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--views", type=int, default=50)
-    ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--scene-dir", default=None, help="reuse (or create) the scene here")
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench pipeline", description=__doc__.splitlines()[0]
+    )
+    add_scene_arguments(ap)
     ap.add_argument("--poses", choices=("sfm", "truth"), default="sfm")
     ap.add_argument("--sfm", action="append", default=[], help="run_sfm option KEY=VALUE")
     ap.add_argument(

@@ -172,18 +172,34 @@ def run(
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_scene_arguments(ap: argparse.ArgumentParser) -> None:
+    """The synthetic scene's options, shared by the photo benchmarks."""
     ap.add_argument("--views", type=int, default=50)
     ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scene-dir", default=None, help="reuse (or create) the scene here")
+
+
+def parse_kv(items: list[str]) -> dict:
+    """``["a=1", "b=text"]`` → ``{"a": 1, "b": "text"}`` (values are JSON, else strings)."""
+    out = {}
+    for kv in items:
+        k, v = kv.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench surfaces", description=__doc__.splitlines()[0]
+    )
+    add_scene_arguments(ap)
     ap.add_argument("--set", action="append", default=[], help="SurfacesConfig field=value")
     a = ap.parse_args(argv)
-    overrides = {}
-    for kv in a.set:
-        k, v = kv.split("=", 1)
-        overrides[k] = json.loads(v)
+    overrides = parse_kv(a.set)
     w, h = (int(x) for x in a.resolution.lower().split("x"))
     res = run(a.views, (w, h), a.seed, a.scene_dir, overrides)
     print(json.dumps(res, indent=1))
