@@ -51,7 +51,6 @@ def _observation():
 
 def _one_seed(args):
     seed, n_evals, n_initial = args
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     obs = _observation()
     t = time.perf_counter()
     r = fit_seed(obs, seed, FitConfig(n_evals=n_evals, n_initial=n_initial))

@@ -118,8 +118,6 @@ class RowFit:
     """(n, 2) world xy of the plant points rows were fitted to (ROI, above the height cut)."""
     plant_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """(n, 2) world xy of every plant point in the ROI (any height)."""
-    ground_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    """(n, 2) world xy of the ground plane's inliers (soil seen between and under the rows)."""
     diagnostics: dict = field(default_factory=dict)
     """Point counts per stage and class, plant fraction, why row fitting stopped."""
 
@@ -512,7 +510,6 @@ def fit_ground_and_rows(
         dense=bool(dense),
         row_points=xy,
         plant_xy=q[:, :2],
-        ground_xy=((pts_m[ground][g_in] - origin_m) @ rot.T)[:, :2],
         diagnostics=diag,
     )
 
@@ -693,9 +690,9 @@ def estimate_scale_from_rows(
     """Scale correction from the fitted rows against the known planting row spacing (metres).
 
     Primary (``"profile_autocorrelation"``): the lateral profile across the best row (1 cm
-    histogram of the offsets along its normal) of every plant point in the ROI (of the ground
-    plane's inliers when there are none) is periodic with the row spacing; it is high-passed (its
-    moving average over one known spacing removed, then a 2-bin Gaussian) and autocorrelated
+    histogram of the offsets along its normal) of every plant point in the ROI is periodic with
+    the row spacing; it is high-passed (its moving average over one known spacing removed, then
+    a 2-bin Gaussian) and autocorrelated
     (per overlapping bin), and the spacing is the lag of the strongest *peak* (local maximum)
     within ``search`` × ``known_row_spacing`` (parabolic sub-bin refinement), accepted when the
     normalised autocorrelation there exceeds ``min_correlation``. This uses every point, not
@@ -739,11 +736,9 @@ def estimate_scale_from_rows(
         return ac / ac[0] if ac[0] > 0 else None
 
     # every plant point, at any height: the row period shows even through a closed canopy's
-    # fill; the soil between rows shows it more clearly but measured 1-2 % short (oblique views
-    # see the gaps' far sides), so it is only the fallback
+    # fill (the soil between rows shows it more clearly but measured the period 1-2 % short:
+    # oblique views see the gaps' far sides)
     ac = profile_acf(rowfit.plant_xy if len(rowfit.plant_xy) else rowfit.row_points)
-    if ac is None:
-        ac = profile_acf(rowfit.ground_xy)
     if ac is not None:
         lags = np.arange(len(ac)) * 0.01
         window = np.flatnonzero(
