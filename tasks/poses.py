@@ -83,12 +83,15 @@ def poses(
     prior = config.get("prior_camera_height") or PRIOR_CAMERA_HEIGHT_M.get(crop, 1.4)
     hint = config.get("camera_height")
 
-    def level(found, points):
+    def level(found, points, summary: dict):
+        """Level the poses; record how in ``summary`` (``frame``, and ``metric`` when the scale
+        is known rather than provisional)."""
         out_poses, out_points, frame = level_poses(
             found, points, camera_height_m=hint, prior_camera_height_m=float(prior)
         )
-        info = {k: v for k, v in frame.to_dict().items() if k != "world_from_input"}
-        return out_poses, out_points, info
+        summary["frame"] = frame.summary()
+        summary["metric"] = frame.metric
+        return out_poses, out_points
 
     store = open_store(store_root)
     ing = upstream["ingest"]
@@ -112,9 +115,7 @@ def poses(
                 "n_images": len(manifest["images"]),
             }
             if not metric:
-                result, _, frame = level(result, None)
-                summary["frame"] = frame
-                summary["metric"] = frame["scale_source"] == "camera_height"
+                result, _ = level(result, None, summary)
         else:
             with store.open_local(key_of(ing, "images")) as image_dir:
                 sfm = run_sfm(
@@ -124,13 +125,12 @@ def poses(
                     num_threads=int(config.get("num_threads", 2)),
                     seed=int(config.get("seed", 0)),
                 )
-            result, points, frame = level(sfm.poses, sfm.points)
+            summary = {"source": "sfm", **sfm.summary()}
+            summary.pop("model_dir", None)
+            result, points = level(sfm.poses, sfm.points, summary)
             key = artefact(scene, "poses", "points.npz")
             hashes[key] = store.put_npz(key, {"points": points, "colors": sfm.colors})
             arts["points"] = key
-            summary = {"source": "sfm", **sfm.summary(), "frame": frame}
-            summary["metric"] = frame["scale_source"] == "camera_height"
-            summary.pop("model_dir", None)
         key = artefact(scene, "poses", "poses.json")
         hashes[key] = store.put_json(key, result.to_dict())
         arts["poses"] = key

@@ -58,15 +58,23 @@ class GravityFrame:
     camera_height_m: float
     """Median camera height above the estimated ground in the levelled frame."""
 
-    def to_dict(self) -> dict:
+    @property
+    def metric(self) -> bool:
+        """Whether the scale is known (metric poses or a camera-height hint), not provisional."""
+        return self.scale_source != "camera_height_prior"
+
+    def summary(self) -> dict:
+        """The small, JSON-ready facts (everything but the matrix), for records and reports."""
         return {
-            "world_from_input": self.world_from_input.tolist(),
             "scale": self.scale,
             "scale_source": self.scale_source,
             "up_source": self.up_source,
             "up_disagreement_deg": self.up_disagreement_deg,
             "camera_height_m": self.camera_height_m,
         }
+
+    def to_dict(self) -> dict:
+        return {"world_from_input": self.world_from_input.tolist(), **self.summary()}
 
 
 def _rotation_to_z(up: np.ndarray) -> np.ndarray:
