@@ -72,7 +72,6 @@ def run(a: argparse.Namespace) -> dict:
 
     from cropcraft_core.config import default_layout
     from cropcraft_core.observe import Observation
-    from cropcraft_core.observe import preset as observe_preset
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
     from cropcraft_core.rowfit.truth import camera_in_truth, row_fit_errors
@@ -118,7 +117,7 @@ def run(a: argparse.Namespace) -> dict:
             poses, _, frame = level_poses(
                 found, sparse, prior_camera_height_m=PRIOR_CAMERA_HEIGHT_M["soybean"]
             )
-            out["frame"] = {k: v for k, v in frame.to_dict().items() if k != "world_from_input"}
+            out["frame"] = frame.summary()
         else:
             poses = truth_poses
         sec["poses"] = time.perf_counter() - t
@@ -159,18 +158,15 @@ def run(a: argparse.Namespace) -> dict:
             backend.save(keep / "surfaces")
 
         t = time.perf_counter()
-        cam_world, cam_scene = fit.camera, fit.camera_in_scene()
-        if a.image_scale != 1.0:
-            cam_world, cam_scene = cam_world.scaled(a.image_scale), cam_scene.scaled(a.image_scale)
-        depth, rgb = backend.render(cam_scene)
-        depth_m = np.asarray(depth, np.float64) * fit.scale
-        p = observe_preset(
+        obs = Observation.from_surfaces(
             "soybean",
-            render_height=fit.render_height,
-            image_width=cam_world.width,
-            image_height=cam_world.height,
+            backend.render,
+            fit.camera,
+            fit.camera_in_scene(),
+            fit.scale,
+            fit.render_height,
+            image_scale=a.image_scale,
         )
-        obs = Observation.from_depth("soybean", depth_m, cam_world, rgb=rgb, preset=p)
         sec["observe"] = time.perf_counter() - t
     sec["images_to_observation"] = sum(
         sec[k] for k in ("ingest", "poses", "surfaces", "rowfit", "observe")
@@ -184,6 +180,7 @@ def run(a: argparse.Namespace) -> dict:
         true_cam = true_cam.scaled(a.image_scale)
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
     d_true, _ = truth.render(true_cam)
+    depth_m = obs.depth
     d_obs = np.where(np.isfinite(depth_m), depth_m, np.inf)
     h_obs, h_true = depth_histogram(d_obs), depth_histogram(d_true)
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())

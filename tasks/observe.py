@@ -17,7 +17,7 @@ def observe(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
     """Render the fitted surfaces from the row camera and build the
-    :class:`~cropcraft_core.observe.Observation` (``Observation.from_depth``: the paper's mask
+    :class:`~cropcraft_core.observe.Observation` (``Observation.from_surfaces``: the paper's mask
     and histograms); store it as ``{scene}/observe/observation.npz``.
 
     config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5) and
@@ -25,7 +25,6 @@ def observe(
     """
     from cropcraft_core.geometry.camera import PinholeCamera
     from cropcraft_core.observe import Observation
-    from cropcraft_core.observe import preset as observe_preset
 
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
@@ -34,27 +33,18 @@ def observe(
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
-        factor = float(config.get("image_scale", 1.0))
-        cam_world = PinholeCamera.from_dict(rf["camera"])
-        cam_scene = PinholeCamera.from_dict(rf["camera_in_scene"])
-        if factor != 1.0:
-            cam_world, cam_scene = cam_world.scaled(factor), cam_scene.scaled(factor)
         with store.open_local(key_of(upstream["surfaces"], "model")) as model_dir:
-            backend = load_surfaces(model_dir)
-            depth, rgb = backend.render(cam_scene)
-        depth_m = np.asarray(depth, np.float64) * float(rf["scale"])
-        p = observe_preset(
-            crop,
-            **{
-                "render_height": float(rf["render_height"]),
-                "image_width": cam_world.width,
-                "image_height": cam_world.height,
-                **dict(config.get("preset") or {}),
-            },
-        )
-        obs = Observation.from_depth(
-            crop, depth_m, cam_world, rgb=rgb, preset=p, meta={"scene": scene}
-        )
+            obs = Observation.from_surfaces(
+                crop,
+                load_surfaces(model_dir).render,
+                PinholeCamera.from_dict(rf["camera"]),
+                PinholeCamera.from_dict(rf["camera_in_scene"]),
+                float(rf["scale"]),
+                float(rf["render_height"]),
+                image_scale=float(config.get("image_scale", 1.0)),
+                preset_overrides=config.get("preset"),
+                meta={"scene": scene},
+            )
         buf = io.BytesIO()
         obs.save(buf)
         key = artefact(scene, "observe", "observation.npz")
@@ -65,7 +55,7 @@ def observe(
         {"observation": key},
         {key: digest},
         {
-            "size_px": [cam_world.width, cam_world.height],
+            "size_px": [obs.camera.width, obs.camera.height],
             "foreground_fraction": float(np.mean(obs.mask)),
             "render_height_m": float(rf["render_height"]),
         },

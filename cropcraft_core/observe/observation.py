@@ -30,6 +30,7 @@ from __future__ import annotations
 import io
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -269,6 +270,45 @@ class Observation:
             check_row_camera(cam, p)
             mask = observation_mask(depth, rgb, cam, p)
         return cls(crop, cam, depth, mask, rgb=rgb, preset=p, meta=dict(meta or {}))
+
+    @classmethod
+    def from_surfaces(
+        cls,
+        crop: str,
+        render: Callable[[PinholeCamera], tuple[np.ndarray, np.ndarray]],
+        camera_world: PinholeCamera,
+        camera_scene: PinholeCamera,
+        scale: float,
+        render_height: float,
+        *,
+        image_scale: float = 1.0,
+        preset_overrides: dict | None = None,
+        meta: dict | None = None,
+    ) -> Observation:
+        """The observation of fitted visible surfaces through the row camera.
+
+        ``render(camera) -> (depth, rgb)`` renders the surfaces (``SurfaceBackend.render``) in
+        their own (scene) frame, where the row camera is ``camera_scene``; ``camera_world`` is
+        the same camera in the metric world frame, ``scale`` metres per scene unit (depths are
+        converted with it). ``image_scale`` resizes both cameras (e.g. 0.5); the preset is the
+        crop's with the row fit's ``render_height``, the camera's size and
+        ``preset_overrides``.
+        """
+        if image_scale != 1.0:
+            camera_world = camera_world.scaled(image_scale)
+            camera_scene = camera_scene.scaled(image_scale)
+        depth, rgb = render(camera_scene)
+        depth_m = np.asarray(depth, np.float64) * float(scale)
+        p = preset(
+            crop,
+            **{
+                "render_height": float(render_height),
+                "image_width": camera_world.width,
+                "image_height": camera_world.height,
+                **dict(preset_overrides or {}),
+            },
+        )
+        return cls.from_depth(crop, depth_m, camera_world, rgb=rgb, preset=p, meta=meta)
 
     # ----------------------------------------------------------------- comparison
     def predicted_stats(self, depth: np.ndarray, mask: np.ndarray | None = None) -> HistogramStats:
