@@ -249,7 +249,6 @@ DEMO_SYNTH = {"seed": 0, "views": 30, "resolution": (480, 360), "trajectory": "w
 DEMO_OVERRIDES: dict[str, Any] = {
     "surfaces.backend": "tsdf",
     "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
-    "rowfit.preset": {"box_center": None, "box_size": None},
     "observe.image_scale": 0.5,
     "fit.n_seeds": 10,
     "fit.n_evals": 300,

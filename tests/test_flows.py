@@ -33,7 +33,6 @@ DATE = "2024-07-01"
 N_SEEDS = 3
 OVERRIDES = {
     "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
-    "rowfit.preset": {"box_center": None, "box_size": None},
     "observe.image_scale": 0.25,
     "fit.n_seeds": N_SEEDS,
     "fit.n_evals": 12,
@@ -340,7 +339,7 @@ def test_scene_flow_from_photos_alone(prefect_harness, tmp_path_factory):
     scene_dir = tmp_path_factory.mktemp("sfm-scene")
     make_scene(CROP, scene_dir, seed=0, views=50, resolution=(640, 480), metrics=False)
     store = tmp_path_factory.mktemp("store-sfm")
-    overrides = {k: v for k, v in OVERRIDES.items() if not k.startswith(("surfaces", "rowfit"))}
+    overrides = {k: v for k, v in OVERRIDES.items() if not k.startswith("surfaces")}
     out = run_scene("plotS", CROP, DATE, images=str(scene_dir / "images"), overrides=overrides,
                     store=str(store))  # fmt: skip
     assert set(out["states"].values()) == {"Completed"}
