@@ -9,19 +9,27 @@ method, and the fitted canopy measured like the truth. Prints LAIE, LAIPE (and i
 ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is a reduced
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
 ``--crn-ablation`` adds a BO row without common random numbers.
+
+Every (scene, optimiser seed) pair is one job: ``--workers N`` runs them in N single-threaded
+processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each seed's resumable
+checkpoint there, so a killed run (hours at the default budget) continues where it stopped.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from benchmarks.workers import SHARED, pool, run_jobs
 from cropcraft_core.config import default_layout, param_space
-from cropcraft_core.fit import FitConfig, fit_observation, observe_canopy
+from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
+from cropcraft_core.fit.fitting import combine
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import preset
 from cropcraft_core.procedural import generate_canopy
@@ -76,7 +84,11 @@ def run(
     log=print,
     overrides: dict | None = None,
     scale: float | None = None,
+    workers: int = 1,
+    checkpoint_dir: str | Path | None = None,
 ) -> dict:
+    """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
+    seeds, so independent of ``workers``) and the per-scene predictions; and the truths."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
@@ -95,38 +107,91 @@ def run(
         "methods": {},
         "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
     }
-    for label, method, crn in runs:
-        b = budget(quick, scenes, method, crn, overrides, scale)
-        preds, seconds = [], []
-        for i, obs in enumerate(observations):
-            t = time.perf_counter()
-            mlp_cfg = None
-            if method == "mlp" and quick:
-                from cropcraft_core.fit.mlp import MLPConfig, predict_params
-
-                mlp_cfg = MLPConfig(n_pairs=400, epochs=60)
-                params = predict_params(obs, mlp_cfg)
+    ex = pool(workers, {"observations": observations})
+    try:
+        for label, method, crn in runs:
+            b = budget(quick, scenes, method, crn, overrides, scale)
+            if method == "mlp":
+                params, seconds = _predict_mlp(observations, quick)
             else:
-                params = fit_observation(obs, b.fit).params
-            fitted = generate_canopy(crop, params, default_layout(crop), seed=100_000 + i)
-            preds.append({"params": params, **canopy_metrics(fitted, gap_fraction=False)})
-            seconds.append(time.perf_counter() - t)
-            log(
-                f"  {crop} {label} scene {i}: LAI {preds[-1]['lai']:.2f} "
-                f"(true {truths[i]['lai']:.2f}) in {seconds[-1]:.0f} s"
-            )
-        errs = evaluate(preds, truths)
-        lai_pe = [
-            abs(p_["lai"] - t_["lai"]) / t_["lai"] for p_, t_ in zip(preds, truths, strict=True)
-        ]
-        errs["LAIPE_median"] = float(np.median(lai_pe))
-        out["methods"][label] = {
-            "errors": errs,
-            "seconds_per_scene": float(np.mean(seconds)),
-            "predictions": preds,
-        }
+                params, seconds = _fit_all(observations, b, label, ex, checkpoint_dir, log=log)
+            preds = []
+            for i, p_ in enumerate(params):
+                fitted = generate_canopy(crop, p_, default_layout(crop), seed=100_000 + i)
+                preds.append({"params": p_, **canopy_metrics(fitted, gap_fraction=False)})
+                log(
+                    f"  {crop} {label} scene {i}: LAI {preds[-1]['lai']:.2f} "
+                    f"(true {truths[i]['lai']:.2f}), {seconds[i]:.0f} s of fitting"
+                )
+            errs = evaluate(preds, truths)
+            lai_pe = [
+                abs(p_["lai"] - t_["lai"]) / t_["lai"] for p_, t_ in zip(preds, truths, strict=True)
+            ]
+            errs["LAIPE_median"] = float(np.median(lai_pe))
+            out["methods"][label] = {
+                "errors": errs,
+                "seconds_per_scene": float(np.mean(seconds)),
+                "predictions": preds,
+            }
+    finally:
+        if ex is not None:
+            ex.shutdown()
     out["truths"] = truths
     return out
+
+
+def _seed_job(args) -> tuple[int, object, float]:
+    """One optimiser seed of one scene (in a worker process or in-process)."""
+    i, seed, cfg, checkpoint = args
+    t = time.perf_counter()
+    r = fit_seed(SHARED["observations"][i], seed, cfg, checkpoint=checkpoint)
+    return i, r, time.perf_counter() - t
+
+
+def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, log=print):
+    """Every scene fitted with ``b.fit``; the (scene, seed) jobs spread over ``ex``'s processes.
+    Returns each scene's combined parameters and its fitting seconds (sum over its seeds)."""
+    cfg = b.fit
+    ck = Path(checkpoint_dir) if checkpoint_dir else None
+    if ck is not None:
+        ck.mkdir(parents=True, exist_ok=True)
+    tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
+    jobs = [
+        (
+            i,
+            s,
+            cfg,
+            ck / f"{obs.crop}-{tag}-scene{i}-seed{s}.json" if ck is not None else None,
+        )
+        for i, obs in enumerate(observations)
+        for s in range(cfg.n_seeds)
+    ]
+    per_scene: dict[int, list] = {i: [] for i in range(len(observations))}
+    seconds = [0.0] * len(observations)
+    done = run_jobs(ex, _seed_job, jobs)
+    for i, r, sec in done:
+        per_scene[i].append(r)
+        seconds[i] += sec
+        if len(per_scene[i]) == cfg.n_seeds:
+            log(f"  {label} scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
+    params = [
+        combine(observations[i].crop, per_scene[i], cfg, seconds[i]).params
+        for i in range(len(observations))
+    ]
+    return params, seconds
+
+
+def _predict_mlp(observations, quick: bool):
+    """The mlp baseline per scene (its network trained once per crop and config, then cached)."""
+    from cropcraft_core.fit.mlp import MLPConfig, predict_params
+
+    cfg = MLPConfig(n_pairs=400, epochs=60) if quick else None
+    params, seconds = [], []
+    for obs in observations:
+        t = time.perf_counter()
+        params.append(predict_params(obs, cfg))
+        seconds.append(time.perf_counter() - t)
+    return params, seconds
 
 
 def print_table(res: dict) -> None:
@@ -164,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--initial", type=int, help="override random initial evaluations")
     ap.add_argument("--canopies", type=int, help="override canopies averaged per evaluation")
     ap.add_argument("--image-scale", type=float, help="row camera resolution / 994x738")
+    ap.add_argument(
+        "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
+    )
+    ap.add_argument("--checkpoint-dir", help="resumable per-seed checkpoints (rerun continues)")
     a = ap.parse_args(argv)
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     overrides = {
@@ -173,7 +242,15 @@ def main(argv: list[str] | None = None) -> int:
         "canopies_per_eval": a.canopies,
     }
     res = run(
-        a.crop, methods, a.quick, a.scenes, a.crn_ablation, overrides=overrides, scale=a.image_scale
+        a.crop,
+        methods,
+        a.quick,
+        a.scenes,
+        a.crn_ablation,
+        overrides=overrides,
+        scale=a.image_scale,
+        workers=a.workers,
+        checkpoint_dir=a.checkpoint_dir,
     )
     print_table(res)
     if a.json:

@@ -22,6 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from benchmarks.workers import one_thread
 from cropcraft_core.config import default_layout
 from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
@@ -66,7 +67,7 @@ def _one_seed(args):
 
 def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
     t = time.perf_counter()
-    with ProcessPoolExecutor(workers, initializer=_one_thread) as ex:
+    with ProcessPoolExecutor(workers, initializer=one_thread) as ex:
         seeds = list(ex.map(_one_seed, [(s, n_evals, n_initial) for s in range(n_seeds)]))
     return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
 
@@ -99,7 +100,7 @@ def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) 
     if workers <= 1:
         done = map(_compare_one, jobs)
     else:
-        ex = ProcessPoolExecutor(workers, initializer=_one_thread)
+        ex = ProcessPoolExecutor(workers, initializer=one_thread)
         done = ex.map(_compare_one, jobs)
     for method, row in done:
         rows[method].append(row)
@@ -107,16 +108,6 @@ def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) 
     if workers > 1:
         ex.shutdown()
     return rows
-
-
-def _one_thread() -> None:
-    """Worker process initialiser: the parallelism is the processes, so one BLAS and one numba
-    thread each (two numba threads per process on 2 cores measurably oversubscribe)."""
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-    numba.set_num_threads(1)
 
 
 def main(argv: list[str] | None = None) -> int:
