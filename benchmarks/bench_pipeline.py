@@ -17,9 +17,11 @@ centres, used only for scoring):
 
 * row fit: best-row direction error (target ≤ 2°), the row camera's lateral offset from the
   nearest true row (≤ 3 cm), its relative height error above the true ground (≤ 3 %);
-* observation: L1 distance (target ≤ 0.15) between the normalised foreground depth histograms
-  (20 bins over [0.1, 1.0] m, foreground ≤ 0.97 m; as ``bench_surfaces``) of the observation and
-  of the true mesh rendered from the same row camera placed in the truth frame;
+* observation: L1 distance (target ≤ 0.15) between the observation's depth histogram (the one the
+  loss uses: the crop's bins up to the fitted render height, the observation's mask) and the
+  histogram the same statistics give for the true mesh rendered from the same row camera placed
+  in the truth frame (no background, the observation's height/lateral clauses), both normalised
+  to sum 1; the two mask areas are reported beside it;
 * with ``--fit``: LAI, leaf angle, nodes and internode of the fitted canopy against the truth's
   (LAI target: within 15 %).
 * speed: images → observation ≤ 8 minutes on the 2-core machine (50 images at 640 × 480).
@@ -35,13 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_surfaces import (
-    FOREGROUND_MAX_DEPTH,
-    _truth_mesh,
-    add_scene_arguments,
-    depth_histogram,
-    parse_kv,
-)
+from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments, parse_kv
 
 TARGETS = {
     "direction_deg": 2.0,
@@ -51,6 +47,22 @@ TARGETS = {
     "images_to_observation_s": 480.0,
     "lai_rel_err": 0.15,
 }
+
+
+def observation_vs_truth(obs, d_true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The observation's depth histogram and the one the same statistics give for the true
+    canopy mesh's depth ``d_true`` (NaN where no leaf) from the same camera, both normalised to
+    sum 1 (shape; the mask areas are returned beside them). The truth gets what a procedural
+    render gets: no background, the observation's height and lateral clauses."""
+    from cropcraft_core.observe.observation import predicted_mask
+
+    st_true = obs.predicted_stats(d_true, predicted_mask(d_true, obs.camera, obs.preset))
+
+    def unit(h: np.ndarray) -> np.ndarray:
+        return h / max(float(h.sum()), 1e-12)
+
+    area = {"observation": obs.stats.mask_area, "truth": st_true.mask_area}
+    return unit(obs.stats.depth), unit(st_true.depth), area
 
 
 def _scene_from_true(poses, truth_poses) -> np.ndarray:
@@ -181,17 +193,26 @@ def run(a: argparse.Namespace) -> dict:
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
     d_true, _ = truth.render(true_cam)
     depth_m = obs.depth
-    d_obs = np.where(np.isfinite(depth_m), depth_m, np.inf)
-    h_obs, h_true = depth_histogram(d_obs), depth_histogram(d_true)
+    d_true = np.where(np.isfinite(d_true), d_true, np.nan)
+    h_obs, h_true, area = observation_vs_truth(obs, d_true)
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     out["hist_observation"] = h_obs.round(4).tolist()
     out["hist_truth"] = h_true.round(4).tolist()
-    out["foreground_fraction"] = {
-        "observation": float(np.mean(d_obs <= FOREGROUND_MAX_DEPTH)),
-        "truth": float(np.mean(d_true <= FOREGROUND_MAX_DEPTH)),
-    }
+    out["depth_bins"] = list(obs.preset.depth_range)
+    out["mask_area"] = area
     both = np.isfinite(depth_m) & np.isfinite(d_true)
     out["median_abs_depth_err_m"] = float(np.median(np.abs(depth_m[both] - d_true[both])))
+    # bias where both see plants (observation − truth, + = reconstructed too deep, i.e. low)
+    plant = both & obs.mask
+    if plant.any():
+        err = depth_m[plant] - d_true[plant]
+        out["plant_depth_err_m"] = {
+            "median": float(np.median(err)),
+            "p25": float(np.percentile(err, 25)),
+            "p75": float(np.percentile(err, 75)),
+        }
+    if a.keep:
+        np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
     out["_observation"] = obs
 
     if a.fit:
