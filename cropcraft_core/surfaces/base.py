@@ -87,15 +87,22 @@ class SurfacesConfig:
     or 'truth' (the true mesh, for tests and benchmarks)."""
     voxel_size: float = 0.0075
     """tsdf: TSDF voxel edge (m)."""
-    trunc_voxels: float = 4.0
-    """tsdf: truncation distance of the signed distance, in voxels."""
+    trunc_voxels: float = 3.0
+    """tsdf: truncation distance of the signed distance, in voxels. It sets how far a fused
+    leaf's skirt reaches past its edge: measured on two dense synthetic soybean scenes (true
+    poses), the observation's mask area was 6–10 % too large with 4 and matched the truth's
+    within 2 % with 3; 2 lost leaves (area 13 % short)."""
     depth_range: tuple[float, float] | None = None
     """(near, far) z-depth searched by stereo and fused (m). None: per view, from the bounding
     box's corners (or (0.2, 8.0) without a box)."""
     neighbours: int = 4
     """tsdf: source views matched against each reference view (2–6)."""
-    mvs_scale: float = 0.5
-    """tsdf: image scale for stereo (0.5: 640×480 photos are matched at 320×240)."""
+    mvs_scale: float = 0.75
+    """tsdf: image scale for stereo (0.75: 640×480 photos are matched at 480×360). Measured on
+    two dense synthetic soybean scenes (true poses; ``bench pipeline --poses truth``): the
+    observation's depth-histogram L1 against the true mesh fell from 0.15 and 0.20 (0.5, with a
+    4-voxel truncation) to 0.09 and 0.12 (0.75 with 3 voxels), for ~1.4× the stereo time; the
+    matching window covers less of the leaf edges, so leaves fatten less."""
     n_depths: int = 128
     """tsdf: depth hypotheses per view, uniform in inverse depth."""
     window: int = 5
