@@ -75,6 +75,37 @@ def scene_truth(crop: str, index: int, seed: int = 2024):
     return params, canopy
 
 
+def scene_observation(crop: str, index: int, scale: float) -> tuple[dict, object]:
+    """Scene ``index``'s truth record (parameters and canopy metrics) and its observation: the
+    true canopy's depth from the row camera at ``scale`` × 994×738. Deterministic, so a worker
+    anywhere can rebuild it from these three values."""
+    params, canopy = scene_truth(crop, index)
+    size = {"image_width": round(994 * scale), "image_height": round(738 * scale)}
+    obs = observe_canopy(canopy, preset(crop, **size), meta={"scene": index})
+    return {"params": params, **canopy_metrics(canopy, gap_fraction=False)}, obs
+
+
+def score(crop: str, params: list[dict], truths: list[dict], seconds: list[float], log=print):
+    """One method's row of the table: each scene's fitted canopy (built with the truth's canopy
+    seed) measured like the truth; LAIE, LAIPE (and its median), AME, ASDE, NDPE, NCPE."""
+    preds = []
+    for i, p_ in enumerate(params):
+        fitted = generate_canopy(crop, p_, default_layout(crop), seed=100_000 + i)
+        preds.append({"params": p_, **canopy_metrics(fitted, gap_fraction=False)})
+        log(
+            f"  {crop} scene {i}: LAI {preds[-1]['lai']:.2f} (true {truths[i]['lai']:.2f}), "
+            f"{seconds[i]:.0f} s of fitting"
+        )
+    errs = evaluate(preds, truths)
+    lai_pe = [abs(p_["lai"] - t_["lai"]) / t_["lai"] for p_, t_ in zip(preds, truths, strict=True)]
+    errs["LAIPE_median"] = float(np.median(lai_pe))
+    return {
+        "errors": errs,
+        "seconds_per_scene": float(np.mean(seconds)),
+        "predictions": preds,
+    }
+
+
 def run(
     crop: str,
     methods: list[str],
@@ -93,13 +124,11 @@ def run(
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
     b0 = budget(quick, scenes, "bo", overrides=overrides, scale=scale)
-    size = {"image_width": round(994 * b0.scale), "image_height": round(738 * b0.scale)}
-    p = preset(crop, **size)
     truths, observations = [], []
     for i in range(b0.scenes):
-        params, canopy = scene_truth(crop, i)
-        truths.append({"params": params, **canopy_metrics(canopy, gap_fraction=False)})
-        observations.append(observe_canopy(canopy, p, meta={"scene": i}))
+        truth, obs = scene_observation(crop, i, b0.scale)
+        truths.append(truth)
+        observations.append(obs)
     out = {
         "crop": crop,
         "quick": quick,
@@ -115,24 +144,7 @@ def run(
                 params, seconds = _predict_mlp(observations, quick)
             else:
                 params, seconds = _fit_all(observations, b, label, ex, checkpoint_dir, log=log)
-            preds = []
-            for i, p_ in enumerate(params):
-                fitted = generate_canopy(crop, p_, default_layout(crop), seed=100_000 + i)
-                preds.append({"params": p_, **canopy_metrics(fitted, gap_fraction=False)})
-                log(
-                    f"  {crop} {label} scene {i}: LAI {preds[-1]['lai']:.2f} "
-                    f"(true {truths[i]['lai']:.2f}), {seconds[i]:.0f} s of fitting"
-                )
-            errs = evaluate(preds, truths)
-            lai_pe = [
-                abs(p_["lai"] - t_["lai"]) / t_["lai"] for p_, t_ in zip(preds, truths, strict=True)
-            ]
-            errs["LAIPE_median"] = float(np.median(lai_pe))
-            out["methods"][label] = {
-                "errors": errs,
-                "seconds_per_scene": float(np.mean(seconds)),
-                "predictions": preds,
-            }
+            out["methods"][label] = score(crop, params, truths, seconds, log=log)
     finally:
         if ex is not None:
             ex.shutdown()
@@ -216,6 +228,28 @@ def print_table(res: dict) -> None:
             print(f"{'  paper ' + label:<16}{cells}")
 
 
+def _run_flow(a: argparse.Namespace, methods: list[str], overrides: dict) -> dict:
+    """The same benchmark through ``flows.benchmark`` (Prefect; Dask scale-out)."""
+    from flows.benchmark import run_benchmark
+
+    got = run_benchmark(
+        a.runner,
+        crop=a.crop,
+        methods=methods,
+        quick=a.quick,
+        scenes=a.scenes,
+        store=a.store,
+        overrides={k: v for k, v in overrides.items() if v is not None},
+        image_scale=a.image_scale,
+    )
+    rows = {
+        m: {"errors": e, "seconds_per_scene": got["seconds_per_scene"][m]}
+        for m, e in got["errors"].items()
+    }
+    n = len(next(iter(got["predictions"].values())))
+    return {**got, "crop": a.crop, "quick": a.quick, "scenes": n, "methods": rows}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
@@ -233,6 +267,12 @@ def main(argv: list[str] | None = None) -> int:
         "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
     )
     ap.add_argument("--checkpoint-dir", help="resumable per-seed checkpoints (rerun continues)")
+    ap.add_argument(
+        "--runner",
+        help="run as the Prefect benchmark flow, one task per seed, on threads, dask (a local "
+        "cluster) or dask://HOST:PORT (an existing cluster); the result goes to --store",
+    )
+    ap.add_argument("--store", help="scene store for the flow's result (default ./cropcraft-data)")
     a = ap.parse_args(argv)
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     overrides = {
@@ -241,6 +281,11 @@ def main(argv: list[str] | None = None) -> int:
         "n_initial": a.initial,
         "canopies_per_eval": a.canopies,
     }
+    if a.runner:
+        res = _run_flow(a, methods, overrides)
+        print_table(res)
+        print(f"stored: {res['url']}")
+        return 0
     res = run(
         a.crop,
         methods,

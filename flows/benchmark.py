@@ -1,26 +1,41 @@
-"""The synthetic accuracy benchmark as a flow: one task per fitting method (mapped), the
-results written to the scene store under ``benchmarks/accuracy/{crop}/``."""
+"""The synthetic accuracy benchmark as a flow: one task per (method, scene, optimiser seed).
+
+At the default budget a crop is 30 scenes × 10 seeds × 500 evaluations (~3 h per crop on one
+2-core machine). Every seed is an independent task whose inputs are four small values (the
+scene's observation is rebuilt deterministically inside the task), so ``runner="dask://host:port"``
+spreads them over a Dask cluster's workers exactly like the scene flow's fit seeds. The table
+(``benchmarks.bench_accuracy.score``) and every per-scene prediction are stored as JSON under
+``benchmarks/accuracy/{crop}/`` in the scene store.
+"""
 
 from __future__ import annotations
 
 import datetime as dt
+import time
 from typing import Any
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.fit import FitConfig, fit_seed
+from cropcraft_core.fit.fitting import combine
 from cropcraft_core.store import SceneStore
 
+#: Methods the flow maps seed by seed (the mlp baseline predicts directly: use the bench CLI).
+SEED_METHODS = ("bo", "trust-region", "random")
 
-@task(name="bench-accuracy-method", cache_policy=NO_CACHE)
-def bench_method(crop: str, method: str, quick: bool, scenes: int | None) -> dict[str, Any]:
-    """``benchmarks.bench_accuracy.run`` for one method; returns its errors and timing (the
-    per-scene predictions stay in the stored JSON)."""
-    from benchmarks.bench_accuracy import run
 
-    log = get_run_logger()
-    res = run(crop, [method], quick, scenes, log=log.info)
-    return {"method": method, **res["methods"][method], "truths": res["truths"]}
+@task(name="bench-seed", cache_policy=NO_CACHE)
+def bench_seed(crop: str, scene: int, seed: int, fit: dict, scale: float) -> dict[str, Any]:
+    """One optimiser seed on one synthetic scene; returns the seed's result as a dict (its
+    evaluations, best point and loss) and the seconds it took."""
+    from benchmarks.bench_accuracy import scene_observation
+
+    t = time.perf_counter()
+    _, obs = scene_observation(crop, scene, scale)
+    r = fit_seed(obs, seed, FitConfig(**fit))
+    return {"scene": scene, "seed": seed, "result": r, "seconds": time.perf_counter() - t}
 
 
 @flow(name="benchmark", persist_result=False)
@@ -30,19 +45,68 @@ def benchmark(
     quick: bool = True,
     scenes: int | None = None,
     store: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    image_scale: float | None = None,
 ) -> dict[str, Any]:
     """Synthetic accuracy (the paper's table): truth canopies with random parameters, fitted per
     method; LAIE, LAIPE, AME, ASDE, NDPE, NCPE per method. Stores the full result as JSON and
-    returns ``{"key": ..., "errors": {method: {...}}, "seconds_per_scene": {...}}``."""
-    st = SceneStore.connect(store)
+    returns ``{"key": store key, "url": ..., "errors": {method: {...}}, "seconds_per_scene":
+    {...}, "predictions": {method: [params per scene]}, "budget": {...}}``. ``overrides``
+    (FitConfig fields, e.g. ``{"n_seeds": 3}``) and ``image_scale`` change the budget as in
+    ``cropcraft bench accuracy``."""
+    from benchmarks.bench_accuracy import budget, scene_observation, score
+
+    log = get_run_logger()
     methods = list(methods or ["bo", "trust-region", "random"])
-    futures = bench_method.map(crop, methods, quick, scenes)
-    results = [f.result() for f in futures]
+    bad = [m for m in methods if m not in SEED_METHODS]
+    if bad:
+        raise ConfigError(
+            f"benchmark flow methods {bad}: choose from {', '.join(SEED_METHODS)} "
+            "(mlp runs in `cropcraft bench accuracy`)"
+        )
+    st = SceneStore.connect(store)
+    b0 = budget(quick, scenes, "bo", overrides=overrides, scale=image_scale)
+    truths = [scene_observation(crop, i, b0.scale)[0] for i in range(b0.scenes)]
+    configs = {
+        m: budget(quick, scenes, m, overrides=overrides, scale=image_scale).fit for m in methods
+    }
+    jobs = [(m, i, s) for m in methods for i in range(b0.scenes) for s in range(configs[m].n_seeds)]
+    futures = bench_seed.map(
+        [crop] * len(jobs),
+        [i for _, i, _ in jobs],
+        [s for _, _, s in jobs],
+        [configs[m].to_dict() for m, _, _ in jobs],
+        [b0.scale] * len(jobs),
+    )
+    done = [f.result() for f in futures]
+    out: dict[str, Any] = {"crop": crop, "quick": quick, "scenes": b0.scenes, "methods": {}}
+    for m in methods:
+        rows = [d for (mm, _, _), d in zip(jobs, done, strict=True) if mm == m]
+        params, seconds = [], []
+        for i in range(b0.scenes):
+            mine = sorted((d for d in rows if d["scene"] == i), key=lambda d: d["seed"])
+            sec = sum(d["seconds"] for d in mine)
+            params.append(combine(crop, [d["result"] for d in mine], configs[m], sec).params)
+            seconds.append(sec)
+        out["methods"][m] = score(crop, params, truths, seconds, log=log.info)
+        out["methods"][m]["budget"] = {**configs[m].to_dict(), "image_scale": b0.scale}
+    out["truths"] = truths
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     key = f"benchmarks/accuracy/{crop}/{stamp}{'-quick' if quick else ''}.json"
-    st.put_json(key, {"crop": crop, "quick": quick, "methods": results})
+    st.put_json(key, out)
+    rows = out["methods"]
     return {
-        "key": st.url(key),
-        "errors": {r["method"]: r["errors"] for r in results},
-        "seconds_per_scene": {r["method"]: r["seconds_per_scene"] for r in results},
+        "key": key,
+        "url": st.url(key),
+        "errors": {m: r["errors"] for m, r in rows.items()},
+        "seconds_per_scene": {m: r["seconds_per_scene"] for m, r in rows.items()},
+        "predictions": {m: [p["params"] for p in r["predictions"]] for m, r in rows.items()},
+        "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
     }
+
+
+def run_benchmark(runner: str = "threads", **kwargs: Any) -> dict[str, Any]:
+    """:func:`benchmark` on ``runner`` (threads, dask, dask://HOST:PORT; see ``flows.runners``)."""
+    from flows.runners import make_task_runner
+
+    return benchmark.with_options(task_runner=make_task_runner(runner))(**kwargs)

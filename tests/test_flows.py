@@ -350,3 +350,38 @@ def test_scene_flow_from_photos_alone(prefect_harness, tmp_path_factory):
     assert abs(rowfit["scale"] - 1) < 0.1
     assert abs(rowfit["ground_normal"][2]) > math.cos(math.radians(3))
     assert 0 < out["metrics"]["lai"] < 5
+
+
+# --------------------------------------------------------------------------- benchmark flow
+
+
+def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_harness, tmp_path):
+    """The accuracy benchmark as a flow (one task per method × scene × seed): the same table as
+    ``bench_accuracy.run`` in this process, stored as JSON in the scene store."""
+    from benchmarks.bench_accuracy import run
+    from flows.benchmark import run_benchmark
+
+    budget = {"n_seeds": 2, "n_evals": 14, "n_initial": 8}
+    got = run_benchmark(
+        "threads",
+        crop="maize",
+        methods=["bo", "random"],
+        quick=True,
+        scenes=2,
+        store=str(tmp_path / "store"),
+        overrides=budget,
+    )
+    ref = run("maize", ["bo", "random"], True, 2, log=lambda *_: None, overrides=budget)
+    for m in ("bo", "random"):
+        assert got["predictions"][m] == [p["params"] for p in ref["methods"][m]["predictions"]]
+        assert got["errors"][m] == ref["methods"][m]["errors"]
+    stored = SceneStore.connect(str(tmp_path / "store")).get_json(got["key"])
+    assert set(stored["methods"]) == {"bo", "random"}
+    assert len(stored["truths"]) == 2 and stored["methods"]["bo"]["budget"]["n_evals"] == 14
+
+
+def test_benchmark_flow_names_a_method_it_cannot_map(prefect_harness, tmp_path):
+    from flows.benchmark import run_benchmark
+
+    with pytest.raises(ConfigError, match="mlp"):
+        run_benchmark("threads", crop="maize", methods=["bo", "mlp"], store=str(tmp_path))
