@@ -119,6 +119,12 @@ def test_prefect_deploy_creates_both_deployments_and_schedule(prefect_server, tm
     assert gpu["work_pool_name"] == "cropcraft-gpu"
     assert gpu["parameters"]["overrides"] == {"surfaces.backend": "nerfacto"}
 
+    bench = json.loads(
+        _prefect(env, "deployment", "inspect", "benchmark/accuracy", "--output", "json")
+    )
+    assert bench["entrypoint"] == "flows/benchmark.py:benchmark"
+    assert bench["parameters"] == {"crop": "soybean", "quick": True}
+
 
 def test_compose_and_images_reference_the_pools():
     compose = (REPO / "docker" / "compose.yaml").read_text()
