@@ -11,7 +11,6 @@ spreads them over a Dask cluster's workers exactly like the scene flow's fit see
 from __future__ import annotations
 
 import datetime as dt
-import time
 from typing import Any
 
 from prefect import flow, get_run_logger, task
@@ -28,14 +27,13 @@ SEED_METHODS = ("bo", "trust-region", "random")
 
 @task(name="bench-seed", cache_policy=NO_CACHE)
 def bench_seed(crop: str, scene: int, seed: int, fit: dict, scale: float) -> dict[str, Any]:
-    """One optimiser seed on one synthetic scene; returns the seed's result as a dict (its
-    evaluations, best point and loss) and the seconds it took."""
-    from benchmarks.bench_accuracy import scene_observation
+    """One optimiser seed on one synthetic scene; returns the seed's result (its evaluations,
+    best point and loss) and its compute seconds."""
+    from benchmarks.bench_accuracy import scene_observation, seed_seconds
 
-    t = time.perf_counter()
     _, obs = scene_observation(crop, scene, scale)
     r = fit_seed(obs, seed, FitConfig(**fit))
-    return {"scene": scene, "seed": seed, "result": r, "seconds": time.perf_counter() - t}
+    return {"scene": scene, "seed": seed, "result": r, "seconds": seed_seconds(r)}
 
 
 @flow(name="benchmark", persist_result=False)
