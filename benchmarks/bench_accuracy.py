@@ -75,14 +75,42 @@ def scene_truth(crop: str, index: int, seed: int = 2024):
     return params, canopy
 
 
+def truth_record(crop: str, index: int) -> dict:
+    """Scene ``index``'s true parameters and canopy metrics."""
+    return _record(*scene_truth(crop, index))
+
+
+def _record(params: dict, canopy) -> dict:
+    return {"params": params, **canopy_metrics(canopy, gap_fraction=False)}
+
+
 def scene_observation(crop: str, index: int, scale: float) -> tuple[dict, object]:
-    """Scene ``index``'s truth record (parameters and canopy metrics) and its observation: the
-    true canopy's depth from the row camera at ``scale`` × 994×738. Deterministic, so a worker
+    """Scene ``index``'s truth record (:func:`truth_record`) and its observation: the true
+    canopy's depth from the row camera at ``scale`` × 994×738. Deterministic, so a worker
     anywhere can rebuild it from these three values."""
     params, canopy = scene_truth(crop, index)
     size = {"image_width": round(994 * scale), "image_height": round(738 * scale)}
     obs = observe_canopy(canopy, preset(crop, **size), meta={"scene": index})
-    return {"params": params, **canopy_metrics(canopy, gap_fraction=False)}, obs
+    return _record(params, canopy), obs
+
+
+def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None):
+    """Each scene's final parameters from ``done``, an iterable of (scene, SeedResult, seconds)
+    in any order (the seeds of a scene are combined in seed order, as ``fit_observation``
+    would); returns (params per scene, fitting seconds per scene, summed over its seeds).
+    ``log`` is told when a scene's last seed arrives."""
+    per_scene: dict[int, list] = {i: [] for i in range(n_scenes)}
+    seconds = [0.0] * n_scenes
+    for i, r, sec in done:
+        per_scene[i].append(r)
+        seconds[i] += sec
+        if log is not None and len(per_scene[i]) == cfg.n_seeds:
+            log(f"scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
+    params = [
+        combine(crop, sorted(per_scene[i], key=lambda r: r.seed), cfg, seconds[i]).params
+        for i in range(n_scenes)
+    ]
+    return params, seconds
 
 
 def score(crop: str, params: list[dict], truths: list[dict], seconds: list[float], log=print):
@@ -167,7 +195,7 @@ def _seed_job(args) -> tuple[int, object, float]:
 
 def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, log=print):
     """Every scene fitted with ``b.fit``; the (scene, seed) jobs spread over ``ex``'s processes.
-    Returns each scene's combined parameters and its fitting seconds (sum over its seeds)."""
+    Returns each scene's combined parameters and its fitting seconds (:func:`combine_scenes`)."""
     cfg = b.fit
     ck = Path(checkpoint_dir) if checkpoint_dir else None
     if ck is not None:
@@ -183,19 +211,10 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, log=print)
         for i, obs in enumerate(observations)
         for s in range(cfg.n_seeds)
     ]
-    per_scene: dict[int, list] = {i: [] for i in range(len(observations))}
-    seconds = [0.0] * len(observations)
     done = run_jobs(ex, _seed_job, jobs)
-    for i, r, sec in done:
-        per_scene[i].append(r)
-        seconds[i] += sec
-        if len(per_scene[i]) == cfg.n_seeds:
-            log(f"  {label} scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
-    params = [
-        combine(observations[i].crop, per_scene[i], cfg, seconds[i]).params
-        for i in range(len(observations))
-    ]
-    return params, seconds
+    return combine_scenes(
+        observations[0].crop, cfg, done, len(observations), log=lambda m: log(f"  {label} {m}")
+    )
 
 
 def _predict_mlp(observations, quick: bool):

@@ -22,7 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from benchmarks.workers import one_thread
+from benchmarks.workers import one_thread, pool, run_jobs
 from cropcraft_core.config import default_layout
 from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
@@ -97,16 +97,14 @@ def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) 
     optimiser times are process CPU seconds, so they do not depend on the sharing)."""
     jobs = [(m, s, n_evals, n_initial) for s in range(n_seeds) for m in ("skopt", "ours")]
     rows: dict[str, list] = {"ours": [], "skopt": []}
-    if workers <= 1:
-        done = map(_compare_one, jobs)
-    else:
-        ex = ProcessPoolExecutor(workers, initializer=one_thread)
-        done = ex.map(_compare_one, jobs)
-    for method, row in done:
-        rows[method].append(row)
-        print(f"    {method} seed {row['seed']}: {row}", flush=True)
-    if workers > 1:
-        ex.shutdown()
+    ex = pool(workers)
+    try:
+        for method, row in run_jobs(ex, _compare_one, jobs):
+            rows[method].append(row)
+            print(f"    {method} seed {row['seed']}: {row}", flush=True)
+    finally:
+        if ex is not None:
+            ex.shutdown()
     return rows
 
 

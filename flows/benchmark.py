@@ -18,7 +18,6 @@ from prefect.cache_policies import NO_CACHE
 
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, fit_seed
-from cropcraft_core.fit.fitting import combine
 from cropcraft_core.store import SceneStore
 
 #: Methods the flow maps seed by seed (the mlp baseline predicts directly: use the bench CLI).
@@ -52,7 +51,7 @@ def benchmark(
     {...}, "predictions": {method: [params per scene]}, "budget": {...}}``. ``overrides``
     (FitConfig fields, e.g. ``{"n_seeds": 3}``) and ``image_scale`` change the budget as in
     ``cropcraft bench accuracy``."""
-    from benchmarks.bench_accuracy import budget, scene_observation, score
+    from benchmarks.bench_accuracy import budget, combine_scenes, score, truth_record
 
     log = get_run_logger()
     methods = list(methods or ["bo", "trust-region", "random"])
@@ -64,7 +63,7 @@ def benchmark(
         )
     st = SceneStore.connect(store)
     b0 = budget(quick, scenes, "bo", overrides=overrides, scale=image_scale)
-    truths = [scene_observation(crop, i, b0.scale)[0] for i in range(b0.scenes)]
+    truths = [truth_record(crop, i) for i in range(b0.scenes)]
     configs = {
         m: budget(quick, scenes, m, overrides=overrides, scale=image_scale).fit for m in methods
     }
@@ -79,13 +78,12 @@ def benchmark(
     done = [f.result() for f in futures]
     out: dict[str, Any] = {"crop": crop, "quick": quick, "scenes": b0.scenes, "methods": {}}
     for m in methods:
-        rows = [d for (mm, _, _), d in zip(jobs, done, strict=True) if mm == m]
-        params, seconds = [], []
-        for i in range(b0.scenes):
-            mine = sorted((d for d in rows if d["scene"] == i), key=lambda d: d["seed"])
-            sec = sum(d["seconds"] for d in mine)
-            params.append(combine(crop, [d["result"] for d in mine], configs[m], sec).params)
-            seconds.append(sec)
+        mine = [
+            (d["scene"], d["result"], d["seconds"])
+            for (mm, _, _), d in zip(jobs, done, strict=True)
+            if mm == m
+        ]
+        params, seconds = combine_scenes(crop, configs[m], mine, b0.scenes)
         out["methods"][m] = score(crop, params, truths, seconds, log=log.info)
         out["methods"][m]["budget"] = {**configs[m].to_dict(), "image_scale": b0.scale}
     out["truths"] = truths
