@@ -8,7 +8,9 @@ seed, its depth rendered from the row camera as the observation (no background),
 method, and the fitted canopy measured like the truth. Prints LAIE, LAIPE (and its median), AME,
 ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is a reduced
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
-``--crn-ablation`` adds a BO row without common random numbers.
+``--crn-ablation`` adds a BO row without common random numbers. BO's row is the paper's mean
+of the seeds' best points; ``bo-reevaluate`` chooses from the same seeds by re-scoring
+candidates on fresh canopies (``fit/select.py``).
 
 Every (scene, optimiser seed) pair is one job: ``--workers N`` runs them in N single-threaded
 processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each seed's resumable
@@ -21,7 +23,7 @@ import argparse
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -94,11 +96,12 @@ def scene_observation(crop: str, index: int, scale: float) -> tuple[dict, object
     return _record(params, canopy), obs
 
 
-def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None):
+def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None, observation=None):
     """Each scene's final parameters from ``done``, an iterable of (scene, SeedResult, seconds)
     in any order (the seeds of a scene are combined in seed order, as ``fit_observation``
-    would); returns (params per scene, fitting seconds per scene, summed over its seeds).
-    ``log`` is told when a scene's last seed arrives."""
+    would); returns (params per scene, fitting seconds per scene: summed over its seeds, plus
+    the re-scoring of ``combine="reevaluate"``). ``observation(i)`` gives scene i's observation
+    (needed by ``reevaluate``). ``log`` is told when a scene's last seed arrives."""
     per_scene: dict[int, list] = {i: [] for i in range(n_scenes)}
     seconds = [0.0] * n_scenes
     for i, r, sec in done:
@@ -106,11 +109,18 @@ def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None):
         seconds[i] += sec
         if log is not None and len(per_scene[i]) == cfg.n_seeds:
             log(f"scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
-    params = [
-        combine(crop, sorted(per_scene[i], key=lambda r: r.seed), cfg, seconds[i]).params
+    needs_obs = cfg.method == "bo" and cfg.combine == "reevaluate"
+    fits = [
+        combine(
+            crop,
+            sorted(per_scene[i], key=lambda r: r.seed),
+            cfg,
+            seconds[i],
+            observation(i) if needs_obs else None,
+        )
         for i in range(n_scenes)
     ]
-    return params, seconds
+    return [f.params for f in fits], [f.seconds for f in fits]
 
 
 def score(crop: str, params: list[dict], truths: list[dict], seconds: list[float], log=print):
@@ -170,14 +180,34 @@ def run(
             b = budget(quick, scenes, method, crn, overrides, scale)
             if method == "mlp":
                 params, seconds = _predict_mlp(observations, quick)
-            else:
-                params, seconds = _fit_all(observations, b, label, ex, checkpoint_dir, log=log)
-            out["methods"][label] = score(crop, params, truths, seconds, log=log)
+                out["methods"][label] = score(crop, params, truths, seconds, log=log)
+                continue
+            done = _fit_all(observations, b, label, ex, checkpoint_dir)
+            for row, cfg in rules(label, b.fit):
+                params, seconds = combine_scenes(
+                    crop,
+                    cfg,
+                    done,
+                    len(observations),
+                    log=lambda m, row=row: log(f"  {row} {m}"),
+                    observation=observations.__getitem__,
+                )
+                out["methods"][row] = score(crop, params, truths, seconds, log=log)
     finally:
         if ex is not None:
             ex.shutdown()
     out["truths"] = truths
     return out
+
+
+def rules(label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
+    """The table rows one method's seeds give: BO's seeds are also combined by the other rule
+    (``{label}-reevaluate`` or ``{label}-mean``), at no extra fitting cost, so every run
+    compares the two on the same seeds."""
+    if cfg.method != "bo":
+        return [(label, cfg)]
+    other = "reevaluate" if cfg.combine == "mean" else "mean"
+    return [(label, cfg), (f"{label}-{other}", replace(cfg, combine=other))]
 
 
 def seed_seconds(r) -> float:
@@ -193,9 +223,9 @@ def _seed_job(args) -> tuple[int, object, float]:
     return i, r, seed_seconds(r)
 
 
-def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, log=print):
+def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir):
     """Every scene fitted with ``b.fit``; the (scene, seed) jobs spread over ``ex``'s processes.
-    Returns each scene's combined parameters and its fitting seconds (:func:`combine_scenes`)."""
+    Returns the finished (scene, SeedResult, seconds) jobs."""
     cfg = b.fit
     ck = Path(checkpoint_dir) if checkpoint_dir else None
     if ck is not None:
@@ -211,10 +241,7 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, log=print)
         for i, obs in enumerate(observations)
         for s in range(cfg.n_seeds)
     ]
-    done = run_jobs(ex, _seed_job, jobs)
-    return combine_scenes(
-        observations[0].crop, cfg, done, len(observations), log=lambda m: log(f"  {label} {m}")
-    )
+    return list(run_jobs(ex, _seed_job, jobs))
 
 
 def _predict_mlp(observations, quick: bool):

@@ -51,7 +51,14 @@ def benchmark(
     {...}, "predictions": {method: [params per scene]}, "budget": {...}}``. ``overrides``
     (FitConfig fields, e.g. ``{"n_seeds": 3}``) and ``image_scale`` change the budget as in
     ``cropcraft bench accuracy``."""
-    from benchmarks.bench_accuracy import budget, combine_scenes, score, truth_record
+    from benchmarks.bench_accuracy import (
+        budget,
+        combine_scenes,
+        rules,
+        scene_observation,
+        score,
+        truth_record,
+    )
 
     log = get_run_logger()
     methods = list(methods or ["bo", "trust-region", "random"])
@@ -83,9 +90,16 @@ def benchmark(
             for (mm, _, _), d in zip(jobs, done, strict=True)
             if mm == m
         ]
-        params, seconds = combine_scenes(crop, configs[m], mine, b0.scenes)
-        out["methods"][m] = score(crop, params, truths, seconds, log=log.info)
-        out["methods"][m]["budget"] = {**configs[m].to_dict(), "image_scale": b0.scale}
+        for row, cfg in rules(m, configs[m]):
+            params, seconds = combine_scenes(
+                crop,
+                cfg,
+                mine,
+                b0.scenes,
+                observation=lambda i: scene_observation(crop, i, b0.scale)[1],
+            )
+            out["methods"][row] = score(crop, params, truths, seconds, log=log.info)
+            out["methods"][row]["budget"] = {**cfg.to_dict(), "image_scale": b0.scale}
     out["truths"] = truths
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     key = f"benchmarks/accuracy/{crop}/{stamp}{'-quick' if quick else ''}.json"

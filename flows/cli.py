@@ -84,6 +84,7 @@ def _fit_config(args: argparse.Namespace):
         n_seeds=args.seeds,
         n_evals=args.evals,
         n_initial=min(args.initial, args.evals),
+        combine=args.combine,
     )
     return cfg if args.method == "poisson" else cfg.validate()
 
@@ -152,6 +153,13 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seeds", type=int, default=10, help="optimiser seeds (paper: 10)")
     f.add_argument("--evals", type=int, default=500, help="evaluations per seed (paper: 500)")
     f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
+    f.add_argument(
+        "--combine",
+        default="mean",
+        choices=["mean", "reevaluate"],
+        help="bo's answer from its seeds: the paper's mean of their best points (default) or "
+        "candidates re-scored on fresh canopies (fit/select.py)",
+    )
     f.add_argument("--seed", type=int, default=0, help="seed of the final canopy and sampling")
     f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")
     f.add_argument("--row-spacing", type=float, metavar="M", help="known planting row spacing")

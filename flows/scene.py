@@ -58,6 +58,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "n_initial": 200,
         "common_random_numbers": True,
         "refit_every": 10,
+        "canopies_per_eval": None,  # None: the crop's default (FitConfig)
+        "combine": "mean",  # the paper's; "reevaluate": candidates re-scored (fit/select.py)
+        "reevaluate_canopies": 16,
     },
     "generate": {"seed": 0},
     "metrics": {"gap_fraction": True, "seed": 0},
@@ -387,7 +390,7 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     r["observe"] = ex.run("observe", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]})
     seeds = list(range(int(req.config["fit"]["n_seeds"])))
     seed_recs = ex.map_seeds({"observe": r["observe"]}, seeds)
-    r["aggregate"] = ex.run("aggregate", dict(seed_recs))
+    r["aggregate"] = ex.run("aggregate", {"observe": r["observe"], **dict(seed_recs)})
     r["generate"] = ex.run("generate", {"aggregate": r["aggregate"]})
     r["metrics"] = ex.run("metrics", {"generate": r["generate"]})
     r["export"] = ex.run(

@@ -1,8 +1,10 @@
-"""Stage ``aggregate``: the final parameters from the per-seed results (the paper's mean of the
-seeds' best points) and their spread."""
+"""Stage ``aggregate``: the final parameters from the per-seed results (by default the paper's
+mean of the seeds' best points; ``fit.combine = "reevaluate"`` re-scores the seeds' candidates
+against the observation on fresh canopies) and their spread."""
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
 from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
@@ -13,11 +15,15 @@ from tasks.fit_seed import fit_config
 def aggregate(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
-    """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream``; stores
-    ``FitResult.to_dict()`` as ``{scene}/fit/fit.json`` (params, params_std, per-seed params and
-    losses; ``seconds`` = the seeds' summed optimisation time)."""
+    """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream`` against
+    ``upstream["observe"]``'s observation; stores ``FitResult.to_dict()`` as
+    ``{scene}/fit/fit.json`` (params, params_std, per-seed params and losses, the re-scored
+    candidates under ``extra.selection``; ``seconds`` = the seeds' summed optimisation time plus
+    the re-scoring)."""
     from cropcraft_core.fit import combine
+    from cropcraft_core.observe import Observation
     from cropcraft_core.optimize import SeedResult
+    from tasks.fit_seed import layout_of
 
     store = open_store(store_root)
     cfg = fit_config(config)
@@ -32,7 +38,9 @@ def aggregate(
             path = store.get_file(key_of(rec, "seed"), tmp / f"{rec['summary']['seed']}.npz")
             results.append(SeedResult.load(path))
         seconds = sum(float(r["seconds"]) for r in seeds)
-        fit = combine(crop, results, cfg, seconds)
+        data = store.get_bytes(key_of(upstream["observe"], "observation"))
+        obs = Observation.load(io.BytesIO(data))
+        fit = combine(crop, results, cfg, seconds, obs, layout_of(crop, config))
         key = artefact(scene, "aggregate", "fit.json")
         digest = store.put_json(key, fit.to_dict())
     return make_record(
@@ -40,6 +48,11 @@ def aggregate(
         scene,
         {"fit": key},
         {key: digest},
-        {"params": fit.params, "params_std": fit.params_std, "n_seeds": len(results)},
+        {
+            "params": fit.params,
+            "params_std": fit.params_std,
+            "n_seeds": len(results),
+            "chosen": fit.extra.get("selection", {}).get("chosen", cfg.combine),
+        },
         t.seconds,
     )

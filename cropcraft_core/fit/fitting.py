@@ -1,5 +1,5 @@
 """Fitting a procedural model to an observation: one seed at a time (the unit the orchestrator
-maps), and the paper's whole fit (10 seeds, mean of their best parameters).
+maps), and the whole fit (10 seeds, then one answer chosen from them: ``fit/select.py``).
 
 Noise. The procedural model is stochastic (plant positions, azimuths, angle noise). With
 ``common_random_numbers=True`` (default) every evaluation of a seed uses the same canopy seed, so
@@ -30,6 +30,7 @@ from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
 
 METHODS = ("bo", "trust-region", "random", "mlp")
+COMBINE_RULES = ("reevaluate", "mean")
 DEFAULT_CANOPIES = {"soybean": 2, "maize": 1}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 
@@ -41,8 +42,15 @@ class FitConfig:
     method: str = "bo"
     """bo (Bayesian optimisation), trust-region, random or mlp."""
     n_seeds: int = 10
-    """Independent optimiser seeds; the final parameters are the mean of their best points
-    (trust-region keeps the single lowest-loss seed, as the paper does)."""
+    """Independent optimiser seeds; how one answer is chosen from them is ``combine``."""
+    combine: str = "mean"
+    """BO's final parameters from its seeds: ``mean`` (default, the paper's mean of the seeds'
+    best points) or ``reevaluate`` (every seed's best point, their mean and the minimum of the
+    seeds' averaged GPs re-scored on fresh canopies, the lowest wins: ``fit/select.py``, where
+    its measurements are). The baselines follow the paper: random takes the mean, trust-region
+    the lowest-loss seed."""
+    reevaluate_canopies: int = 16
+    """Fresh canopies (the same for every candidate) each ``reevaluate`` candidate is scored on."""
     n_evals: int = 500
     """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
     n_initial: int = 200
@@ -66,6 +74,14 @@ class FitConfig:
             raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
         if self.canopies_per_eval is not None and self.canopies_per_eval < 1:
             raise ConfigError(f"canopies_per_eval must be at least 1, got {self.canopies_per_eval}")
+        if self.combine not in COMBINE_RULES:
+            raise ConfigError(
+                f"unknown combine rule {self.combine!r}: choose one of {', '.join(COMBINE_RULES)}"
+            )
+        if self.reevaluate_canopies < 1:
+            raise ConfigError(
+                f"reevaluate_canopies must be at least 1, got {self.reevaluate_canopies}"
+            )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
         if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
@@ -162,29 +178,55 @@ class FitResult:
         return asdict(self)
 
 
-def combine(crop: str, results: list[SeedResult], config: FitConfig, seconds: float) -> FitResult:
-    """The paper's final answer from per-seed results: the mean of the seeds' best parameters
-    (BO, random) or the lowest-loss seed's (trust-region)."""
+def combine(
+    crop: str,
+    results: list[SeedResult],
+    config: FitConfig,
+    seconds: float,
+    observation: Observation | None = None,
+    layout: CanopyLayout | None = None,
+) -> FitResult:
+    """One answer from per-seed results. BO: ``config.combine`` (``reevaluate`` needs the
+    ``observation`` the seeds were fitted to, and their ``layout``); random: the paper's mean of
+    the seeds' best parameters; trust-region: the lowest-loss seed's. ``params_std`` is always
+    the spread of the seeds' best points; ``extra["selection"]`` holds every re-scored candidate."""
     if not results:
         raise ConfigError("no seed results to combine")
+    config = config.validate()
+    if observation is not None and observation.crop != crop:
+        raise ConfigError(f"observation is of {observation.crop}, the seeds of {crop}")
     per_seed = [params_from_vector(crop, r.reported_x) for r in results]
     losses = [float(r.best_y) for r in results]
+    agg = aggregate(results)
+    extra: dict[str, Any] = {}
     if config.method == "trust-region":
         best = int(np.argmin(losses))
-        mean = results[best].reported_x
-        std = np.zeros_like(mean)
+        final = results[best].reported_x
+        std = np.zeros_like(final)
+    elif config.method == "bo" and config.combine == "reevaluate":
+        if observation is None:
+            raise ConfigError(
+                "combine='reevaluate' re-scores candidates against the observation: pass it "
+                "(or use combine='mean', the paper's rule)"
+            )
+        from cropcraft_core.fit.select import select
+
+        sel = select(ForwardModel(observation, layout), results, config.reevaluate_canopies)
+        final, std = sel.x, agg.std_x
+        extra["selection"] = sel.to_dict(crop)
+        seconds += sel.seconds
     else:
-        agg = aggregate(results)
-        mean, std = agg.mean_x, agg.std_x
+        final, std = agg.mean_x, agg.std_x
     return FitResult(
         crop=crop,
         method=config.method,
-        params=params_from_vector(crop, mean),
+        params=params_from_vector(crop, final),
         params_std=params_from_vector(crop, std),
         seed_params=per_seed,
         seed_losses=losses,
         seconds=seconds,
         config=config.to_dict(),
+        extra=extra,
     )
 
 
@@ -218,4 +260,4 @@ def fit_observation(
     for s in seeds:
         ck = Path(checkpoint_dir) / f"seed-{s}.json" if checkpoint_dir else None
         results.append(fit_seed(observation, s, cfg, layout, ck))
-    return combine(observation.crop, results, cfg, time.perf_counter() - t)
+    return combine(observation.crop, results, cfg, time.perf_counter() - t, observation, layout)

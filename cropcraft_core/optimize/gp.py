@@ -44,9 +44,19 @@ def default_theta(d: int, noise_variance: float = 1e-2) -> np.ndarray:
     return np.concatenate([np.full(d, math.log(0.3)), [0.0, math.log(noise_variance)]])
 
 
-def theta_bounds(d: int, noise_variance: float | None = None) -> list[tuple[float, float]]:
-    """L-BFGS-B box for ``theta`` (d + 2 pairs). A given ``noise_variance`` fixes the noise."""
+def theta_bounds(
+    d: int, noise_variance: float | None = None, min_lengthscale: float | None = None
+) -> list[tuple[float, float]]:
+    """L-BFGS-B box for ``theta`` (d + 2 pairs). A given ``noise_variance`` fixes the noise; a
+    given ``min_lengthscale`` raises the length-scales' floor (a smoother model)."""
     lo, hi = (math.log(v) for v in LENGTHSCALE_BOUNDS)
+    if min_lengthscale is not None:
+        if not LENGTHSCALE_BOUNDS[0] <= min_lengthscale < LENGTHSCALE_BOUNDS[1]:
+            raise ConfigError(
+                f"min_lengthscale={min_lengthscale!r} must lie in [{LENGTHSCALE_BOUNDS[0]}, "
+                f"{LENGTHSCALE_BOUNDS[1]})"
+            )
+        lo = math.log(min_lengthscale)
     out = [(lo, hi)] * d + [tuple(math.log(v) for v in SIGNAL_VARIANCE_BOUNDS)]
     if noise_variance is None:
         out.append(tuple(math.log(v) for v in NOISE_VARIANCE_BOUNDS))
@@ -130,6 +140,7 @@ def fit_hyperparameters(
     theta0: np.ndarray | None = None,
     *,
     noise_variance: float | None = None,
+    min_lengthscale: float | None = None,
     n_restarts: int = 0,
     rng: np.random.Generator | None = None,
     maxiter: int = 200,
@@ -143,7 +154,7 @@ def fit_hyperparameters(
     n, d = X.shape
     ys, _, _ = standardise(np.asarray(y, dtype=np.float64))
     diff2 = (X.T[:, :, None] - X.T[:, None, :]) ** 2
-    bnds = theta_bounds(d, noise_variance)
+    bnds = theta_bounds(d, noise_variance, min_lengthscale)
     lo = np.array([b[0] for b in bnds])
     hi = np.array([b[1] for b in bnds])
     starts = [np.clip(default_theta(d) if theta0 is None else np.asarray(theta0, float), lo, hi)]

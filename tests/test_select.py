@@ -1,0 +1,116 @@
+"""Choosing the fit's answer from its seeds (``cropcraft_core/fit/select.py``): the pooled GP's
+minimum and the re-scoring of candidates on fresh canopies, on real fits."""
+
+import numpy as np
+import pytest
+
+from cropcraft_core.config import default_layout
+from cropcraft_core.config.params import bounds as param_bounds
+from cropcraft_core.config.params import params_from_vector
+from cropcraft_core.errors import ConfigError
+from cropcraft_core.fit import FitConfig, ForwardModel, combine, fit_seed, observe_canopy
+from cropcraft_core.fit.select import averaged_minimum, candidates, reevaluation_seeds
+from cropcraft_core.observe import preset
+from cropcraft_core.optimize import SeedResult, aggregate
+from cropcraft_core.procedural import generate_canopy
+
+SMALL = {"image_width": 248, "image_height": 184}
+
+
+def _seed(seed: int, X: np.ndarray, y: np.ndarray, bounds: np.ndarray) -> SeedResult:
+    i = int(np.argmin(y))
+    return SeedResult(
+        method="bo",
+        seed=seed,
+        bounds=bounds,
+        X=X,
+        y=y,
+        best_x=X[i],
+        best_y=float(y[i]),
+        seconds_optimizer=0.0,
+        seconds_objective=0.0,
+        seconds_per_eval=np.zeros(len(y)),
+    )
+
+
+def test_averaged_minimum_is_the_minimum_of_the_seed_averaged_loss():
+    """Each seed sees the bowl shifted by its own canopy offset; the pooled GP's minimum is the
+    minimum of the average bowl (the offsets' mean), not any one seed's."""
+    rng = np.random.default_rng(3)
+    bounds = np.array([[0.0, 2.0], [1.0, 14.0], [0.5, 1.5]])
+    lo, span = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
+    centre = np.array([0.4, 0.6, 0.5])
+    offsets = rng.normal(0.0, 0.06, (10, 3))
+    results = []
+    for s, off in enumerate(offsets):
+        # random exploration plus points clustered where a seed's optimiser would end up
+        U = np.clip(
+            np.vstack([rng.random((150, 3)), centre + off + rng.normal(0, 0.05, (150, 3))]), 0, 1
+        )
+        y = 0.002 + 0.4 * ((U - centre - off) ** 2).sum(1)
+        results.append(_seed(s, lo + span * U, y, bounds))
+    got = (averaged_minimum(results) - lo) / span
+    target = centre + offsets.mean(0)
+    assert np.abs(got - target).max() < 0.04
+    # and it lies nearer that minimum than a typical single seed's best point
+    single = [np.abs((r.best_x - lo) / span - target).max() for r in results]
+    assert np.abs(got - target).max() < np.median(single)
+
+
+def test_averaged_minimum_refuses_seeds_from_different_boxes():
+    X = np.random.default_rng(0).random((20, 2))
+    a = _seed(0, X, X.sum(1) + 0.1, np.array([[0.0, 1.0], [0.0, 1.0]]))
+    b = _seed(1, X, X.sum(1) + 0.1, np.array([[0.0, 2.0], [0.0, 1.0]]))
+    with pytest.raises(ConfigError, match="different parameter box"):
+        averaged_minimum([a, b])
+
+
+@pytest.fixture(scope="module")
+def soybean_seeds():
+    truth = {"leaf_length": 1.0, "petiole_length": 1.1, "petiole_angle": 1.5, "num_nodes": 7.0}
+    canopy = generate_canopy("soybean", truth, default_layout("soybean"), seed=5)
+    obs = observe_canopy(canopy, preset("soybean", **SMALL))
+    cfg = FitConfig(
+        n_seeds=3, n_evals=30, n_initial=12, combine="reevaluate", reevaluate_canopies=4
+    )
+    return obs, cfg, [fit_seed(obs, s, cfg) for s in range(3)]
+
+
+def test_reevaluate_keeps_the_candidate_with_the_lowest_fresh_canopy_loss(soybean_seeds):
+    obs, cfg, seeds = soybean_seeds
+    fit = combine("soybean", seeds, cfg, 1.0, obs)
+    sel = fit.extra["selection"]
+    assert set(sel["candidates"]) == {"seed-0", "seed-1", "seed-2", "mean", "averaged"}
+    losses = {k: c["loss"] for k, c in sel["candidates"].items()}
+    assert sel["chosen"] == min(losses, key=losses.get)
+    assert fit.params == sel["candidates"][sel["chosen"]]["params"]
+    # the recorded losses are reproducible: the same fresh canopies, none a seed fitted to
+    assert sel["canopy_seeds"] == reevaluation_seeds(4)
+    fm = ForwardModel(obs)
+    for k in ("mean", sel["chosen"]):
+        assert fm.loss(sel["candidates"][k]["params"], sel["canopy_seeds"]) == pytest.approx(
+            losses[k], rel=1e-12
+        )
+    # the spread reported is still the seeds' spread, and the mean candidate is the paper's
+    paper = combine("soybean", seeds, FitConfig(**{**cfg.to_dict(), "combine": "mean"}), 1.0)
+    assert fit.params_std == paper.params_std
+    assert sel["candidates"]["mean"]["params"] == pytest.approx(paper.params)
+    assert paper.extra == {} and fit.seconds > 1.0
+    # candidates are inside the box
+    b = param_bounds("soybean")
+    for x in candidates(seeds).values():
+        assert np.all(x >= b[:, 0] - 1e-12) and np.all(x <= b[:, 1] + 1e-12)
+    assert np.allclose(aggregate(seeds).mean_x, candidates(seeds)["mean"])
+    params_from_vector("soybean", candidates(seeds)["averaged"])  # a valid parameter set
+
+
+def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
+    obs, cfg, seeds = soybean_seeds
+    with pytest.raises(ConfigError, match="pass it"):
+        combine("soybean", seeds, cfg, 0.0)
+    with pytest.raises(ConfigError, match="observation is of soybean"):
+        combine("maize", seeds, cfg, 0.0, obs)
+    with pytest.raises(ConfigError, match="unknown combine rule"):
+        FitConfig(combine="median").validate()
+    with pytest.raises(ConfigError, match="reevaluate_canopies"):
+        FitConfig(reevaluate_canopies=0).validate()
