@@ -8,9 +8,10 @@ seed, its depth rendered from the row camera as the observation (no background),
 method, and the fitted canopy measured like the truth. Prints LAIE, LAIPE (and its median), AME,
 ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is a reduced
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
-``--crn-ablation`` adds a BO row without common random numbers. BO's row is the paper's mean
-of the seeds' best points; ``bo-reevaluate`` chooses from the same seeds by re-scoring
-candidates on fresh canopies (``fit/select.py``).
+``--crn-ablation`` adds a BO row without common random numbers. BO's row uses the crop's
+default rule for its answer (soybean: the paper's mean of the seeds' best points; maize:
+candidates re-scored on fresh canopies, ``fit/select.py``); ``bo-reevaluate`` / ``bo-mean`` is
+the other rule on the same seeds.
 
 Every (scene, optimiser seed) pair is one job: ``--workers N`` runs them in N single-threaded
 processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each seed's resumable
@@ -109,7 +110,7 @@ def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None, obs
         seconds[i] += sec
         if log is not None and len(per_scene[i]) == cfg.n_seeds:
             log(f"scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
-    needs_obs = cfg.method == "bo" and cfg.combine == "reevaluate"
+    needs_obs = cfg.method == "bo" and cfg.combine_rule(crop) == "reevaluate"
     fits = [
         combine(
             crop,
@@ -183,7 +184,7 @@ def run(
                 out["methods"][label] = score(crop, params, truths, seconds, log=log)
                 continue
             done = _fit_all(observations, b, label, ex, checkpoint_dir)
-            for row, cfg in rules(label, b.fit):
+            for row, cfg in rules(crop, label, b.fit):
                 params, seconds = combine_scenes(
                     crop,
                     cfg,
@@ -200,13 +201,13 @@ def run(
     return out
 
 
-def rules(label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
+def rules(crop: str, label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
     """The table rows one method's seeds give: BO's seeds are also combined by the other rule
     (``{label}-reevaluate`` or ``{label}-mean``), at no extra fitting cost, so every run
     compares the two on the same seeds."""
     if cfg.method != "bo":
         return [(label, cfg)]
-    other = "reevaluate" if cfg.combine == "mean" else "mean"
+    other = "reevaluate" if cfg.combine_rule(crop) == "mean" else "mean"
     return [(label, cfg), (f"{label}-{other}", replace(cfg, combine=other))]
 
 

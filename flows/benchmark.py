@@ -90,7 +90,7 @@ def benchmark(
             for (mm, _, _), d in zip(jobs, done, strict=True)
             if mm == m
         ]
-        for row, cfg in rules(m, configs[m]):
+        for row, cfg in rules(crop, m, configs[m]):
             params, seconds = combine_scenes(
                 crop,
                 cfg,

@@ -59,7 +59,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "common_random_numbers": True,
         "refit_every": 10,
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
-        "combine": "mean",  # the paper's; "reevaluate": candidates re-scored (fit/select.py)
+        "combine": None,  # None: the crop's (FitConfig); "mean" (paper's) or "reevaluate"
         "reevaluate_canopies": 16,
     },
     "generate": {"seed": 0},

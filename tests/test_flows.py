@@ -372,13 +372,13 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
         overrides=budget,
     )
     ref = run("maize", ["bo", "random"], True, 2, log=lambda *_: None, overrides=budget)
-    # bo: the paper's mean of its seeds' best points; bo-reevaluate: candidates re-scored
-    for m in ("bo", "bo-reevaluate", "random"):
+    # maize's bo: candidates re-scored (its default); bo-mean: the paper's mean of the seeds
+    for m in ("bo", "bo-mean", "random"):
         assert got["predictions"][m] == [p["params"] for p in ref["methods"][m]["predictions"]]
         assert got["errors"][m] == ref["methods"][m]["errors"]
     stored = SceneStore.connect(str(tmp_path / "store")).get_json(got["key"])
-    assert set(stored["methods"]) == {"bo", "bo-reevaluate", "random"}
-    assert stored["methods"]["bo-reevaluate"]["budget"]["combine"] == "reevaluate"
+    assert set(stored["methods"]) == {"bo", "bo-mean", "random"}
+    assert stored["methods"]["bo-mean"]["budget"]["combine"] == "mean"
     assert len(stored["truths"]) == 2 and stored["methods"]["bo"]["budget"]["n_evals"] == 14
 
 

@@ -110,6 +110,10 @@ def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
         combine("soybean", seeds, cfg, 0.0)
     with pytest.raises(ConfigError, match="observation is of soybean"):
         combine("maize", seeds, cfg, 0.0, obs)
+    # the crop's default rule: maize re-scores, soybean keeps the paper's mean
+    assert FitConfig().combine_rule("maize") == "reevaluate"
+    assert FitConfig().combine_rule("soybean") == "mean"
+    assert FitConfig(combine="mean").combine_rule("maize") == "mean"
     with pytest.raises(ConfigError, match="unknown combine rule"):
         FitConfig(combine="median").validate()
     with pytest.raises(ConfigError, match="reevaluate_canopies"):
