@@ -34,7 +34,7 @@ from cropcraft_core.config import default_layout, param_space
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import combine
 from cropcraft_core.metrics import canopy_metrics, evaluate
-from cropcraft_core.observe import preset
+from cropcraft_core.observe import clear_render_height, preset
 from cropcraft_core.procedural import generate_canopy
 
 PAPER = {  # Table "Synthetic data evaluation": LAIE, NDPE, NCPE
@@ -89,11 +89,17 @@ def _record(params: dict, canopy) -> dict:
 
 def scene_observation(crop: str, index: int, scale: float) -> tuple[dict, object]:
     """Scene ``index``'s truth record (:func:`truth_record`) and its observation: the true
-    canopy's depth from the row camera at ``scale`` × 994×738. Deterministic, so a worker
-    anywhere can rebuild it from these three values."""
+    canopy's depth from the row camera at ``scale`` × 994×738, at the crop's render height
+    raised over a tall canopy as the row fit raises it (``observe.clear_render_height`` of the
+    mesh's 99.5th height percentile). Deterministic, so a worker anywhere can rebuild it from
+    these three values."""
     params, canopy = scene_truth(crop, index)
     size = {"image_width": round(994 * scale), "image_height": round(738 * scale)}
-    obs = observe_canopy(canopy, preset(crop, **size), meta={"scene": index})
+    base = preset(crop, **size)
+    top = float(np.percentile(canopy.mesh.vertices[:, 2], 99.5))
+    h = clear_render_height(crop, base.render_height, top)
+    p = base if h == base.render_height else preset(crop, render_height=h, **size)
+    obs = observe_canopy(canopy, p, meta={"scene": index})
     return _record(params, canopy), obs
 
 
@@ -232,13 +238,16 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir):
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
     tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
+    default_h = preset(observations[0].crop).render_height
+
+    def name(i: int, obs, s: int) -> str:
+        # a scene observed from a raised camera is another fit: its own checkpoints
+        h = obs.preset.render_height
+        raised = f"-h{h:g}" if abs(h - default_h) > 1e-9 else ""
+        return f"{obs.crop}-{tag}-scene{i}{raised}-seed{s}.json"
+
     jobs = [
-        (
-            i,
-            s,
-            cfg,
-            ck / f"{obs.crop}-{tag}-scene{i}-seed{s}.json" if ck is not None else None,
-        )
+        (i, s, cfg, ck / name(i, obs, s) if ck is not None else None)
         for i, obs in enumerate(observations)
         for s in range(cfg.n_seeds)
     ]

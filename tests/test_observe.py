@@ -472,3 +472,16 @@ def test_bad_observations_raise_named_errors(tmp_path):
     with pytest.raises(ConfigError, match="straight down"):
         Observation("soybean", tilted, d, full())
     assert issubclass(InputError, CropCraftError)
+
+
+def test_render_height_is_raised_only_over_a_canopy_that_reaches_the_depth_range():
+    from cropcraft_core.observe import clear_render_height
+
+    assert clear_render_height("soybean", 1.0, 0.6) == 1.0
+    assert clear_render_height("soybean", 1.0, 0.9) == 1.0  # exactly at the 0.1 m edge
+    assert clear_render_height("soybean", 1.0, 1.44) == pytest.approx(1.55)
+    assert clear_render_height("soybean", 1.25, 1.2) == pytest.approx(1.3)
+    assert clear_render_height("maize", 5.0, 3.0) == 5.0  # maize's depth bins start at 2 m
+    assert clear_render_height("maize", 5.0, 3.21) == pytest.approx(5.25)
+    with pytest.raises(ConfigError):
+        clear_render_height("wheat", 1.0, 0.5)

@@ -19,6 +19,7 @@ from cropcraft_core.observe.presets import (
     CROPS,
     LossPreset,
     ObservePreset,
+    clear_render_height,
     preset,
     soybean_render_height,
     with_overrides,
@@ -38,6 +39,7 @@ __all__ = [
     "observation_mask",
     "predicted_mask",
     "preset",
+    "clear_render_height",
     "soybean_render_height",
     "with_overrides",
 ]

@@ -468,6 +468,15 @@ def fit_ground_and_rows(
         raise RowFitError(
             f"no rows found: no plant points within the {used.roi_radius:g} m ROI cylinder"
         )
+    top = float(np.percentile(q[:, 2], 99.5))
+    diag["canopy_top"] = top
+    if used.clear_canopy:
+        from cropcraft_core.observe.presets import clear_render_height
+
+        h = clear_render_height(crop, used.render_height, top)
+        if h != used.render_height:
+            diag["render_height_raised_from"] = float(used.render_height)
+            used = replace(used, render_height=h)
     cut = np.percentile(q[:, 2], used.height_percentile)
     xy = q[q[:, 2] >= cut, :2]
     diag["height_cut"] = float(cut)

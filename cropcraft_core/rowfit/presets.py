@@ -118,6 +118,10 @@ class RowFitPreset:
     """Row line threshold used for a dense canopy (0.25)."""
     dense_render_height: float = 1.25
     """Render height used for a dense canopy (1.25)."""
+    clear_canopy: bool = True
+    """Not in the paper (``False`` = exactly the paper): raise the render height where the
+    canopy's top (99.5th percentile of plant-point heights in the ROI) comes within the depth
+    histogram's lower edge of the camera (``observe.clear_render_height``)."""
     roi_radius: float | None = None
     """Row fitting only uses plant points within this distance of a vertical axis through the
     frame origin (the scene-box centre projected onto the ground); maize 2.0, soybean ``None``."""
@@ -172,6 +176,8 @@ class RowFitPreset:
             raise ConfigError(
                 f"dense_plant_fraction must be in (0, 1) or None, got {self.dense_plant_fraction}"
             )
+        if not isinstance(self.clear_canopy, bool):
+            raise ConfigError(f"clear_canopy must be true or false, got {self.clear_canopy!r}")
         if self.roi_radius is not None:
             _positive("roi_radius", self.roi_radius)
         if self.refine_direction_deg is not None:
