@@ -365,9 +365,9 @@ def clear_render_height(crop: str, render_height: float, canopy_top: float) -> f
     ``canopy_top + depth_min``, rounded up to 5 cm.
 
     Not in the paper, whose fixed soybean camera (1.0 m, 1.25 m dense) assumes canopies below
-    0.9 m; 4 of the accuracy benchmark's 30 uniformly drawn soybean canopies reach 0.98-1.48 m,
-    where the 1.0 m camera sat among the leaves and the loss could not tell LAI 2.6 from the
-    true 5.5 (``fit/select.py``)."""
+    0.9 m; 5 of the accuracy benchmark's 30 uniformly drawn soybean canopies reach 0.90-1.48 m,
+    three of them above the 1.0 m camera, where the loss could not tell LAI 2.6 from the true
+    5.5 (``fit/select.py``)."""
     if crop not in _BASE:
         raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(_BASE)}")
     _finite("render_height", render_height, minimum=0.0)
