@@ -142,17 +142,22 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     return cfg
 
 
+#: Fit settings only the aggregate stage reads: changing them must not refit the seeds.
+_AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies"})
+
+
 def stage_configs(cfg: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """The config each task sees (and its cache key hashes): its own section, plus the planting
     layout for the stages that build canopies."""
     layout = {"layout": dict(cfg["layout"])}
+    seed_fit = {k: v for k, v in cfg["fit"].items() if k not in _AGGREGATE_ONLY}
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),
         "surfaces": dict(cfg["surfaces"]),
         "rowfit": {**cfg["rowfit"], **layout},
         "observe": dict(cfg["observe"]),
-        "fit_seed": {**cfg["fit"], **layout},
+        "fit_seed": {**seed_fit, **layout},
         "aggregate": {**cfg["fit"], **layout},
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),

@@ -186,6 +186,22 @@ def test_late_config_change_recomputes_from_that_stage_on(base_run, scene_dir):
     assert sorted(api).count("Completed") == 4 and api.count("Cached") == N_TASKS - 4
 
 
+def test_changing_the_answer_rule_reuses_the_seeds(base_run, scene_dir):
+    """``fit.combine`` only changes how the seeds become one answer: the seeds stay cached, the
+    aggregate re-scores their candidates against the stored observation and records them."""
+    overrides = {**OVERRIDES, "fit.combine": "reevaluate", "fit.reevaluate_canopies": 2}
+    out = _run("plotA", base_run["store"], scene_dir, overrides)
+    executed = set(_executed(out["states"]))
+    assert {"aggregate", "report"} <= executed
+    assert not any(k.startswith("fit_seed") for k in executed)
+    store = SceneStore(str(base_run["store"]))
+    fit = store.get_json(f"plotA/{CROP}/{DATE}/fit/fit.json")
+    sel = fit["extra"]["selection"]
+    assert set(sel["candidates"]) == {*(f"seed-{s}" for s in range(N_SEEDS)), "mean", "averaged"}
+    assert fit["params"] == sel["candidates"][sel["chosen"]]["params"] == out["params"]
+    assert fit["config"]["combine"] == "reevaluate"
+
+
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
     import tasks.fit_seed as fit_seed_module
     from cropcraft_core.fit import FitConfig, fit_observation
