@@ -116,14 +116,13 @@ def combine_scenes(crop: str, cfg: FitConfig, done, n_scenes: int, log=None, obs
         seconds[i] += sec
         if log is not None and len(per_scene[i]) == cfg.n_seeds:
             log(f"scene {i}: {cfg.n_seeds} seeds in {seconds[i]:.0f} s")
-    needs_obs = cfg.method == "bo" and cfg.combine_rule(crop) == "reevaluate"
     fits = [
         combine(
             crop,
             sorted(per_scene[i], key=lambda r: r.seed),
             cfg,
             seconds[i],
-            observation(i) if needs_obs else None,
+            observation(i) if cfg.reevaluates(crop) else None,
         )
         for i in range(n_scenes)
     ]

@@ -1,13 +1,21 @@
-"""Stage ``aggregate``: the final parameters from the per-seed results (by default the paper's
-mean of the seeds' best points; ``fit.combine = "reevaluate"`` re-scores the seeds' candidates
-against the observation on fresh canopies) and their spread."""
+"""Stage ``aggregate``: the final parameters from the per-seed results (``fit.combine``, by
+default the crop's rule: soybean the paper's mean of the seeds' best points, maize the seeds'
+candidates re-scored against the observation on fresh canopies) and their spread."""
 
 from __future__ import annotations
 
-import io
 from typing import Any
 
-from tasks.common import Timer, artefact, key_of, make_record, open_store, stage_task, workdir
+from tasks.common import (
+    Timer,
+    artefact,
+    key_of,
+    load_observation,
+    make_record,
+    open_store,
+    stage_task,
+    workdir,
+)
 from tasks.fit_seed import fit_config
 
 
@@ -15,13 +23,12 @@ from tasks.fit_seed import fit_config
 def aggregate(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
-    """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream`` against
-    ``upstream["observe"]``'s observation; stores ``FitResult.to_dict()`` as
-    ``{scene}/fit/fit.json`` (params, params_std, per-seed params and losses, the re-scored
-    candidates under ``extra.selection``; ``seconds`` = the seeds' summed optimisation time plus
-    the re-scoring)."""
+    """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream``
+    (re-scored against ``upstream["observe"]``'s observation where the rule needs it); stores
+    ``FitResult.to_dict()`` as ``{scene}/fit/fit.json`` (params, params_std, per-seed params and
+    losses, the re-scored candidates under ``extra.selection``; ``seconds`` = the seeds' summed
+    optimisation time plus the re-scoring)."""
     from cropcraft_core.fit import combine
-    from cropcraft_core.observe import Observation
     from cropcraft_core.optimize import SeedResult
     from tasks.fit_seed import layout_of
 
@@ -38,8 +45,7 @@ def aggregate(
             path = store.get_file(key_of(rec, "seed"), tmp / f"{rec['summary']['seed']}.npz")
             results.append(SeedResult.load(path))
         seconds = sum(float(r["seconds"]) for r in seeds)
-        data = store.get_bytes(key_of(upstream["observe"], "observation"))
-        obs = Observation.load(io.BytesIO(data))
+        obs = load_observation(store, upstream) if cfg.reevaluates(crop) else None
         fit = combine(crop, results, cfg, seconds, obs, layout_of(crop, config))
         key = artefact(scene, "aggregate", "fit.json")
         digest = store.put_json(key, fit.to_dict())
@@ -52,7 +58,7 @@ def aggregate(
             "params": fit.params,
             "params_std": fit.params_std,
             "n_seeds": len(results),
-            "chosen": fit.extra.get("selection", {}).get("chosen", cfg.combine),
+            "chosen": fit.extra.get("selection", {}).get("chosen", cfg.combine_rule(crop)),
         },
         t.seconds,
     )

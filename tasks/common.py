@@ -210,6 +210,15 @@ def open_store(root: str) -> SceneStore:
     return SceneStore(root)
 
 
+def load_observation(store: SceneStore, upstream: Mapping[str, Any]):
+    """The :class:`~cropcraft_core.observe.Observation` of ``upstream["observe"]``."""
+    import io
+
+    from cropcraft_core.observe import Observation
+
+    return Observation.load(io.BytesIO(store.get_bytes(key_of(upstream["observe"], "observation"))))
+
+
 def artefact(scene: str, stage: str, name: str) -> str:
     """Store key of an artefact of ``stage`` (``{scene}/{folder}/{name}``)."""
     return f"{scene}/{STAGE_FOLDERS[stage]}/{name}"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import json
 from typing import Any
 
@@ -13,7 +12,7 @@ from tasks.common import (
     Timer,
     artefact,
     checkpoint_dir,
-    key_of,
+    load_observation,
     make_record,
     open_store,
     report_progress,
@@ -50,8 +49,6 @@ def fit_seed_task(
     Progress goes to :func:`tasks.common.report_progress` every evaluation and to the log every
     10 %.
     """
-    from cropcraft_core.observe import Observation
-
     log = get_run_logger()
     store = open_store(store_root)
     cfg = fit_config(config)
@@ -68,8 +65,7 @@ def fit_seed_task(
             log.info("seed %d: %d/%d evaluations, loss %.4g", seed, done, total, y)
 
     with Timer() as t:
-        data = store.get_bytes(key_of(upstream["observe"], "observation"))
-        obs = Observation.load(io.BytesIO(data))
+        obs = load_observation(store, upstream)
         result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz")
         with workdir("seed") as tmp:

@@ -7,7 +7,16 @@ from typing import Any
 
 import numpy as np
 
-from tasks.common import STAGES, Timer, artefact, key_of, make_record, open_store, stage_task
+from tasks.common import (
+    STAGES,
+    Timer,
+    artefact,
+    key_of,
+    load_observation,
+    make_record,
+    open_store,
+    stage_task,
+)
 from tasks.fit_seed import layout_of
 
 
@@ -37,7 +46,6 @@ def report(
     from PIL import Image
 
     from cropcraft_core.fit import ForwardModel
-    from cropcraft_core.observe import Observation
     from cropcraft_core.report import scene_report_html, thumbnail
 
     store = open_store(store_root)
@@ -56,9 +64,7 @@ def report(
                 thumbs.append(
                     thumbnail(np.asarray(im.convert("RGB")), int(config.get("thumbnail_px", 192)))
                 )
-        obs = Observation.load(
-            io.BytesIO(store.get_bytes(key_of(upstream["observe"], "observation")))
-        )
+        obs = load_observation(store, upstream)
         fit = store.get_json(key_of(upstream["aggregate"], "fit"))
         recipe = store.get_json(key_of(upstream["generate"], "recipe"))
         metrics = store.get_json(key_of(upstream["metrics"], "metrics"))

@@ -76,6 +76,10 @@ class FitConfig:
     def combine_rule(self, crop: str) -> str:
         return self.combine or DEFAULT_COMBINE[crop]
 
+    def reevaluates(self, crop: str) -> bool:
+        """Whether :func:`combine` re-scores candidates (and so needs the observation)."""
+        return self.method == "bo" and self.combine_rule(crop) == "reevaluate"
+
     def validate(self) -> FitConfig:
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
@@ -210,7 +214,7 @@ def combine(
         best = int(np.argmin(losses))
         final = results[best].reported_x
         std = np.zeros_like(final)
-    elif config.method == "bo" and config.combine_rule(crop) == "reevaluate":
+    elif config.reevaluates(crop):
         if observation is None:
             raise ConfigError(
                 "combine='reevaluate' re-scores candidates against the observation: pass it "
