@@ -185,7 +185,13 @@ def run(a: argparse.Namespace) -> dict:
     )
 
     scene_from_true = np.eye(4) if metric else _scene_from_true(poses, truth_poses)
-    out["scale"] = {"fitted": fit.scale, "source": fit.scale_source}
+    true_scale = 1.0 / float(np.cbrt(np.linalg.det(scene_from_true[:3, :3])))
+    out["scale"] = {
+        "fitted": fit.scale,
+        "source": fit.scale_source,
+        "true": true_scale,
+        "rel_err": fit.scale / true_scale - 1.0,
+    }
     out["rowfit"] = row_fit_errors(fit, scene_from_true, layout).to_dict()
     true_cam = camera_in_truth(fit, scene_from_true)
     if a.image_scale != 1.0:
@@ -213,11 +219,43 @@ def run(a: argparse.Namespace) -> dict:
         }
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
+    if not metric:
+        out["hist_l1_true_scale"] = _l1_at_true_scale(
+            points, colors, backend, truth, scene_from_true, true_scale, layout, a.image_scale
+        )
     out["_observation"] = obs
 
     if a.fit:
         out["fit"] = fit_and_compare(obs, root, a.fit)
     return out
+
+
+def _l1_at_true_scale(points, colors, backend, truth, scene_from_true, scale, layout, image_scale):
+    """Diagnostic: the depth-histogram L1 of the same reconstruction with the row fit given the
+    true metric scale (from the similarity to the true poses) instead of the row spacing's --
+    what the L1 would be with a perfect scale cue, i.e. the reconstruction's own share of it."""
+    from cropcraft_core.observe import Observation
+    from cropcraft_core.rowfit import fit_rows_with_scale
+    from cropcraft_core.rowfit import preset as rowfit_preset
+    from cropcraft_core.rowfit.truth import camera_in_truth
+
+    pre = rowfit_preset("soybean", row_spacing=layout.row_spacing, box_center=None, box_size=None)
+    fit = fit_rows_with_scale(points, colors, "soybean", pre, rng=0, metric_scale=scale)
+    obs = Observation.from_surfaces(
+        "soybean",
+        backend.render,
+        fit.camera,
+        fit.camera_in_scene(),
+        fit.scale,
+        fit.render_height,
+        image_scale=image_scale,
+    )
+    cam = camera_in_truth(fit, scene_from_true)
+    if image_scale != 1.0:
+        cam = cam.scaled(image_scale)
+    d_true, _ = truth.render(cam)
+    h_obs, h_true, _ = observation_vs_truth(obs, np.where(np.isfinite(d_true), d_true, np.nan))
+    return float(np.abs(h_obs - h_true).sum())
 
 
 def fit_and_compare(obs, root: Path, budget: str) -> dict:
@@ -263,7 +301,11 @@ def _print(out: dict) -> None:
             f"  SfM: {s['n_registered']}/{s['n_images']} registered, "
             f"{s['mean_reprojection_error_px']:.2f} px, {s['n_points']} points, {s['seconds']}"
         )
-    print(f"  scale {out['scale']['fitted']:.4f} m/unit from {out['scale']['source']}")
+    sc = out["scale"]
+    print(
+        f"  scale {sc['fitted']:.4f} m/unit from {sc['source']} "
+        f"(true {sc['true']:.4f}: {100 * sc['rel_err']:+.2f} %)"
+    )
     checks = [
         ("row direction error (deg)", out["rowfit"]["direction_deg"], "direction_deg"),
         ("row lateral offset (m)", out["rowfit"]["lateral_m"], "lateral_m"),
@@ -276,6 +318,11 @@ def _print(out: dict) -> None:
     print(f"  {'measure':<28}{'value':>10}{'target':>10}  met")
     for label, v, k in checks:
         print(f"  {label:<28}{v:>10.4f}{TARGETS[k]:>10.3f}  {'yes' if v <= TARGETS[k] else 'NO'}")
+    if "hist_l1_true_scale" in out:
+        print(
+            f"  depth histogram L1 with the true scale instead of the rows': "
+            f"{out['hist_l1_true_scale']:.4f} (the reconstruction's share)"
+        )
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
