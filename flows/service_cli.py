@@ -244,8 +244,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 DEMO_SCENE = ("demo", "soybean", "2024-07-15")
 #: The built-in synthetic soybean scene (truth parameters: middle of their ranges): the default
 #: scene of the photo pipeline, 50 walk-around photos at 640×480 with metric poses. With 30
-#: photos at 480×360 the demo ran ~2 min faster but read LAI 25–31 % low on three runs (its
-#: reconstruction misses thin leaves); at 50 × 640×480 it read 11 % low.
+#: photos at 480×360 the demo ran faster but read LAI 25–31 % low on three runs; at 50 photos
+#: at 640×480 it read 11 % low.
 DEMO_SYNTH = {"seed": 0, "views": 50, "resolution": (640, 480), "trajectory": "walk"}
 #: Reduced-budget defaults that keep the demo well under 15 minutes on 2 CPU cores: the paper's
 #: 10 seeds, 300 instead of 500 evaluations, half-resolution row camera.
@@ -268,7 +268,10 @@ DEMO_TRUTH_KEYS = (
 
 def ensure_demo_inputs(store) -> None:
     """Make the synthetic demo scene once and put its photos (with ``transforms.json``) into
-    the scene's inbox and its truth under ``{scene}/truth/``."""
+    the scene's inbox and its truth under ``{scene}/truth/``. A store holding a demo scene made
+    with other settings (``truth/synth.json`` differs from ``DEMO_SYNTH``, e.g. an older
+    release's) gets the current one: its photos are replaced, so the scene flow recomputes
+    from ingest on."""
     import tempfile
     from pathlib import Path
 
@@ -278,17 +281,22 @@ def ensure_demo_inputs(store) -> None:
     make_scene = core("demo", "cropcraft_core.synth", "make_scene")
 
     scene = SceneKey(*DEMO_SCENE)
-    if store.isfile(f"{scene.prefix}/truth/metrics.json") and store.isfile(
-        f"{scene.prefix}/images/transforms.json"
-    ):
+    settings = json.loads(json.dumps(DEMO_SYNTH))  # as stored: tuples become lists
+    marker = f"{scene.prefix}/truth/synth.json"
+    if store.isfile(marker) and store.get_json(marker) == settings:
         return
+    if store.exists(f"{scene.prefix}/images"):
+        print("the store's demo scene was made with other settings: replacing it", flush=True)
+        store.delete(marker)  # first: a crash below leaves a scene that is remade next time
+        store.delete(f"{scene.prefix}/images", recursive=True)
     print("making the synthetic soybean scene (once) ...", flush=True)
     with tempfile.TemporaryDirectory(prefix="cropcraft-demo-") as tmp:
         make_scene("soybean", tmp, **DEMO_SYNTH)
         store.put_tree(Path(tmp) / "images", f"{scene.prefix}/images")
         store.put_file(Path(tmp) / "transforms.json", f"{scene.prefix}/images/transforms.json")
-        for name in ("params.json", "canopy.ply", "metrics.json"):  # metrics last: the marker
+        for name in ("params.json", "canopy.ply", "metrics.json"):
             store.put_file(Path(tmp) / "truth" / name, f"{scene.prefix}/truth/{name}")
+        store.put_json(marker, settings)  # last: the marker that the scene is complete
 
 
 def _fmt(v: Any) -> str:

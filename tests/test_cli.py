@@ -104,3 +104,29 @@ def test_generate_keeps_old_bundle_when_writing_fails(tmp_path, monkeypatch):
     assert main(["generate", "soybean", "--plot", "1.6,0.5", "--seed", "9", "--out", str(out)]) == 2
     assert (out / "metrics.json").read_bytes() == before
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_demo_inputs_are_remade_when_the_demo_scene_changes(tmp_path, monkeypatch):
+    """A store holding the demo scene of other settings (an older release's) gets the current
+    one, with no photo of the old scene left in the inbox; the same settings are not remade."""
+    from cropcraft_core.store import SceneStore
+    from flows import service_cli
+
+    store = SceneStore.connect(str(tmp_path / "store"))
+    inbox = "/".join(service_cli.DEMO_SCENE) + "/images"
+    small = {"seed": 0, "views": 6, "resolution": (96, 72), "trajectory": "walk"}
+    monkeypatch.setattr(service_cli, "DEMO_SYNTH", small)
+    service_cli.ensure_demo_inputs(store)
+    photos = [k for k in store.list(inbox) if not k.endswith(".json")]
+    assert len(photos) == 6
+    store.put_bytes(inbox + "/sentinel.txt", b"left by a user")
+    service_cli.ensure_demo_inputs(store)  # same settings: the inbox is left as it is
+    assert store.isfile(inbox + "/sentinel.txt")
+
+    monkeypatch.setattr(service_cli, "DEMO_SYNTH", {**small, "views": 4})
+    service_cli.ensure_demo_inputs(store)
+    photos = [k for k in store.list(inbox) if not k.endswith(".json")]
+    assert len(photos) == 4 and not store.isfile(inbox + "/sentinel.txt")
+    poses = json.loads(store.get_bytes(inbox + "/transforms.json"))
+    assert len(poses["frames"]) == 4
+    assert store.get_json("/".join(service_cli.DEMO_SCENE) + "/truth/synth.json")["views"] == 4
