@@ -29,7 +29,9 @@ sets of 16 re-scoring canopies:
   0.048-0.064 (0.069), NCPE 0.022-0.039 (0.058), NDPE 0.065-0.070 (0.062): better with every
   set but for NDPE. Hence maize's default. Through ``cropcraft bench accuracy`` on the first 13
   scenes the gain is smaller: LAIE 0.182 (mean 0.191), median LAIPE 0.049 (0.060), NCPE 0.053
-  (0.052), NDPE 0.077 (0.063) -- scene 10 went the other way (+0.45 against +0.21).
+  (0.052), NDPE 0.077 (0.063) -- scene 10 went the other way (+0.45 against +0.21); on the
+  first 20: LAIE 0.206 (0.212), median LAIPE 0.054 (0.056), NCPE 0.041 (0.067), NDPE 0.076
+  (0.082), AME 3.6 deg (2.9).
 * soybean, 5 scenes: no better. On the dense scene (LAI 5.5, camera 1 m above the ground) a
   candidate with LAI 2.6 re-scores as well as the true parameters do (0.95x the truth's loss,
   averaged over the three sets): the top-down depth there hardly constrains LAI, the winner
