@@ -32,7 +32,7 @@ import numpy as np
 from benchmarks.workers import SHARED, pool, run_jobs
 from cropcraft_core.config import default_layout, param_space
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
-from cropcraft_core.fit.fitting import combine
+from cropcraft_core.fit.fitting import COMBINE_RULES, combine
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
 from cropcraft_core.procedural import generate_canopy
@@ -207,13 +207,13 @@ def run(
 
 
 def rules(crop: str, label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
-    """The table rows one method's seeds give: BO's seeds are also combined by the other rule
-    (``{label}-reevaluate`` or ``{label}-mean``), at no extra fitting cost, so every run
-    compares the two on the same seeds."""
+    """The table rows one method's seeds give: BO's seeds are also combined by the other rules
+    (``{label}-mean``, ``{label}-median``, ``{label}-reevaluate``), at no extra fitting cost,
+    so every run compares them on the same seeds."""
     if cfg.method != "bo":
         return [(label, cfg)]
-    other = "reevaluate" if cfg.combine_rule(crop) == "mean" else "mean"
-    return [(label, cfg), (f"{label}-{other}", replace(cfg, combine=other))]
+    others = [r for r in COMBINE_RULES if r != cfg.combine_rule(crop)]
+    return [(label, cfg), *((f"{label}-{r}", replace(cfg, combine=r)) for r in others)]
 
 
 def seed_seconds(r) -> float:

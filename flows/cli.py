@@ -155,10 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
     f.add_argument(
         "--combine",
-        choices=["mean", "reevaluate"],
-        help="bo's answer from its seeds: the paper's mean of their best points or candidates "
-        "re-scored on fresh canopies (fit/select.py); default: the crop's (soybean mean, "
-        "maize reevaluate)",
+        choices=["median", "mean", "reevaluate"],
+        help="bo's answer from its seeds: the median or the paper's mean of their best points, "
+        "or candidates re-scored on fresh canopies (fit/select.py); default: the crop's "
+        "(soybean median, maize reevaluate)",
     )
     f.add_argument("--seed", type=int, default=0, help="seed of the final canopy and sampling")
     f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")

@@ -59,7 +59,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "common_random_numbers": True,
         "refit_every": 10,
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
-        "combine": None,  # None: the crop's (FitConfig); "mean" (paper's) or "reevaluate"
+        "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate"
         "reevaluate_canopies": 16,
     },
     "generate": {"seed": 0},
@@ -146,11 +146,18 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
 _AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies"})
 
 
-def stage_configs(cfg: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:
     """The config each task sees (and its cache key hashes): its own section, plus the planting
-    layout for the stages that build canopies."""
+    layout for the stages that build canopies. With ``crop``, the aggregate stage's answer rule
+    left to the crop's default is written out (``DEFAULT_COMBINE``), so that a release changing
+    that default re-aggregates cached seeds instead of serving the old rule's answer."""
+    from cropcraft_core.fit.fitting import DEFAULT_COMBINE
+
     layout = {"layout": dict(cfg["layout"])}
     seed_fit = {k: v for k, v in cfg["fit"].items() if k not in _AGGREGATE_ONLY}
+    agg = dict(cfg["fit"])
+    if crop is not None and agg.get("combine") is None:
+        agg["combine"] = DEFAULT_COMBINE[crop]
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),
@@ -158,7 +165,7 @@ def stage_configs(cfg: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         "rowfit": {**cfg["rowfit"], **layout},
         "observe": dict(cfg["observe"]),
         "fit_seed": {**seed_fit, **layout},
-        "aggregate": {**cfg["fit"], **layout},
+        "aggregate": {**agg, **layout},
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
@@ -183,7 +190,7 @@ class SceneRequest:
 
     @property
     def stages(self) -> dict[str, dict[str, Any]]:
-        return stage_configs(self.config)
+        return stage_configs(self.config, self.scene.crop)
 
 
 def default_images_uri(store: SceneStore, scene: SceneKey) -> str:

@@ -245,7 +245,7 @@ DEMO_SCENE = ("demo", "soybean", "2024-07-15")
 #: The built-in synthetic soybean scene (truth parameters: middle of their ranges): the default
 #: scene of the photo pipeline, 50 walk-around photos at 640×480 with metric poses. With 30
 #: photos at 480×360 the demo ran faster but read LAI 25–31 % low on three runs; at 50 photos
-#: at 640×480 it read 11 and 15 % low on two (6.4 min alone on 2 cores).
+#: at 640×480 it read 12 and 15 % low on two (6.4 min alone on 2 cores).
 DEMO_SYNTH = {"seed": 0, "views": 50, "resolution": (640, 480), "trajectory": "walk"}
 #: Reduced-budget defaults that keep the demo well under 15 minutes on 2 CPU cores: the paper's
 #: 10 seeds, 300 instead of 500 evaluations, half-resolution row camera.

@@ -202,6 +202,25 @@ def test_changing_the_answer_rule_reuses_the_seeds(base_run, scene_dir):
     assert fit["config"]["combine"] == "reevaluate"
 
 
+def test_a_new_default_answer_rule_reaggregates_cached_seeds(base_run, scene_dir, monkeypatch):
+    """The aggregate's cache key names the rule a default config resolves to: the crop's rule
+    written out is the same run (all cached), and a release that changes the crop's default
+    re-aggregates the cached seeds instead of serving the old rule's stored answer."""
+    from cropcraft_core.fit import fitting
+
+    rule = fitting.DEFAULT_COMBINE[CROP]
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": rule})
+    assert _executed(out["states"]) == []
+    other = "mean" if rule != "mean" else "median"
+    monkeypatch.setitem(fitting.DEFAULT_COMBINE, CROP, other)
+    out = _run("plotA", base_run["store"], scene_dir)
+    executed = set(_executed(out["states"]))
+    assert "aggregate" in executed
+    assert not any(k.startswith("fit_seed") for k in executed)
+    fit = SceneStore(str(base_run["store"])).get_json(f"plotA/{CROP}/{DATE}/fit/fit.json")
+    assert fit["config"]["combine"] == other
+
+
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
     import tasks.fit_seed as fit_seed_module
     from cropcraft_core.fit import FitConfig, fit_observation
@@ -389,11 +408,11 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
     )
     ref = run("maize", ["bo", "random"], True, 2, log=lambda *_: None, overrides=budget)
     # maize's bo: candidates re-scored (its default); bo-mean: the paper's mean of the seeds
-    for m in ("bo", "bo-mean", "random"):
+    for m in ("bo", "bo-mean", "bo-median", "random"):
         assert got["predictions"][m] == [p["params"] for p in ref["methods"][m]["predictions"]]
         assert got["errors"][m] == ref["methods"][m]["errors"]
     stored = SceneStore.connect(str(tmp_path / "store")).get_json(got["key"])
-    assert set(stored["methods"]) == {"bo", "bo-mean", "random"}
+    assert set(stored["methods"]) == {"bo", "bo-mean", "bo-median", "random"}
     assert stored["methods"]["bo-mean"]["budget"]["combine"] == "mean"
     assert len(stored["truths"]) == 2 and stored["methods"]["bo"]["budget"]["n_evals"] == 14
 

@@ -110,11 +110,34 @@ def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
         combine("soybean", seeds, cfg, 0.0)
     with pytest.raises(ConfigError, match="observation is of soybean"):
         combine("maize", seeds, cfg, 0.0, obs)
-    # the crop's default rule: maize re-scores, soybean keeps the paper's mean
+    # the crop's default rule: maize re-scores, soybean takes the seeds' median
     assert FitConfig().combine_rule("maize") == "reevaluate"
-    assert FitConfig().combine_rule("soybean") == "mean"
+    assert FitConfig().combine_rule("soybean") == "median"
     assert FitConfig(combine="mean").combine_rule("maize") == "mean"
     with pytest.raises(ConfigError, match="unknown combine rule"):
-        FitConfig(combine="median").validate()
+        FitConfig(combine="mode").validate()
     with pytest.raises(ConfigError, match="reevaluate_canopies"):
         FitConfig(reevaluate_canopies=0).validate()
+
+
+def test_median_rule_ignores_a_stranded_seed():
+    """``combine="median"`` (soybean's default) is the per-parameter median of the seeds' best
+    points: one seed stranded at the box's far corner moves the mean, not the median."""
+    b = param_bounds("soybean")
+    lo, span = b[:, 0], b[:, 1] - b[:, 0]
+    rng = np.random.default_rng(3)
+    centre = lo + 0.4 * span
+    pts = [centre + 0.01 * span * rng.standard_normal(len(lo)) for _ in range(4)] + [b[:, 1]]
+    seeds = []
+    for s, x in enumerate(pts):
+        X = np.vstack([lo + rng.random((5, len(lo))) * span, x])
+        seeds.append(_seed(s, X, np.r_[np.ones(5), 0.1], b))
+    med = combine("soybean", seeds, FitConfig(n_seeds=5), 0.0)  # soybean's default: median
+    mean = combine("soybean", seeds, FitConfig(n_seeds=5, combine="mean"), 0.0)
+    expect = params_from_vector("soybean", np.median(np.vstack(pts), axis=0))
+    assert med.params == pytest.approx(expect)
+    assert med.params_std == mean.params_std  # the spread reported is the seeds' spread
+    far = params_from_vector("soybean", b[:, 1])
+    for k, v in med.params.items():
+        assert abs(v - expect[k]) < 1e-12
+        assert abs(mean.params[k] - far[k]) < abs(v - far[k])  # the mean is pulled to the corner
