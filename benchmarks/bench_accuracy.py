@@ -9,9 +9,9 @@ method, and the fitted canopy measured like the truth. Prints LAIE, LAIPE (and i
 ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is a reduced
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
 ``--crn-ablation`` adds a BO row without common random numbers. BO's row uses the crop's
-default rule for its answer (soybean: the paper's mean of the seeds' best points; maize:
-candidates re-scored on fresh canopies, ``fit/select.py``); ``bo-reevaluate`` / ``bo-mean`` is
-the other rule on the same seeds.
+default rule for its answer (soybean: the per-parameter median of the seeds' best points;
+maize: candidates re-scored on fresh canopies, ``fit/select.py``); ``bo-mean``,
+``bo-median``, ``bo-reevaluate`` are the other rules on the same seeds.
 
 Every (scene, optimiser seed) pair is one job: ``--workers N`` runs them in N single-threaded
 processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each seed's resumable

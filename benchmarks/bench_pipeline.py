@@ -83,10 +83,9 @@ def run(a: argparse.Namespace) -> dict:
     from PIL import Image
 
     from cropcraft_core.config import default_layout
-    from cropcraft_core.observe import Observation
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
-    from cropcraft_core.rowfit.truth import camera_in_truth, row_fit_errors
+    from cropcraft_core.rowfit.truth import row_fit_errors
     from cropcraft_core.sfm import import_transforms_json, ingest_images, level_poses, run_sfm
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
     from cropcraft_core.surfaces import SurfacesConfig, make_backend, resolve_bbox
@@ -150,13 +149,14 @@ def run(a: argparse.Namespace) -> dict:
 
         t = time.perf_counter()
         metric = a.poses == "truth"
+        pre = rowfit_preset(
+            "soybean", row_spacing=layout.row_spacing, box_center=None, box_size=None
+        )
         fit = fit_rows_with_scale(
             points,
             colors,
             "soybean",
-            rowfit_preset(
-                "soybean", row_spacing=layout.row_spacing, box_center=None, box_size=None
-            ),
+            pre,
             rng=0,
             metric_scale=1.0 if metric else None,
             known_row_spacing=layout.row_spacing,
@@ -170,15 +170,7 @@ def run(a: argparse.Namespace) -> dict:
             backend.save(keep / "surfaces")
 
         t = time.perf_counter()
-        obs = Observation.from_surfaces(
-            "soybean",
-            backend.render,
-            fit.camera,
-            fit.camera_in_scene(),
-            fit.scale,
-            fit.render_height,
-            image_scale=a.image_scale,
-        )
+        obs = _observe(fit, backend, a.image_scale)
         sec["observe"] = time.perf_counter() - t
     sec["images_to_observation"] = sum(
         sec[k] for k in ("ingest", "poses", "surfaces", "rowfit", "observe")
@@ -193,13 +185,9 @@ def run(a: argparse.Namespace) -> dict:
         "rel_err": fit.scale / true_scale - 1.0,
     }
     out["rowfit"] = row_fit_errors(fit, scene_from_true, layout).to_dict()
-    true_cam = camera_in_truth(fit, scene_from_true)
-    if a.image_scale != 1.0:
-        true_cam = true_cam.scaled(a.image_scale)
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
-    d_true, _ = truth.render(true_cam)
+    d_true = _truth_depth(truth, fit, scene_from_true, a.image_scale)
     depth_m = obs.depth
-    d_true = np.where(np.isfinite(d_true), d_true, np.nan)
     h_obs, h_true, area = observation_vs_truth(obs, d_true)
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     out["hist_observation"] = h_obs.round(4).tolist()
@@ -220,9 +208,15 @@ def run(a: argparse.Namespace) -> dict:
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
     if not metric:
-        out["hist_l1_true_scale"] = _l1_at_true_scale(
-            points, colors, backend, truth, scene_from_true, true_scale, layout, a.image_scale
+        true_fit = fit_rows_with_scale(
+            points, colors, "soybean", pre, rng=0, metric_scale=true_scale
         )
+        ts_obs, ts_true, _ = observation_vs_truth(
+            _observe(true_fit, backend, a.image_scale),
+            _truth_depth(truth, true_fit, scene_from_true, a.image_scale),
+        )
+        # what the L1 would be with a perfect scale cue: the reconstruction's own share of it
+        out["hist_l1_true_scale"] = float(np.abs(ts_obs - ts_true).sum())
     out["_observation"] = obs
 
     if a.fit:
@@ -230,18 +224,11 @@ def run(a: argparse.Namespace) -> dict:
     return out
 
 
-def _l1_at_true_scale(points, colors, backend, truth, scene_from_true, scale, layout, image_scale):
-    """Diagnostic: the depth-histogram L1 of the same reconstruction with the row fit given the
-    true metric scale (from the similarity to the true poses) instead of the row spacing's --
-    what the L1 would be with a perfect scale cue, i.e. the reconstruction's own share of it."""
+def _observe(fit, backend, image_scale: float):
+    """The observation the scene flow's observe stage makes from this row fit."""
     from cropcraft_core.observe import Observation
-    from cropcraft_core.rowfit import fit_rows_with_scale
-    from cropcraft_core.rowfit import preset as rowfit_preset
-    from cropcraft_core.rowfit.truth import camera_in_truth
 
-    pre = rowfit_preset("soybean", row_spacing=layout.row_spacing, box_center=None, box_size=None)
-    fit = fit_rows_with_scale(points, colors, "soybean", pre, rng=0, metric_scale=scale)
-    obs = Observation.from_surfaces(
+    return Observation.from_surfaces(
         "soybean",
         backend.render,
         fit.camera,
@@ -250,12 +237,18 @@ def _l1_at_true_scale(points, colors, backend, truth, scene_from_true, scale, la
         fit.render_height,
         image_scale=image_scale,
     )
+
+
+def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) -> np.ndarray:
+    """The true mesh's depth (NaN where no leaf) from the fit's row camera placed in the truth
+    frame by the similarity ``scene_from_true``."""
+    from cropcraft_core.rowfit.truth import camera_in_truth
+
     cam = camera_in_truth(fit, scene_from_true)
     if image_scale != 1.0:
         cam = cam.scaled(image_scale)
-    d_true, _ = truth.render(cam)
-    h_obs, h_true, _ = observation_vs_truth(obs, np.where(np.isfinite(d_true), d_true, np.nan))
-    return float(np.abs(h_obs - h_true).sum())
+    d, _ = truth.render(cam)
+    return np.where(np.isfinite(d), d, np.nan)
 
 
 def fit_and_compare(obs, root: Path, budget: str) -> dict:
