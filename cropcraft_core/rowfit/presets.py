@@ -98,10 +98,15 @@ class RowFitPreset:
     RANSAC inliers); more re-gather the inliers around the refitted line and fit again."""
     refine_direction_deg: float | None = 90.0
     """Refinement of the best row, not in the paper (``None`` = off, exactly the paper): search
-    the direction within ± this many degrees of the RANSAC row (90 = all directions) for the
-    sharpest lateral profile of all row points, then take the ``line_threshold`` band holding
-    the most points along it and mean-shift it. Plain RANSAC counts favour the scene box's
-    diagonal on nearly closed canopies (errors up to 45° on synthetic mid-season soybean)."""
+    the direction within ± this many degrees of the RANSAC row (90 = all directions) along
+    which all plant points' lateral profile is most periodic at the row spacing (the sharpest
+    profile where no period shows), then take the ``line_threshold`` band holding the most
+    points along it and mean-shift it. Plain RANSAC counts favour the scene box's diagonal on
+    nearly closed canopies (errors up to 45° on synthetic mid-season soybean)."""
+    direction_min_correlation: float = 0.1
+    """Direction refinement: the row period counts as visible when the lateral profile's
+    normalised autocorrelation at its best lag exceeds this (the threshold
+    ``estimate_scale_from_rows`` uses); below it (a single row) the sharpest profile decides."""
     row_spacing: float | None = None
     """Known planting row spacing (metres), not in the paper (``None`` = off): with the refined
     direction, the best row's lateral position is moved to the nearest line of the periodic row
@@ -168,6 +173,13 @@ class RowFitPreset:
             v = getattr(self, name)
             if not (_is_finite(v) and 0 <= v < 100):
                 raise ConfigError(f"{name} must be in [0, 100), got {v!r}")
+        if not (
+            _is_finite(self.direction_min_correlation) and 0 <= self.direction_min_correlation < 1
+        ):
+            raise ConfigError(
+                "direction_min_correlation must be in [0, 1), got "
+                f"{self.direction_min_correlation!r}"
+            )
         if not (_is_finite(self.stop_min_fraction) and 0 <= self.stop_min_fraction < 1):
             raise ConfigError(f"stop_min_fraction must be in [0, 1), got {self.stop_min_fraction}")
         if self.dense_plant_fraction is not None and not (
