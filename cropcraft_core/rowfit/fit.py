@@ -605,8 +605,9 @@ def _direction_scores(
     on the TSDF's voxel edges, whose lattice aliases with 1 cm bins into a spike at exactly the
     scene axes (98.7 % of the row peak on one reconstruction; above it on another of the same
     SfM model: 6.2° off), and a leaf fill inside the axis-aligned scene box projects to a box,
-    the sharpest envelope, along the box's axes (4–8° off, the axis, on synthetic closed
-    canopies with as many fill points as leaf points, raw or on a 7.5 mm lattice)."""
+    the sharpest envelope, along the box's axes (8–20° off, the axis, on synthetic closed
+    canopies with twice as many fill points as leaf points; 82° with as many, on a 7.5 mm
+    lattice)."""
     period_bins = max(3, round(period_m / 0.01))
     lo, hi = int(0.6 * period_bins), int(math.ceil(1.6 * period_bins))
     periodic, normalised, energy = (np.zeros(len(angles)) for _ in range(3))
@@ -635,7 +636,8 @@ def _refine_row(
     sharper profile 33° off the rows on an SfM scene, all plant points did not) is most
     periodic at about the row period (the preset's ``row_spacing``, else 4 × ``line_threshold``;
     :func:`_direction_scores`), or, where no period shows (normalised correlation at most
-    ``direction_min_correlation``: one row), has the most row-scale energy: parallel rows,
+    ``direction_min_correlation``, or along a profile with under half the largest energy: one
+    row), has the most row-scale energy: parallel rows,
     stems and the gaps between rows line up only along the true direction, whatever the length
     of the chord through the scene box (plain RANSAC counts favour the box diagonal when the
     canopy is nearly closed). Searched at 0.5° steps, then 0.02° steps around the best.
