@@ -61,6 +61,8 @@ CACHE_DIR = ".prefect"
 #: then stop matching and the stage (and everything after it) is recomputed.
 STAGE_VERSIONS: dict[str, int] = {
     **{stage: 1 for stage in STAGES},
+    # 2: TSDF truncation 3.5 voxels by default (3 thinned the leaves of SfM reconstructions)
+    "surfaces": 2,
     # 2: the best row's direction from the lateral profile's period, not its raw sharpness
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
     "rowfit": 2,

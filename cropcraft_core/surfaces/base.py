@@ -87,11 +87,14 @@ class SurfacesConfig:
     or 'truth' (the true mesh, for tests and benchmarks)."""
     voxel_size: float = 0.0075
     """tsdf: TSDF voxel edge (m)."""
-    trunc_voxels: float = 3.0
+    trunc_voxels: float = 3.5
     """tsdf: truncation distance of the signed distance, in voxels. It sets how far a fused
-    leaf's skirt reaches past its edge: measured on two dense synthetic soybean scenes (true
-    poses), the observation's mask area was 6–10 % too large with 4 and matched the truth's
-    within 2 % with 3; 2 lost leaves (area 13 % short)."""
+    leaf's skirt reaches past its edge, and how much disagreement between the views' depths a
+    thin leaf survives. With exact poses (two dense synthetic soybean scenes) the observation's
+    mask area was 6–10 % too large with 4, within 2 % with 3, 13 % short with 2. With SfM poses
+    (what the pipeline has; three SfM models of two scenes), 3 lost the top leaves' edges:
+    mask area 6–9 % short, the nearest depth bin short by a fifth; 3.5 gave −2.6 / −0.3 /
+    −1.2 %, 4 gave +2.6 / +4.0 / +3.6 %."""
     depth_range: tuple[float, float] | None = None
     """(near, far) z-depth searched by stereo and fused (m). None: per view, from the bounding
     box's corners (or (0.2, 8.0) without a box)."""
