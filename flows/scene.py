@@ -148,14 +148,18 @@ _AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies"})
 
 def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:
     """The config each task sees (and its cache key hashes): its own section, plus the planting
-    layout for the stages that build canopies. With ``crop``, the aggregate stage's answer rule
-    left to the crop's default is written out (``DEFAULT_COMBINE``), so that a release changing
-    that default re-aggregates cached seeds instead of serving the old rule's answer."""
-    from cropcraft_core.fit.fitting import DEFAULT_COMBINE
+    layout for the stages that build canopies. With ``crop``, the fit settings left to the
+    crop's defaults are written out -- the answer rule (``DEFAULT_COMBINE``) and the canopies
+    averaged per evaluation (``DEFAULT_CANOPIES``) -- so that a release changing a default
+    re-aggregates or refits cached seeds instead of serving the old default's answer."""
+    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE
 
     layout = {"layout": dict(cfg["layout"])}
-    seed_fit = {k: v for k, v in cfg["fit"].items() if k not in _AGGREGATE_ONLY}
-    agg = dict(cfg["fit"])
+    fit = dict(cfg["fit"])
+    if crop is not None and fit.get("canopies_per_eval") is None:
+        fit["canopies_per_eval"] = DEFAULT_CANOPIES[crop]
+    seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
+    agg = dict(fit)
     if crop is not None and agg.get("combine") is None:
         agg["combine"] = DEFAULT_COMBINE[crop]
     return {

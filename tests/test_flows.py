@@ -221,6 +221,23 @@ def test_a_new_default_answer_rule_reaggregates_cached_seeds(base_run, scene_dir
     assert fit["config"]["combine"] == other
 
 
+def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkeypatch):
+    """The seeds' cache key names the canopies per evaluation a default config resolves to
+    (``DEFAULT_CANOPIES``): written out it is the same run, and a release changing the crop's
+    default refits the seeds (their losses average a different number of canopies)."""
+    from cropcraft_core.fit import fitting
+
+    k = fitting.DEFAULT_CANOPIES[CROP]
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.canopies_per_eval": k})
+    assert _executed(out["states"]) == []
+    monkeypatch.setitem(fitting.DEFAULT_CANOPIES, CROP, k + 1)
+    out = _run("plotA", base_run["store"], scene_dir)
+    executed = set(_executed(out["states"]))
+    assert sum(name.startswith("fit_seed") for name in executed) == N_SEEDS
+    assert {"aggregate", "generate", "metrics"} <= executed
+    assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
+
+
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
     import tasks.fit_seed as fit_seed_module
     from cropcraft_core.fit import FitConfig, fit_observation
