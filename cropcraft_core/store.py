@@ -428,6 +428,10 @@ class Manifest(BaseModel):
     """``cropcraft_core.__version__`` plus ``git describe`` where available."""
     stages: dict[str, StageRecord] = Field(default_factory=dict)
     """Per-stage records, by stage name."""
+    written: dict[str, str] = Field(default_factory=dict)
+    """{store key: sha256} of what the last write to each artefact key put there, whichever
+    run and config wrote it; unlike ``stages`` it survives a config change, so a cached stage
+    record can be checked against what the store really holds."""
     created: _dt.datetime | None = None
     updated: _dt.datetime | None = None
 
@@ -1114,6 +1118,7 @@ class SceneStore:
             )
             if old is not None:
                 manifest.created = old.created
+                manifest.written = old.written  # the store's files do not change with the config
                 if old.inputs == manifest.inputs and old.config_hash == chash:
                     manifest.stages = old.stages
             self.save_manifest(manifest)
@@ -1193,6 +1198,7 @@ class SceneStore:
                 rec.inputs.update({_check_key(k): str(v) for k, v in inputs.items()})
             if artefacts:
                 rec.artefacts.update({_check_key(k): str(v) for k, v in artefacts.items()})
+                manifest.written.update({_check_key(k): str(v) for k, v in artefacts.items()})
             if seconds is not None:
                 rec.seconds = float(seconds)
             if error is not None:

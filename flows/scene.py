@@ -274,6 +274,19 @@ def _flatten(upstream: Mapping[str, Any]) -> dict[str, str]:
     return out
 
 
+def _overwritten(store: SceneStore, scene: SceneKey, rec: dict) -> bool:
+    """Whether a cached stage record's artefacts are no longer what the store holds: artefacts
+    live at one key per scene and stage, so a run with other settings since wrote over them.
+    The manifest's ``written`` has the hash of the last write at each key; a key it does not
+    know (a manifest lost, or from before it kept them) counts as unchanged. Such a record is
+    recomputed, not served: the store must hold what a run reports."""
+    try:
+        held = store.load_manifest(scene).written
+    except InputError:  # no manifest: nothing known to have been written over
+        return False
+    return any(held.get(k, h) != h for k, h in rec["hashes"].items())
+
+
 class _CacheWalk:
     """Executes the wiring by reading persisted stage records only (no Prefect run)."""
 
@@ -299,6 +312,8 @@ class _CacheWalk:
     def run(self, stage: str, upstream: dict, **_: Any) -> dict:
         key = stage_key(stage, self.req.scene.prefix, self.req.stages[stage], upstream)
         rec = self._read(key)
+        if _overwritten(self.store, self.req.scene, rec):
+            raise _Miss(key)
         self.states[stage] = "Cached"
         return rec
 
@@ -308,6 +323,8 @@ class _CacheWalk:
         for s in seeds:
             key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, {"seed": s})
             out[f"seed-{s}"] = self._read(key)
+            if _overwritten(self.store, self.req.scene, out[f"seed-{s}"]):
+                raise _Miss(key)
             self.states[f"fit_seed-{s}"] = "Cached"
         return out
 
@@ -328,8 +345,15 @@ class _PrefectRun:
     def _record(self, stage: str, upstream: dict, rec: dict | None, error: Any = None) -> None:
         scene = self.req.scene
         chash = config_hash(self.req.stages[stage])
-        if error is not None:
-            self.store.update_stage(scene, stage, status="failed", config_hash=chash, error=error)
+        if error is not None:  # rec: what the parts that did finish wrote (mapped seeds)
+            self.store.update_stage(
+                scene,
+                stage,
+                status="failed",
+                config_hash=chash,
+                error=error,
+                artefacts=(rec or {}).get("hashes"),
+            )
             return
         assert rec is not None
         self.store.update_stage(
@@ -342,8 +366,11 @@ class _PrefectRun:
             seconds=rec["seconds"],
         )
 
-    def run(self, stage: str, upstream: dict, **kwargs: Any) -> dict:
-        fut = self._task(stage).submit(
+    def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
+        task = self._task(stage)
+        if refresh:
+            task = task.with_options(refresh_cache=True)
+        fut = task.submit(
             store_root=self.req.store_root,
             scene=self.req.scene.prefix,
             config=self.req.stages[stage],
@@ -351,18 +378,30 @@ class _PrefectRun:
             **kwargs,
         )
         fut.wait()
-        self.states[stage] = fut.state.name
+        return fut
+
+    def run(self, stage: str, upstream: dict, **kwargs: Any) -> dict:
+        fut = self._submit(stage, upstream, **kwargs)
         try:
             rec = fut.result()
+            if fut.state.name == "Cached" and _overwritten(self.store, self.req.scene, rec):
+                self.log.info("%s: cached, but its artefacts were since overwritten", stage)
+                fut = self._submit(stage, upstream, refresh=True, **kwargs)
+                rec = fut.result()
         except Exception as exc:
+            self.states[stage] = fut.state.name
             self._record(stage, upstream, None, exc)
             raise
+        self.states[stage] = fut.state.name
         self._record(stage, upstream, rec)
         self.log.info("%s: %s (%.1f s)", stage, fut.state.name, rec["seconds"])
         return rec
 
-    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
-        futures = self._task("fit_seed").map(
+    def _map_seeds(self, upstream: dict, seeds: list[int], refresh: bool = False) -> Any:
+        task = self._task("fit_seed")
+        if refresh:
+            task = task.with_options(refresh_cache=True)
+        futures = task.map(
             store_root=unmapped(self.req.store_root),
             scene=unmapped(self.req.scene.prefix),
             config=unmapped(self.req.stages["fit_seed"]),
@@ -370,8 +409,21 @@ class _PrefectRun:
             seed=seeds,
         )
         futures.wait()
+        return dict(zip(seeds, futures, strict=True))
+
+    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
+        futures = self._map_seeds(upstream, seeds)
+        stale = []
+        for s, fut in futures.items():
+            if fut.state.name == "Cached" and _overwritten(
+                self.store, self.req.scene, fut.result()
+            ):
+                stale.append(s)
+        if stale:
+            self.log.info("fit seeds %s: cached, but their artefacts were since overwritten", stale)
+            futures.update(self._map_seeds(upstream, stale, refresh=True))
         out, failed = {}, []
-        for s, fut in zip(seeds, futures, strict=True):
+        for s, fut in futures.items():
             self.states[f"fit_seed-{s}"] = fut.state.name
             try:
                 out[f"seed-{s}"] = fut.result()
@@ -379,7 +431,8 @@ class _PrefectRun:
                 failed.append((s, exc))
         if failed:
             msg = "; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failed)
-            self._record("fit_seed", upstream, None, msg)
+            done = {k: v for rec in out.values() for k, v in rec["hashes"].items()}
+            self._record("fit_seed", upstream, {"hashes": done}, msg)
             raise CropCraftError(
                 f"{len(failed)} of {len(seeds)} fit seeds failed for {self.req.scene} ({msg}); "
                 "the other seeds are saved: rerun the same command to compute only what is "

@@ -209,6 +209,7 @@ def test_a_new_default_answer_rule_reaggregates_cached_seeds(base_run, scene_dir
     from cropcraft_core.fit import fitting
 
     rule = fitting.DEFAULT_COMBINE[CROP]
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
     out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": rule})
     assert _executed(out["states"]) == []
     other = "mean" if rule != "mean" else "median"
@@ -228,6 +229,7 @@ def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkey
     from cropcraft_core.fit import fitting
 
     k = fitting.DEFAULT_CANOPIES[CROP]
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
     out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.canopies_per_eval": k})
     assert _executed(out["states"]) == []
     monkeypatch.setitem(fitting.DEFAULT_CANOPIES, CROP, k + 1)
@@ -236,6 +238,26 @@ def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkey
     assert sum(name.startswith("fit_seed") for name in executed) == N_SEEDS
     assert {"aggregate", "generate", "metrics"} <= executed
     assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
+
+
+def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, scene_dir):
+    """Artefacts live at one key per scene and stage: a run with other settings writes over
+    them. Rerunning the first settings must not serve their cached records over the other
+    run's files: the stages whose artefacts changed recompute (the seeds do not), the store
+    holds the first settings' answer again, and the next rerun is all cached."""
+    store = SceneStore(str(base_run["store"]))
+    fit_key = f"plotA/{CROP}/{DATE}/fit/fit.json"
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    default = store.get_json(fit_key)
+    other = "mean" if default["config"]["combine"] != "mean" else "median"
+    _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": other})
+    assert store.get_json(fit_key)["config"]["combine"] == other
+    out = _run("plotA", base_run["store"], scene_dir)
+    executed = set(_executed(out["states"]))
+    assert {"aggregate", "generate", "export", "report"} <= executed
+    assert not any(k.startswith("fit_seed") for k in executed)
+    assert store.get_json(fit_key) == default
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
