@@ -274,17 +274,22 @@ def _flatten(upstream: Mapping[str, Any]) -> dict[str, str]:
     return out
 
 
-def _overwritten(store: SceneStore, scene: SceneKey, rec: dict) -> bool:
+def _written(store: SceneStore, scene: SceneKey) -> dict[str, str]:
+    """The manifest's ``written``: the sha256 of the last write at each artefact key ({} when
+    the scene has no manifest yet)."""
+    try:
+        return store.load_manifest(scene).written
+    except InputError:
+        return {}
+
+
+def _overwritten(written: Mapping[str, str], rec: dict) -> bool:
     """Whether a cached stage record's artefacts are no longer what the store holds: artefacts
     live at one key per scene and stage, so a run with other settings since wrote over them.
-    The manifest's ``written`` has the hash of the last write at each key; a key it does not
+    ``written`` (:func:`_written`) has the hash of the last write at each key; a key it does not
     know (a manifest lost, or from before it kept them) counts as unchanged. Such a record is
     recomputed, not served: the store must hold what a run reports."""
-    try:
-        held = store.load_manifest(scene).written
-    except InputError:  # no manifest: nothing known to have been written over
-        return False
-    return any(held.get(k, h) != h for k, h in rec["hashes"].items())
+    return any(written.get(k, h) != h for k, h in rec["hashes"].items())
 
 
 class _CacheWalk:
@@ -295,6 +300,7 @@ class _CacheWalk:
         self.store = SceneStore(req.store_root)
         self.base = self.store.fs._strip_protocol(self.store.root).rstrip("/")
         self.states: dict[str, str] = {}
+        self.written = _written(self.store, req.scene)  # a walk writes nothing: read it once
 
     def _read(self, key: str) -> dict:
         from prefect._internal.result_records import ResultRecord
@@ -312,7 +318,7 @@ class _CacheWalk:
     def run(self, stage: str, upstream: dict, **_: Any) -> dict:
         key = stage_key(stage, self.req.scene.prefix, self.req.stages[stage], upstream)
         rec = self._read(key)
-        if _overwritten(self.store, self.req.scene, rec):
+        if _overwritten(self.written, rec):
             raise _Miss(key)
         self.states[stage] = "Cached"
         return rec
@@ -323,7 +329,7 @@ class _CacheWalk:
         for s in seeds:
             key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, {"seed": s})
             out[f"seed-{s}"] = self._read(key)
-            if _overwritten(self.store, self.req.scene, out[f"seed-{s}"]):
+            if _overwritten(self.written, out[f"seed-{s}"]):
                 raise _Miss(key)
             self.states[f"fit_seed-{s}"] = "Cached"
         return out
@@ -384,7 +390,8 @@ class _PrefectRun:
         fut = self._submit(stage, upstream, **kwargs)
         try:
             rec = fut.result()
-            if fut.state.name == "Cached" and _overwritten(self.store, self.req.scene, rec):
+            cached = fut.state.name == "Cached"
+            if cached and _overwritten(_written(self.store, self.req.scene), rec):
                 self.log.info("%s: cached, but its artefacts were since overwritten", stage)
                 fut = self._submit(stage, upstream, refresh=True, **kwargs)
                 rec = fut.result()
@@ -413,11 +420,10 @@ class _PrefectRun:
 
     def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
         futures = self._map_seeds(upstream, seeds)
+        written = _written(self.store, self.req.scene)
         stale = []
         for s, fut in futures.items():
-            if fut.state.name == "Cached" and _overwritten(
-                self.store, self.req.scene, fut.result()
-            ):
+            if fut.state.name == "Cached" and _overwritten(written, fut.result()):
                 stale.append(s)
         if stale:
             self.log.info("fit seeds %s: cached, but their artefacts were since overwritten", stale)
