@@ -345,8 +345,11 @@ class _PrefectRun:
         self.states: dict[str, str] = {}
         self.log = get_run_logger()
 
-    def _task(self, stage: str):
-        return get_task(stage).with_options(result_storage=self.storage)
+    def _task(self, stage: str, refresh: bool = False):
+        """The stage's task on the scene's result storage; ``refresh``: recompute and replace
+        its cached result (otherwise Prefect's own setting applies)."""
+        task = get_task(stage).with_options(result_storage=self.storage)
+        return task.with_options(refresh_cache=True) if refresh else task
 
     def _record(self, stage: str, upstream: dict, rec: dict | None, error: Any = None) -> None:
         scene = self.req.scene
@@ -373,10 +376,7 @@ class _PrefectRun:
         )
 
     def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
-        task = self._task(stage)
-        if refresh:
-            task = task.with_options(refresh_cache=True)
-        fut = task.submit(
+        fut = self._task(stage, refresh).submit(
             store_root=self.req.store_root,
             scene=self.req.scene.prefix,
             config=self.req.stages[stage],
@@ -405,10 +405,7 @@ class _PrefectRun:
         return rec
 
     def _map_seeds(self, upstream: dict, seeds: list[int], refresh: bool = False) -> Any:
-        task = self._task("fit_seed")
-        if refresh:
-            task = task.with_options(refresh_cache=True)
-        futures = task.map(
+        futures = self._task("fit_seed", refresh).map(
             store_root=unmapped(self.req.store_root),
             scene=unmapped(self.req.scene.prefix),
             config=unmapped(self.req.stages["fit_seed"]),
@@ -437,18 +434,14 @@ class _PrefectRun:
                 failed.append((s, exc))
         if failed:
             msg = "; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failed)
-            done = {k: v for rec in out.values() for k, v in rec["hashes"].items()}
-            self._record("fit_seed", upstream, {"hashes": done}, msg)
+            self._record("fit_seed", upstream, {"hashes": _flatten(out)}, msg)
             raise CropCraftError(
                 f"{len(failed)} of {len(seeds)} fit seeds failed for {self.req.scene} ({msg}); "
                 "the other seeds are saved: rerun the same command to compute only what is "
                 "missing"
             )
-        hashes: dict[str, str] = {}
-        for rec in out.values():
-            hashes.update(rec["hashes"])
         seconds = sum(r["seconds"] for r in out.values())
-        self._record("fit_seed", upstream, {"hashes": hashes, "seconds": seconds})
+        self._record("fit_seed", upstream, {"hashes": _flatten(out), "seconds": seconds})
         return out
 
 
