@@ -292,6 +292,24 @@ def _overwritten(written: Mapping[str, str], rec: dict) -> bool:
     return any(written.get(k, h) != h for k, h in rec["hashes"].items())
 
 
+def _left_behind(store: SceneStore, scene: SceneKey, stage: str) -> dict[str, str]:
+    """{key: sha256} of every object in ``stage``'s store folder that differs from what the
+    manifest's ``written`` says was last written there: what a failed attempt of the stage
+    replaced before it failed. Recorded, they stop a cached record of other settings that names
+    those keys from being served. Reads the folder once, only after a failure; {} when the
+    store cannot be read (then the attempt most likely wrote nothing either)."""
+    from tasks.common import STAGE_FOLDERS
+
+    try:
+        written = _written(store, scene)
+        keys = store.list(f"{scene.prefix}/{STAGE_FOLDERS[stage]}")
+        current = {k: store.sha256(k) for k in keys}
+    except Exception:  # the failure's own cause (e.g. the store) is what gets reported
+        get_run_logger().warning("could not check what the failed %s left in the store", stage)
+        return {}
+    return {k: h for k, h in current.items() if written.get(k) != h}
+
+
 class _CacheWalk:
     """Executes the wiring by reading persisted stage records only (no Prefect run)."""
 
@@ -354,7 +372,7 @@ class _PrefectRun:
     def _record(self, stage: str, upstream: dict, rec: dict | None, error: Any = None) -> None:
         scene = self.req.scene
         chash = config_hash(self.req.stages[stage])
-        if error is not None:  # rec: what the parts that did finish wrote (mapped seeds)
+        if error is not None:  # rec: what the failed attempt left written (see _left_behind)
             self.store.update_stage(
                 scene,
                 stage,
@@ -397,7 +415,8 @@ class _PrefectRun:
                 rec = fut.result()
         except Exception as exc:
             self.states[stage] = fut.state.name
-            self._record(stage, upstream, None, exc)
+            left = _left_behind(self.store, self.req.scene, stage)
+            self._record(stage, upstream, {"hashes": left}, exc)
             raise
         self.states[stage] = fut.state.name
         self._record(stage, upstream, rec)

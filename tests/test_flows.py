@@ -260,6 +260,37 @@ def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, s
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
+def test_a_stage_that_fails_part_way_does_not_leave_a_cached_record_served(
+    base_run, scene_dir, monkeypatch
+):
+    """A stage that fails after writing some of its artefacts (here generate, with another
+    canopy seed: its recipe written, then the mesh export fails) leaves the store holding other
+    bytes than the cached record of the earlier settings names: the rerun of those settings
+    must recompute the stage, not serve the record."""
+    import cropcraft_core.export as export_module
+
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    recipe_key = f"{scene.prefix}/generate/canopy.json"
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    default = store.get_bytes(recipe_key)
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full (injected)")
+
+    with monkeypatch.context() as m:
+        m.setattr(export_module, "write_ply", broken)
+        with pytest.raises(OSError, match="injected"):
+            _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 1})
+    assert store.get_bytes(recipe_key) != default  # the failed attempt's recipe is there
+    failed = store.load_manifest(scene).stages["generate"]
+    assert failed.status == "failed" and recipe_key in failed.artefacts
+    out = _run("plotA", base_run["store"], scene_dir)
+    assert "generate" in _executed(out["states"])
+    assert store.get_bytes(recipe_key) == default
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+
+
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
     import tasks.fit_seed as fit_seed_module
     from cropcraft_core.fit import FitConfig, fit_observation
