@@ -10,8 +10,9 @@ ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
 ``--crn-ablation`` adds a BO row without common random numbers. BO's row uses the crop's
 default rule for its answer (soybean: the per-parameter median of the seeds' best points;
-maize: candidates re-scored on fresh canopies, ``fit/select.py``); ``bo-mean``,
-``bo-median``, ``bo-reevaluate`` are the other rules on the same seeds.
+maize: candidates re-scored on fresh canopies and the best polished, ``fit/select.py``);
+``bo-mean``, ``bo-median``, ``bo-reevaluate`` are the other rules on the same seeds, and
+``...-unpolished`` the re-scoring without its polish.
 
 Every (scene, optimiser seed) pair is one job: ``--workers N`` runs them in N single-threaded
 processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each seed's resumable
@@ -213,7 +214,13 @@ def rules(crop: str, label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
     if cfg.method != "bo":
         return [(label, cfg)]
     others = [r for r in COMBINE_RULES if r != cfg.combine_rule(crop)]
-    return [(label, cfg), *((f"{label}-{r}", replace(cfg, combine=r)) for r in others)]
+    rows = [(label, cfg), *((f"{label}-{r}", replace(cfg, combine=r)) for r in others)]
+    # the re-scoring's own answer without its Nelder-Mead polish, on the same seeds
+    return rows + [
+        (f"{row}-unpolished", replace(c, polish_evals=0))
+        for row, c in rows
+        if c.reevaluates(crop) and c.polish_evals > 0
+    ]
 
 
 def seed_seconds(r) -> float:

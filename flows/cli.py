@@ -85,6 +85,7 @@ def _fit_config(args: argparse.Namespace):
         n_evals=args.evals,
         n_initial=min(args.initial, args.evals),
         combine=args.combine,
+        polish_evals=args.polish_evals,
     )
     return cfg if args.method == "poisson" else cfg.validate()
 
@@ -157,8 +158,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--combine",
         choices=["median", "mean", "reevaluate"],
         help="bo's answer from its seeds: the median or the paper's mean of their best points, "
-        "or candidates re-scored on fresh canopies (fit/select.py); default: the crop's "
-        "(soybean median, maize reevaluate)",
+        "or candidates re-scored on fresh canopies and the best refined (fit/select.py); "
+        "default: the crop's (soybean median, maize reevaluate)",
+    )
+    f.add_argument(
+        "--polish-evals",
+        type=int,
+        default=60,
+        metavar="N",
+        help="reevaluate: Nelder-Mead evaluations refining the best re-scored candidate "
+        "(60; 0: none)",
     )
     f.add_argument("--seed", type=int, default=0, help="seed of the final canopy and sampling")
     f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")

@@ -61,6 +61,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
         "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate"
         "reevaluate_canopies": 16,
+        "polish_starts": 1,  # "reevaluate": refine the lowest re-scored candidate(s) ...
+        "polish_evals": 60,  # ... by Nelder-Mead on the same canopies (0: none)
     },
     "generate": {"seed": 0},
     "metrics": {"gap_fraction": True, "seed": 0},
@@ -143,7 +145,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
 
 
 #: Fit settings only the aggregate stage reads: changing them must not refit the seeds.
-_AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies"})
+_AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies", "polish_starts", "polish_evals"})
 
 
 def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:

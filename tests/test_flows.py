@@ -197,7 +197,11 @@ def test_changing_the_answer_rule_reuses_the_seeds(base_run, scene_dir):
     store = SceneStore(str(base_run["store"]))
     fit = store.get_json(f"plotA/{CROP}/{DATE}/fit/fit.json")
     sel = fit["extra"]["selection"]
-    assert set(sel["candidates"]) == {*(f"seed-{s}" for s in range(N_SEEDS)), "mean", "averaged"}
+    rescored = {*(f"seed-{s}" for s in range(N_SEEDS)), "mean", "averaged"}
+    loss = {k: c["loss"] for k, c in sel["candidates"].items()}
+    best = min(rescored, key=loss.get)
+    assert set(sel["candidates"]) == rescored | {f"polished-{best}"}  # the winner, refined
+    assert loss[sel["chosen"]] == min(loss.values()) <= loss[best]
     assert fit["params"] == sel["candidates"][sel["chosen"]]["params"] == out["params"]
     assert fit["config"]["combine"] == "reevaluate"
 
@@ -477,12 +481,14 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
         overrides=budget,
     )
     ref = run("maize", ["bo", "random"], True, 2, log=lambda *_: None, overrides=budget)
-    # maize's bo: candidates re-scored (its default); bo-mean: the paper's mean of the seeds
-    for m in ("bo", "bo-mean", "bo-median", "random"):
+    # maize's bo: candidates re-scored and the best polished (its default); bo-unpolished:
+    # without the polish; bo-mean: the paper's mean of the seeds
+    for m in ("bo", "bo-mean", "bo-median", "bo-unpolished", "random"):
         assert got["predictions"][m] == [p["params"] for p in ref["methods"][m]["predictions"]]
         assert got["errors"][m] == ref["methods"][m]["errors"]
     stored = SceneStore.connect(str(tmp_path / "store")).get_json(got["key"])
-    assert set(stored["methods"]) == {"bo", "bo-mean", "bo-median", "random"}
+    assert set(stored["methods"]) == {"bo", "bo-mean", "bo-median", "bo-unpolished", "random"}
+    assert stored["methods"]["bo-unpolished"]["budget"]["polish_evals"] == 0
     assert stored["methods"]["bo-mean"]["budget"]["combine"] == "mean"
     assert len(stored["truths"]) == 2 and stored["methods"]["bo"]["budget"]["n_evals"] == 14
 

@@ -1,6 +1,8 @@
 """Choosing the fit's answer from its seeds (``cropcraft_core/fit/select.py``): the pooled GP's
 minimum and the re-scoring of candidates on fresh canopies, on real fits."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,7 @@ from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.config.params import params_from_vector
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, ForwardModel, combine, fit_seed, observe_canopy
-from cropcraft_core.fit.select import averaged_minimum, candidates, reevaluation_seeds
+from cropcraft_core.fit.select import averaged_minimum, candidates, polish, reevaluation_seeds
 from cropcraft_core.observe import preset
 from cropcraft_core.optimize import SeedResult, aggregate
 from cropcraft_core.procedural import generate_canopy
@@ -71,7 +73,12 @@ def soybean_seeds():
     canopy = generate_canopy("soybean", truth, default_layout("soybean"), seed=5)
     obs = observe_canopy(canopy, preset("soybean", **SMALL))
     cfg = FitConfig(
-        n_seeds=3, n_evals=30, n_initial=12, combine="reevaluate", reevaluate_canopies=4
+        n_seeds=3,
+        n_evals=30,
+        n_initial=12,
+        combine="reevaluate",
+        reevaluate_canopies=4,
+        polish_evals=0,  # the plain re-scoring; the polish has its own test
     )
     return obs, cfg, [fit_seed(obs, s, cfg) for s in range(3)]
 
@@ -104,6 +111,37 @@ def test_reevaluate_keeps_the_candidate_with_the_lowest_fresh_canopy_loss(soybea
     params_from_vector("soybean", candidates(seeds)["averaged"])  # a valid parameter set
 
 
+def test_polish_refines_the_lowest_rescored_candidate_on_the_same_canopies(soybean_seeds):
+    """Nelder-Mead from the lowest re-scored candidate(s) on the re-scoring canopies: never
+    worse than its start, reproducible, inside the box; polish_evals=0 is the plain re-scoring."""
+    obs, cfg, seeds = soybean_seeds
+    plain = combine("soybean", seeds, cfg, 1.0, obs)
+    assert not any(k.startswith("polished") for k in plain.extra["selection"]["candidates"])
+    fit = combine("soybean", seeds, replace(cfg, polish_starts=2, polish_evals=25), 1.0, obs)
+    sel = fit.extra["selection"]
+    losses = {k: c["loss"] for k, c in sel["candidates"].items()}
+    rescored = sorted((k for k in losses if not k.startswith("polished")), key=losses.get)
+    assert [k for k in losses if k.startswith("polished")] == [
+        f"polished-{k}" for k in rescored[:2]
+    ]
+    for k in rescored[:2]:
+        assert losses[f"polished-{k}"] <= losses[k]
+    assert sel["chosen"] == min(losses, key=losses.get)
+    assert sel["chosen"].startswith("polished-")  # 25 steps from a 30-evaluation fit do improve
+    assert losses[sel["chosen"]] < plain.extra["selection"]["candidates"][rescored[0]]["loss"]
+    fm = ForwardModel(obs)
+    assert fm.loss(fit.params, sel["canopy_seeds"]) == pytest.approx(
+        losses[sel["chosen"]], rel=1e-12
+    )
+    b = param_bounds("soybean")
+    x = np.array(list(fit.params.values()))
+    assert np.all(x >= b[:, 0]) and np.all(x <= b[:, 1])
+    x0 = candidates(seeds)[rescored[0]]
+    got, v, n = polish(fm, x0, sel["canopy_seeds"], 25)
+    assert n <= 26 and v == pytest.approx(losses[f"polished-{rescored[0]}"], rel=1e-12)
+    assert np.allclose(got, list(sel["candidates"][f"polished-{rescored[0]}"]["params"].values()))
+
+
 def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
     obs, cfg, seeds = soybean_seeds
     with pytest.raises(ConfigError, match="pass it"):
@@ -118,6 +156,9 @@ def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
         FitConfig(combine="mode").validate()
     with pytest.raises(ConfigError, match="reevaluate_canopies"):
         FitConfig(reevaluate_canopies=0).validate()
+    for bad in ({"polish_starts": 0}, {"polish_evals": -1}):
+        with pytest.raises(ConfigError, match="polish_starts >= 1"):
+            FitConfig(**bad).validate()
 
 
 def test_median_rule_ignores_a_stranded_seed():

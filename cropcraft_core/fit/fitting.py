@@ -60,6 +60,12 @@ class FitConfig:
     follow the paper: random takes the mean, trust-region the lowest-loss seed."""
     reevaluate_canopies: int = 16
     """Fresh canopies (the same for every candidate) each ``reevaluate`` candidate is scored on."""
+    polish_starts: int = 1
+    """``reevaluate``: how many of the lowest re-scored candidates are then refined by
+    Nelder-Mead on the same canopies (``fit/select.py``, where the measurements are)."""
+    polish_evals: int = 60
+    """``reevaluate``: loss evaluations (each on ``reevaluate_canopies`` canopies) per polished
+    candidate; 0: no polishing."""
     n_evals: int = 500
     """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
     n_initial: int = 200
@@ -97,6 +103,11 @@ class FitConfig:
         if self.reevaluate_canopies < 1:
             raise ConfigError(
                 f"reevaluate_canopies must be at least 1, got {self.reevaluate_canopies}"
+            )
+        if self.polish_starts < 1 or self.polish_evals < 0:
+            raise ConfigError(
+                f"need polish_starts >= 1 (got {self.polish_starts}) and polish_evals >= 0 "
+                f"(got {self.polish_evals})"
             )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
@@ -227,7 +238,13 @@ def combine(
             )
         from cropcraft_core.fit.select import select
 
-        sel = select(ForwardModel(observation, layout), results, config.reevaluate_canopies)
+        sel = select(
+            ForwardModel(observation, layout),
+            results,
+            config.reevaluate_canopies,
+            config.polish_starts,
+            config.polish_evals,
+        )
         final, std = sel.x, agg.std_x
         extra["selection"] = sel.to_dict(crop)
         seconds += sel.seconds
