@@ -8,7 +8,9 @@ seed, its depth rendered from the row camera as the observation (no background),
 method, and the fitted canopy measured like the truth. Prints LAIE, LAIPE (and its median), AME,
 ASDE, NDPE, NCPE per method beside the paper's synthetic numbers. ``--quick`` is a reduced
 budget (quarter resolution, 2 seeds × 60 evaluations, 6 scenes) for smoke runs and tests.
-``--crn-ablation`` adds a BO row without common random numbers. BO's row uses the crop's
+``--crn-ablation`` adds a BO row without common random numbers; ``--preset KEY=VALUE``
+changes every scene's observation preset (loss weights such as ``lambda_lateral``, bins),
+with checkpoints of its own. BO's row uses the crop's
 default rule for its answer (soybean: the per-parameter median of the seeds' best points;
 maize: candidates re-scored on fresh canopies and the best polished, ``fit/select.py``);
 ``bo-mean``, ``bo-median``, ``bo-reevaluate`` are the other rules on the same seeds, and
@@ -37,6 +39,7 @@ from cropcraft_core.fit.fitting import COMBINE_RULES, combine
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
 from cropcraft_core.procedural import generate_canopy
+from cropcraft_core.store import config_hash
 
 PAPER = {  # Table "Synthetic data evaluation": LAIE, NDPE, NCPE
     ("soybean", "bo"): {"LAIE": 0.97, "NDPE": 0.21, "NCPE": 0.23},
@@ -88,18 +91,22 @@ def _record(params: dict, canopy) -> dict:
     return {"params": params, **canopy_metrics(canopy, gap_fraction=False)}
 
 
-def scene_observation(crop: str, index: int, scale: float) -> tuple[dict, object]:
+def scene_observation(
+    crop: str, index: int, scale: float, preset_overrides: dict | None = None
+) -> tuple[dict, object]:
     """Scene ``index``'s truth record (:func:`truth_record`) and its observation: the true
     canopy's depth from the row camera at ``scale`` × 994×738, at the crop's render height
     raised over a tall canopy as the row fit raises it (``observe.clear_render_height`` of the
-    mesh's 99.5th height percentile). Deterministic, so a worker anywhere can rebuild it from
-    these three values."""
+    mesh's 99.5th height percentile), with the crop's observation preset changed by
+    ``preset_overrides`` (e.g. ``{"lambda_lateral": 0.25}``). Deterministic, so a worker
+    anywhere can rebuild it from these values."""
     params, canopy = scene_truth(crop, index)
     size = {"image_width": round(994 * scale), "image_height": round(738 * scale)}
+    size.update(preset_overrides or {})
     base = preset(crop, **size)
     top = float(np.percentile(canopy.mesh.vertices[:, 2], 99.5))
     h = clear_render_height(crop, base.render_height, top)
-    p = base if h == base.render_height else preset(crop, render_height=h, **size)
+    p = base if h == base.render_height else preset(crop, **{**size, "render_height": h})
     obs = observe_canopy(canopy, p, meta={"scene": index})
     return _record(params, canopy), obs
 
@@ -162,16 +169,18 @@ def run(
     scale: float | None = None,
     workers: int = 1,
     checkpoint_dir: str | Path | None = None,
+    preset_overrides: dict | None = None,
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
-    seeds, so independent of ``workers``) and the per-scene predictions; and the truths."""
+    seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
+    ``preset_overrides``: observation preset changes (loss weights, bins) for every scene."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
     b0 = budget(quick, scenes, "bo", overrides=overrides, scale=scale)
     truths, observations = [], []
     for i in range(b0.scenes):
-        truth, obs = scene_observation(crop, i, b0.scale)
+        truth, obs = scene_observation(crop, i, b0.scale, preset_overrides)
         truths.append(truth)
         observations.append(obs)
     out = {
@@ -180,6 +189,7 @@ def run(
         "scenes": b0.scenes,
         "methods": {},
         "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
+        "preset_overrides": dict(preset_overrides or {}),
     }
     ex = pool(workers, {"observations": observations})
     try:
@@ -189,7 +199,7 @@ def run(
                 params, seconds = _predict_mlp(observations, quick)
                 out["methods"][label] = score(crop, params, truths, seconds, log=log)
                 continue
-            done = _fit_all(observations, b, label, ex, checkpoint_dir)
+            done = _fit_all(observations, b, label, ex, checkpoint_dir, preset_overrides)
             for row, cfg in rules(crop, label, b.fit):
                 params, seconds = combine_scenes(
                     crop,
@@ -236,7 +246,7 @@ def _seed_job(args) -> tuple[int, object, float]:
     return i, r, seed_seconds(r)
 
 
-def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir):
+def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, preset_overrides=None):
     """Every scene fitted with ``b.fit``; the (scene, seed) jobs spread over ``ex``'s processes.
     Returns the finished (scene, SeedResult, seconds) jobs."""
     cfg = b.fit
@@ -244,6 +254,8 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir):
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
     tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
+    if preset_overrides:  # another loss or other statistics: another fit, its own checkpoints
+        tag += "-p" + config_hash(preset_overrides)[:8]
     default_h = preset(observations[0].crop).render_height
 
     def name(i: int, obs, s: int) -> str:
@@ -317,6 +329,34 @@ def _run_flow(a: argparse.Namespace, methods: list[str], overrides: dict) -> dic
     return {**got, "crop": a.crop, "quick": a.quick, "scenes": n, "methods": rows}
 
 
+def _parse_preset(crop: str, items: list[str]) -> dict:
+    """``["lambda_lateral=0.25", ...]`` → ``{"lambda_lateral": 0.25}``, checked by building the
+    preset (an unknown key or a bad value exits with the preset's own message)."""
+    from cropcraft_core.errors import CropCraftError
+
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise SystemExit(f"bench accuracy: --preset takes KEY=VALUE, got {item!r}")
+        out[key.strip()] = json.loads(value) if value.strip()[:1] in "[{" else _number(value)
+    try:
+        preset(crop, **out)
+    except (CropCraftError, TypeError, ValueError) as exc:
+        raise SystemExit(f"bench accuracy: --preset: {exc}") from None
+    return out
+
+
+def _number(value: str):
+    try:
+        return int(value)
+    except ValueError:
+        try:
+            return float(value)
+        except ValueError:
+            return value.strip()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
@@ -340,7 +380,16 @@ def main(argv: list[str] | None = None) -> int:
         "cluster) or dask://HOST:PORT (an existing cluster); the result goes to --store",
     )
     ap.add_argument("--store", help="scene store for the flow's result (default ./cropcraft-data)")
+    ap.add_argument(
+        "--preset",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change the observation preset of every scene (e.g. lambda_lateral=0.25); "
+        "repeatable; such fits keep their own checkpoints",
+    )
     a = ap.parse_args(argv)
+    preset_overrides = _parse_preset(a.crop, a.preset)
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     overrides = {
         "n_seeds": a.seeds,
@@ -349,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
         "canopies_per_eval": a.canopies,
     }
     if a.runner:
+        if preset_overrides:
+            raise SystemExit("bench accuracy: --preset is not available with --runner")
         res = _run_flow(a, methods, overrides)
         print_table(res)
         print(f"stored: {res['url']}")
@@ -363,6 +414,7 @@ def main(argv: list[str] | None = None) -> int:
         scale=a.image_scale,
         workers=a.workers,
         checkpoint_dir=a.checkpoint_dir,
+        preset_overrides=preset_overrides,
     )
     print_table(res)
     if a.json:

@@ -106,3 +106,29 @@ def test_bad_fit_config():
         FitConfig(method="adam").validate()
     with pytest.raises(ConfigError, match="n_initial"):
         FitConfig(n_evals=10, n_initial=20).validate()
+
+
+def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_path):
+    """``bench accuracy --preset lambda_lateral=...`` fits observations with those weights,
+    records them, and keeps its seeds apart from the default weights' checkpoints."""
+    import json
+
+    from benchmarks.bench_accuracy import _parse_preset, run
+
+    budget = {"n_seeds": 1, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
+    kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
+    a = run("maize", ["bo"], True, 1, **kw)
+    weights = _parse_preset("maize", ["lambda_lateral=0.25"])
+    b = run("maize", ["bo"], True, 1, preset_overrides=weights, **kw)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert len(names) == 2 and sum("-p" in n for n in names) == 1
+    # the same optimiser seed draws the same first points; the loss on them is another one
+    plain, weighted = (json.loads((tmp_path / n).read_text()) for n in sorted(names, key=len))
+    assert np.allclose(plain["X"][:3], weighted["X"][:3])
+    assert not np.allclose(plain["y"][:3], weighted["y"][:3])
+    assert a["preset_overrides"] == {} and b["preset_overrides"] == {"lambda_lateral": 0.25}
+    assert a["truths"] == b["truths"]
+    with pytest.raises(SystemExit, match="unknown maize preset setting 'lambda_lateal'"):
+        _parse_preset("maize", ["lambda_lateal=0.25"])
+    with pytest.raises(SystemExit, match="KEY=VALUE"):
+        _parse_preset("maize", ["lambda_lateral"])
