@@ -333,28 +333,19 @@ def _parse_preset(crop: str, items: list[str]) -> dict:
     """``["lambda_lateral=0.25", ...]`` → ``{"lambda_lateral": 0.25}``, checked by building the
     preset (an unknown key or a bad value exits with the preset's own message)."""
     from cropcraft_core.errors import CropCraftError
+    from flows.service_cli import parse_value
 
     out: dict = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise SystemExit(f"bench accuracy: --preset takes KEY=VALUE, got {item!r}")
-        out[key.strip()] = json.loads(value) if value.strip()[:1] in "[{" else _number(value)
+        out[key.strip()] = parse_value(value)
     try:
         preset(crop, **out)
     except (CropCraftError, TypeError, ValueError) as exc:
         raise SystemExit(f"bench accuracy: --preset: {exc}") from None
     return out
-
-
-def _number(value: str):
-    try:
-        return int(value)
-    except ValueError:
-        try:
-            return float(value)
-        except ValueError:
-            return value.strip()
 
 
 def main(argv: list[str] | None = None) -> int:

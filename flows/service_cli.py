@@ -64,6 +64,15 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def parse_value(raw: str) -> Any:
+    """A command-line setting's value: JSON where it parses (numbers, lists, true/null), else
+    the text itself."""
+    try:
+        return json.loads(raw)
+    except ValueError:
+        return raw
+
+
 def parse_sets(items: list[str]) -> dict[str, Any]:
     """``["fit.n_evals=200", "surfaces.backend=tsdf"]`` → ``{"fit.n_evals": 200, ...}``."""
     out: dict[str, Any] = {}
@@ -71,10 +80,7 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
         key, sep, raw = item.partition("=")
         if not sep or "." not in key:
             raise ConfigError(f"--set expects SECTION.KEY=VALUE, got {item!r}")
-        try:
-            out[key.strip()] = json.loads(raw)
-        except ValueError:
-            out[key.strip()] = raw
+        out[key.strip()] = parse_value(raw)
     return out
 
 
