@@ -254,6 +254,9 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, preset_ove
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
     tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
+    local = cfg.local_evals(observations[0].crop)
+    if cfg.gp_output != "none" or local:  # another optimiser: its own checkpoints
+        tag += f"-g{cfg.gp_output}-l{local}"
     if preset_overrides:  # another loss or other statistics: another fit, its own checkpoints
         tag += "-p" + config_hash(preset_overrides)[:8]
     default_h = preset(observations[0].crop).render_height
@@ -360,6 +363,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--evals", type=int, help="override evaluations per seed")
     ap.add_argument("--initial", type=int, help="override random initial evaluations")
     ap.add_argument("--canopies", type=int, help="override canopies averaged per evaluation")
+    ap.add_argument(
+        "--gp-output", choices=["none", "log"], help="override what BO's GP models (FitConfig)"
+    )
+    ap.add_argument(
+        "--local-share",
+        type=float,
+        help="override the share of each BO seed's evaluations spent last on Nelder-Mead",
+    )
     ap.add_argument("--image-scale", type=float, help="row camera resolution / 994x738")
     ap.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
@@ -387,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
         "n_evals": a.evals,
         "n_initial": a.initial,
         "canopies_per_eval": a.canopies,
+        "gp_output": a.gp_output,
+        "local_share": a.local_share,
     }
     if a.runner:
         if preset_overrides:

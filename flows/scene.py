@@ -58,6 +58,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "n_initial": 200,
         "common_random_numbers": True,
         "refit_every": 10,
+        "gp_output": "none",  # what BO's GP models: the loss ("none") or its logarithm ("log")
+        "local_share": None,  # share of each seed's evaluations spent last on Nelder-Mead
+        # (None: the crop's, FitConfig)
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
         "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate"
         "reevaluate_canopies": 16,

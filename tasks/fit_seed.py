@@ -67,6 +67,7 @@ def fit_seed_task(
     with Timer() as t:
         obs = load_observation(store, upstream)
         result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
+        report_progress(scene, seed, total, total)  # a local search may converge early
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz")
         with workdir("seed") as tmp:
             path = result.save(tmp / "seed.npz")

@@ -273,6 +273,8 @@ def test_bad_bounds_raise_config_error(bad):
         {"n_evals": 2.5},
         {"noise_variance": -1.0},
         {"blas_threads": 0},
+        {"output_transform": "sqrt"},
+        {"output_transform": "log", "log_offset": 0.0},
     ],
 )
 def test_bad_config_raises_config_error(kw):
@@ -329,3 +331,105 @@ def test_run_method_dispatch():
         assert r.method == m and np.all((r.X >= 0) & (r.X <= 1))
     with pytest.raises(ConfigError, match="unknown optimisation method"):
         run_method("nelder-mead", Noisy(0), b)
+
+
+def test_log_output_transform_models_log_loss_and_refuses_negative_values(tmp_path):
+    """The GP sees log(y + offset); the objective's values, the best point and the reported
+    posterior mean stay in the objective's units; a negative value is a named error."""
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    centre = np.array([0.37, 0.61])
+
+    def steep(x, i):  # a loss spanning five orders of magnitude over the box
+        return float(1e-4 + 10.0 * ((x - centre) ** 2).sum() ** 2)
+
+    cfg = BOConfig(n_evals=40, n_initial=12, output_transform="log", **FAST)
+    r = run_seed(steep, b, cfg, seed=3, checkpoint=tmp_path / "log.json")
+    assert r.complete and r.best_y == r.y.min() and r.best_y < 1e-3
+    assert np.abs(r.best_x - centre).max() < 0.08
+    # The posterior mean is reported back in the objective's units, next to the observed values.
+    k = int(np.argmin(np.abs(r.X - r.best_x_posterior).sum(1)))
+    assert 0.2 * r.y[k] < r.best_mean_posterior < 5.0 * r.y[k]
+    assert r.hyperparameters["output_transform"] == "log"
+    assert r.config["output_transform"] == "log"
+    # A run without the transform records the configuration as runs before it did.
+    plain = run_seed(steep, b, BOConfig(n_evals=14, n_initial=12, **FAST), seed=3)
+    assert "output_transform" not in plain.config and "log_offset" not in plain.config
+    # and a checkpoint of the other transform is another run's.
+    with pytest.raises(ConfigError, match="another run"):
+        run_seed(
+            steep,
+            b,
+            BOConfig(n_evals=40, n_initial=12, **FAST),
+            seed=3,
+            checkpoint=tmp_path / "log.json",
+        )
+    with pytest.raises(InputError, match="output_transform='log'"):
+        run_seed(
+            lambda x, i: -1.0,
+            b,
+            BOConfig(n_evals=14, n_initial=12, output_transform="log", **FAST),
+            seed=0,
+        )
+
+
+VALLEY_CENTRE = np.array([0.41, 0.63, 0.29])
+VALLEY_AXIS = np.array([1.0, -1.0, 0.5]) / 1.5
+
+
+def valley(x: np.ndarray, eval_index: int) -> float:
+    """A narrow tilted valley (condition number ~300): a stationary GP over the whole box
+    resolves its floor poorly, a simplex follows it."""
+    z = x - VALLEY_CENTRE
+    return float(1e3 * (z @ VALLEY_AXIS) ** 2 + 3.0 * (z @ z) + 1e-3)
+
+
+def test_local_search_spends_the_last_evaluations_and_goes_down_the_valley():
+    b = np.array([[0.0, 1.0]] * 3)
+    base = BOConfig(n_evals=60, n_initial=20, **FAST)
+    gp_only = run_seed(valley, b, base, seed=4)
+    local = run_seed(valley, b, BOConfig(n_evals=60, n_initial=20, local_evals=25, **FAST), seed=4)
+    assert local.n_evals <= 60
+    # the design and the first GP steps are the same run's
+    np.testing.assert_array_equal(local.X[:35], gp_only.X[:35])
+    before = float(local.y[:35].min())
+    assert local.best_y < 0.3 * before, (before, local.best_y)
+    assert local.best_y < gp_only.best_y  # at the same budget
+    # the search starts at the lowest point of the GP phase: every later point is near it
+    start = local.X[:35][int(np.argmin(local.y[:35]))]
+    assert np.abs(local.X[35:] - start).max() < 0.5
+    assert local.config["local_evals"] == 25 and "local_evals" not in gp_only.config
+
+
+@pytest.mark.parametrize("kill_at", [36, 47])
+def test_resume_inside_the_local_search_equals_uninterrupted(tmp_path, kill_at):
+    b = np.array([[0.0, 1.0]] * 3)
+    cfg = BOConfig(
+        n_evals=50, n_initial=12, refit_every=5, local_evals=20, checkpoint_every=4, **FAST
+    )
+
+    class Killed:
+        def __init__(self, at=None):
+            self.at, self.calls = at, []
+
+        def __call__(self, x, i):
+            if i == self.at:
+                raise KeyboardInterrupt
+            self.calls.append(i)
+            return valley(x, i)
+
+    full = run_seed(Killed(), b, cfg, seed=2)
+    ck = tmp_path / "c.json"
+    with pytest.raises(KeyboardInterrupt):
+        run_seed(Killed(kill_at), b, cfg, seed=2, checkpoint=ck)
+    again = Killed()
+    resumed = run_seed(again, b, cfg, seed=2, checkpoint=ck)
+    assert again.calls and again.calls[0] == kill_at  # stored evaluations are replayed, not redone
+    np.testing.assert_array_equal(resumed.X, full.X)
+    np.testing.assert_array_equal(resumed.y, full.y)
+    assert resumed.best_y == full.best_y
+
+
+@pytest.mark.parametrize("kw", [{"local_evals": 41}, {"local_evals": 5, "local_step": 0.0}])
+def test_bad_local_search_settings_are_named(kw):
+    with pytest.raises(ConfigError, match="local_"):
+        BOConfig(n_evals=50, n_initial=10, **kw).validate()

@@ -28,6 +28,7 @@ from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.observe import Observation
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
+from cropcraft_core.optimize.bo import OUTPUT_TRANSFORMS
 
 METHODS = ("bo", "trust-region", "random", "mlp")
 COMBINE_RULES = ("median", "mean", "reevaluate")
@@ -40,6 +41,7 @@ COMBINE_RULES = ("median", "mean", "reevaluate")
 # on the first 13 scenes, LAIE the exception, and on all 7 on the next 5).
 DEFAULT_COMBINE = {"soybean": "median", "maize": "reevaluate"}
 DEFAULT_CANOPIES = {"soybean": 2, "maize": 1}
+DEFAULT_LOCAL_SHARE = {"soybean": 0.0, "maize": 0.0}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 
 
@@ -74,6 +76,13 @@ class FitConfig:
     """Same canopy seed for every evaluation of an optimiser seed (see module docstring)."""
     refit_every: int = 10
     """GP hyper-parameter refit period of BO."""
+    gp_output: str = "none"
+    """What BO's GP models: ``none`` (the loss) or ``log`` (its logarithm; ``BOConfig.
+    output_transform``)."""
+    local_share: float | None = None
+    """The share of a BO seed's ``n_evals`` (at most those after the initial design) spent
+    last on a Nelder-Mead search from its lowest point (``BOConfig.local_evals``). None: the
+    crop's default, ``DEFAULT_LOCAL_SHARE``."""
     canopies_per_eval: int | None = None
     """Procedural canopies (seeds) whose histograms are averaged per evaluation, so that the
     predicted statistics estimate the parameters' expected statistics with 1/K of the variance.
@@ -109,16 +118,33 @@ class FitConfig:
                 f"need polish_starts >= 1 (got {self.polish_starts}) and polish_evals >= 0 "
                 f"(got {self.polish_evals})"
             )
+        if self.local_share is not None and not 0.0 <= self.local_share <= 1.0:
+            raise ConfigError(f"local_share must be in [0, 1], got {self.local_share}")
+        if self.gp_output not in OUTPUT_TRANSFORMS:
+            raise ConfigError(
+                f"unknown gp_output {self.gp_output!r}: "
+                f"choose one of {', '.join(OUTPUT_TRANSFORMS)}"
+            )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
         if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
             raise ConfigError(f"need 2 <= n_initial ({self.n_initial}) <= n_evals ({self.n_evals})")
         return self
 
-    def bo_config(self) -> BOConfig:
+    def bo_config(self, crop: str) -> BOConfig:
         return BOConfig(
-            n_evals=self.n_evals, n_initial=self.n_initial, refit_every=self.refit_every
+            n_evals=self.n_evals,
+            n_initial=self.n_initial,
+            refit_every=self.refit_every,
+            output_transform=self.gp_output,
+            local_evals=self.local_evals(crop),
         )
+
+    def local_evals(self, crop: str) -> int:
+        """BO's closing local-search evaluations: the share (``local_share`` or the crop's
+        default) of ``n_evals``, at most those after the initial design."""
+        share = DEFAULT_LOCAL_SHARE[crop] if self.local_share is None else self.local_share
+        return min(round(share * self.n_evals), self.n_evals - self.n_initial)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -165,7 +191,12 @@ def fit_seed(
     b = param_bounds(observation.crop)
     if cfg.method == "bo":
         res = run_seed(
-            objective, b, cfg.bo_config(), seed=seed, checkpoint=checkpoint, callback=callback
+            objective,
+            b,
+            cfg.bo_config(observation.crop),
+            seed=seed,
+            checkpoint=checkpoint,
+            callback=callback,
         )
     elif cfg.method == "random":
         res = run_random(

@@ -29,6 +29,24 @@ So common random numbers help while the loss's sampling noise is small against i
 over the box (the expected case for a histogram over thousands of leaves); when it is not,
 use independent draws and report ``best_x_posterior``. Measure the ratio first: the standard
 deviation of the loss over ~10 draws at one point versus that over the initial design.
+
+Two settings go beyond the paper's optimiser (both off by default here; the fitting layer
+chooses per crop): ``local_evals`` spends the last evaluations on Nelder-Mead from the lowest
+observed point, and ``output_transform="log"`` lets the GP model log(loss). Why: on the
+soybean accuracy scenes the histogram loss spans 0.005-2.3 over one seed's run, and a
+stationary GP over the whole box leaves narrow valleys unresolved. On scene 1 the seed's
+best point was 0.04 of the box from the truth, yet scored 2.6e-2 against the truth's 3.2e-3
+on that seed's own (deterministic) objective, and the loss fell monotonically along the line
+between them; 100 Nelder-Mead evaluations from it reached 9e-4. Paired runs, soybean scenes
+0-11, optimiser seed 0, 500 evaluations (200 initial, the same design in each):
+
+=============================  ====================  =========================================
+GP output, closing local       geo-mean best loss    mean |error| of the seed's point, box units
+=============================  ====================  =========================================
+loss, none (paper)             1.14e-2               0.188
+log(loss), 100 Nelder-Mead     6.3e-3                0.183
+loss, 100 Nelder-Mead          4.5e-3                0.153
+=============================  ====================  =========================================
 """
 
 from __future__ import annotations
@@ -56,6 +74,7 @@ Objective = Callable[[np.ndarray, int], float]
 Callback = Callable[[int, np.ndarray, float], None]
 
 CHECKPOINT_VERSION = 1
+OUTPUT_TRANSFORMS = ("none", "log")
 
 
 # --------------------------------------------------------------------------------------------
@@ -89,6 +108,20 @@ class BOConfig:
     """Best candidates polished by L-BFGS-B on log EI (analytic gradient)."""
     polish_maxiter: int = 50
     """Iteration cap of each polish."""
+    output_transform: str = "none"
+    """What the GP models: ``none``, the objective's values; ``log``, ``log(y + log_offset)``
+    (for a non-negative loss spanning orders of magnitude, so that the region near the optimum
+    is not flattened by the far worse values of the initial design)."""
+    log_offset: float = 1e-6
+    """``log`` transform: added before the logarithm, so a loss of exactly 0 stays finite."""
+    local_evals: int = 0
+    """The last this many of ``n_evals`` go to a local search: Nelder-Mead from the lowest
+    observed point (in the unit cube, first simplex a ``local_step`` along each axis towards the
+    box's inside). A stationary GP over the whole box resolves a narrow valley poorly, while
+    the objective under common random numbers is deterministic, so a simplex can follow the
+    valley to its floor. It may stop early once the simplex has shrunk to 1e-3."""
+    local_step: float = 0.05
+    """Side of the local search's first simplex, as a fraction of each box side."""
     xi: float = 0.01
     """EI exploration margin in standardised output units (scikit-optimize's default 0.01)."""
     checkpoint_every: int = 10
@@ -108,6 +141,7 @@ class BOConfig:
             "n_polish": (0, None),
             "polish_maxiter": (1, None),
             "checkpoint_every": (1, None),
+            "local_evals": (0, None),
         }
         for name, (lo, _) in ints.items():
             v = getattr(self, name)
@@ -117,6 +151,26 @@ class BOConfig:
             raise ConfigError(
                 f"BOConfig.n_initial={self.n_initial} exceeds n_evals={self.n_evals}: "
                 "lower n_initial or raise n_evals"
+            )
+        if self.local_evals > self.n_evals - self.n_initial:
+            raise ConfigError(
+                f"BOConfig.local_evals={self.local_evals} exceeds the "
+                f"{self.n_evals - self.n_initial} evaluations after the initial design"
+            )
+        if not (isinstance(self.local_step, int | float) and 0 < self.local_step <= 0.5):
+            raise ConfigError(f"BOConfig.local_step={self.local_step!r}: must be in (0, 0.5]")
+        if self.output_transform not in OUTPUT_TRANSFORMS:
+            raise ConfigError(
+                f"BOConfig.output_transform={self.output_transform!r}: "
+                f"choose one of {', '.join(OUTPUT_TRANSFORMS)}"
+            )
+        if not (
+            isinstance(self.log_offset, int | float)
+            and math.isfinite(self.log_offset)
+            and self.log_offset > 0
+        ):
+            raise ConfigError(
+                f"BOConfig.log_offset={self.log_offset!r}: must be a finite number > 0"
             )
         for name in ("xi", "local_scale"):
             v = getattr(self, name)
@@ -140,7 +194,30 @@ class BOConfig:
         d = asdict(self)
         for k in ("checkpoint_every", "blas_threads"):
             d.pop(k)
+        # as recorded before these settings existed, where they change nothing
+        if self.output_transform == "none":
+            d.pop("output_transform")
+            d.pop("log_offset")
+        if self.local_evals == 0:
+            d.pop("local_evals")
+            d.pop("local_step")
         return d
+
+    def model_values(self, y: np.ndarray) -> np.ndarray:
+        """The objective's values ``y`` as the GP models them (``output_transform``)."""
+        y = np.asarray(y, dtype=np.float64)
+        if self.output_transform == "none":
+            return y
+        if np.any(y < 0):
+            raise InputError(
+                f"the objective returned {float(y.min()):g} < 0, which output_transform='log' "
+                "cannot model: use output_transform='none' for objectives that go negative"
+            )
+        return np.log(y + self.log_offset)
+
+    def objective_value(self, z: float) -> float:
+        """The inverse of :meth:`model_values` (a GP mean back in the objective's units)."""
+        return z if self.output_transform == "none" else math.exp(z) - self.log_offset
 
 
 def check_bounds(bounds: Any) -> np.ndarray:
@@ -407,9 +484,10 @@ class _Evaluations:
     def n(self) -> int:
         return len(self.y)
 
-    def restore_all(self) -> None:
-        """Adopt every stored evaluation as-is (BO resume: its state is rebuilt, not replayed)."""
-        for i in range(len(self._replay_y)):
+    def restore_all(self, limit: int | None = None) -> None:
+        """Adopt the first ``limit`` (default: every) stored evaluations as-is (BO resume: its
+        state is rebuilt, not replayed); later ones are replayed through :meth:`__call__`."""
+        for i in range(min(len(self._replay_y), len(self._replay_y) if limit is None else limit)):
             self.X.append(self._replay_X[i].copy())
             self.y.append(float(self._replay_y[i]))
             self.t_opt.append(float(self._replay_t[i]))
@@ -651,6 +729,56 @@ def _propose(model: gpmod.MaternGP, cfg: BOConfig, rng: np.random.Generator) -> 
     return best_x
 
 
+def _local_search(
+    ev: _Evaluations,
+    cfg: BOConfig,
+    lo: np.ndarray,
+    width: np.ndarray,
+    save: Callable[[SeedResult], None],
+    snapshot: Callable[..., SeedResult],
+) -> None:
+    """``cfg.local_evals`` Nelder-Mead evaluations from the lowest observed point (its value is
+    reused, not re-evaluated). Deterministic in the values it is given, so a resumed run replays
+    the stored evaluations through ``ev`` and continues where it stopped."""
+    X, y = ev.arrays()
+    k = int(np.argmin(y))
+    u0, y0 = np.clip((X[k] - lo) / width, 0.0, 1.0), float(y[k])
+    d = u0.size
+
+    def f(u: np.ndarray) -> float:
+        u = np.clip(u, 0.0, 1.0)
+        if np.array_equal(u, u0):
+            return y0
+        value = ev(lo + width * u)
+        if ev.new_since_checkpoint >= cfg.checkpoint_every:
+            save(snapshot(False))
+        return value
+
+    steps = np.where(u0 < 0.5, cfg.local_step, -cfg.local_step)
+    simplex = np.vstack([u0] + [u0 + np.eye(d)[j] * steps[j] for j in range(d)])
+
+    class _Spent(Exception):
+        pass
+
+    def counted(u: np.ndarray) -> float:
+        if ev.n >= cfg.n_evals and not np.array_equal(np.clip(u, 0.0, 1.0), u0):
+            raise _Spent
+        return f(u)
+
+    with contextlib.suppress(_Spent):
+        minimize(
+            counted,
+            u0,
+            method="Nelder-Mead",
+            options={
+                "initial_simplex": simplex,
+                "xatol": 1e-3,
+                "fatol": 0.0,
+                "maxfev": 10 * cfg.local_evals + d + 1,
+            },
+        )
+
+
 def run_seed(
     objective: Objective,
     bounds: Any,
@@ -684,7 +812,8 @@ def run_seed(
     d = b.shape[0]
     lo, width = b[:, 0], b[:, 1] - b[:, 0]
     ev = _Evaluations(objective, b, callback, prev)
-    ev.restore_all()
+    n_model = cfg.n_evals - cfg.local_evals  # evaluations proposed by the design and the GP
+    ev.restore_all(n_model)
     surrogate = _Surrogate(cfg, seed, (prev.state.get("theta_history", {}) if prev else {}))
 
     def snapshot(complete: bool, **extra: Any) -> SeedResult:
@@ -708,18 +837,20 @@ def run_seed(
                 ev(initial[i])
                 if ev.new_since_checkpoint >= cfg.checkpoint_every:
                     save(snapshot(False))
-            while ev.n < cfg.n_evals:
+            while ev.n < n_model:
                 n = ev.n
                 X, y = ev.arrays()
                 U = (X - lo) / width
-                model = surrogate.model_for(n, U, y)
+                model = surrogate.model_for(n, U, cfg.model_values(y))
                 u = _propose(model, cfg, np.random.default_rng([seed, n]))
                 ev(lo + width * u)
                 if ev.new_since_checkpoint >= cfg.checkpoint_every:
                     save(snapshot(False))
+            if cfg.local_evals:
+                _local_search(ev, cfg, lo, width, save, snapshot)
             X, y = ev.arrays()
             U = (X - lo) / width
-            model = surrogate.final_model(U, y)
+            model = surrogate.final_model(U, cfg.model_values(y))
             mu = model.mean_at_observed()
             k = int(np.argmin(mu))
             theta = model.theta
@@ -729,11 +860,12 @@ def run_seed(
                 "noise_variance": float(math.exp(theta[d + 1])) * model.y_std**2,
                 "noise_std": float(math.sqrt(math.exp(theta[d + 1]))) * model.y_std,
                 "n_refits": len(surrogate.history),
+                "output_transform": cfg.output_transform,
             }
             result = snapshot(
                 True,
                 best_x_posterior=X[k].copy(),
-                best_mean_posterior=float(mu[k]),
+                best_mean_posterior=cfg.objective_value(float(mu[k])),
                 hyperparameters=hyper,
             )
             finished = True
