@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from cropcraft_core.config import default_layout
+from cropcraft_core.config.params import bounds
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, ForwardModel, fit_observation, fit_seed, observe_canopy
 from cropcraft_core.fit.mlp import MLPConfig, predict_params
@@ -56,6 +57,29 @@ def test_bo_fit_recovers_maize_parameters():
     assert abs(m_fit["node_count"] - m_true["node_count"]) <= 3
 
 
+def test_closing_local_search_refines_a_soybean_seed_from_its_lowest_point():
+    """With ``local_share`` the last evaluations of a seed are a simplex search started at the
+    GP phase's lowest point on the seed's own objective, and go further down from there."""
+    truth = {
+        "leaf_length": 1.0,
+        "petiole_length": 1.2,
+        "petiole_angle": 2.0,
+        "internode_length": 1.0,
+        "num_nodes": 6.5,
+    }
+    obs, _ = observation("soybean", truth)
+    base = {"n_evals": 50, "n_initial": 20}
+    plain = fit_seed(obs, 3, FitConfig(**base))
+    local = fit_seed(obs, 3, FitConfig(**base, local_share=0.3))
+    assert local.n_evals <= 50 and local.config["local_evals"] == 15
+    np.testing.assert_array_equal(local.X[:35], plain.X[:35])  # the same design and GP steps
+    assert local.y[35:].min() < local.y[:35].min()  # it went further down
+    # the search stays around the point it started from (5 % simplex in the unit cube)
+    start = local.X[:35][np.argmin(local.y[:35])]
+    span = np.ptp(bounds("soybean"), axis=1)
+    assert np.all(np.abs(local.X[35:] - start) / span < 0.5)
+
+
 def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
     obs, _ = observation("soybean", {"num_nodes": 6.0})
     cfg = FitConfig(n_seeds=1, n_evals=30, n_initial=12)
@@ -106,6 +130,19 @@ def test_bad_fit_config():
         FitConfig(method="adam").validate()
     with pytest.raises(ConfigError, match="n_initial"):
         FitConfig(n_evals=10, n_initial=20).validate()
+    with pytest.raises(ConfigError, match="local_share"):
+        FitConfig(local_share=1.5).validate()
+    with pytest.raises(ConfigError, match="gp_output"):
+        FitConfig(gp_output="sqrt").validate()
+
+
+def test_local_share_is_a_share_of_the_seed_budget_capped_after_the_design():
+    """The closing local search scales with the budget, so a reduced budget stays valid."""
+    assert FitConfig(local_share=0.2).local_evals("soybean") == 100
+    assert FitConfig(local_share=0.2, n_evals=60, n_initial=25).local_evals("soybean") == 12
+    assert FitConfig(local_share=1.0, n_evals=60, n_initial=25).local_evals("maize") == 35
+    cfg = FitConfig(local_share=0.2, gp_output="log").bo_config("soybean").validate()
+    assert (cfg.local_evals, cfg.output_transform) == (100, "log")
 
 
 def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_path):
