@@ -154,15 +154,23 @@ _AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies", "polish_starts", 
 def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:
     """The config each task sees (and its cache key hashes): its own section, plus the planting
     layout for the stages that build canopies. With ``crop``, the fit settings left to the
-    crop's defaults are written out -- the answer rule (``DEFAULT_COMBINE``) and the canopies
-    averaged per evaluation (``DEFAULT_CANOPIES``) -- so that a release changing a default
-    re-aggregates or refits cached seeds instead of serving the old default's answer."""
-    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE
+    crop's defaults are written out -- the answer rule (``DEFAULT_COMBINE``), the canopies
+    averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
+    (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
+    cached seeds instead of serving the old default's answer."""
+    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE, DEFAULT_LOCAL_SHARE
 
     layout = {"layout": dict(cfg["layout"])}
     fit = dict(cfg["fit"])
     if crop is not None and fit.get("canopies_per_eval") is None:
         fit["canopies_per_eval"] = DEFAULT_CANOPIES[crop]
+    if crop is not None and fit.get("local_share") is None:
+        fit["local_share"] = DEFAULT_LOCAL_SHARE[crop]
+    # The paper's optimiser is hashed as it was before these settings existed, so that seeds
+    # fitted then are still served; any other value (or default) is a key of its own.
+    if fit.get("gp_output", "none") == "none" and fit.get("local_share") in (0, 0.0):
+        fit.pop("gp_output", None)
+        fit.pop("local_share")
     seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
     agg = dict(fit)
     if crop is not None and agg.get("combine") is None:

@@ -244,6 +244,26 @@ def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkey
     assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
 
 
+def test_the_papers_optimiser_keeps_the_seed_keys_it_had_before_the_local_search(monkeypatch):
+    """BO's closing local search and log output are hashed only when they change the fit: the
+    defaults (and their values written out) give the seeds' config of earlier releases, so
+    stored seeds stay served; another value, or a release changing the crop's default, is
+    another key."""
+    from cropcraft_core.fit import fitting
+    from flows.scene import resolve_config, stage_configs
+
+    def seed_config(overrides):
+        return stage_configs(resolve_config(CROP, overrides), CROP)["fit_seed"]
+
+    default = seed_config({})
+    assert "local_share" not in default and "gp_output" not in default
+    assert seed_config({"fit.local_share": 0.0, "fit.gp_output": "none"}) == default
+    assert seed_config({"fit.local_share": 0.2})["local_share"] == 0.2
+    assert seed_config({"fit.gp_output": "log"})["gp_output"] == "log"
+    monkeypatch.setitem(fitting.DEFAULT_LOCAL_SHARE, CROP, 0.2)
+    assert seed_config({})["local_share"] == 0.2
+
+
 def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, scene_dir):
     """Artefacts live at one key per scene and stage: a run with other settings writes over
     them. Rerunning the first settings must not serve their cached records over the other
