@@ -43,7 +43,7 @@ DEFAULT_COMBINE = {"soybean": "median", "maize": "reevaluate"}
 DEFAULT_CANOPIES = {"soybean": 2, "maize": 1}
 # The paper's optimiser (no closing local search) for both crops: on soybean a closing
 # Nelder-Mead (share 0.2) halved the seeds' losses but did not bring their answers closer to
-# the truth on 14 benchmark scenes (README, "Where the fit departs from the paper").
+# the truth on 16 benchmark scenes (README, "Where the fit departs from the paper").
 DEFAULT_LOCAL_SHARE = {"soybean": 0.0, "maize": 0.0}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 

@@ -48,8 +48,8 @@ log(loss), 100 Nelder-Mead     6.3e-3                0.183
 loss, 100 Nelder-Mead          4.5e-3                0.153
 =============================  ====================  =========================================
 
-On all 10 seeds of scenes 0-13 (153 pairs) the closing search still halved the loss (5.7e-3
-against 1.1e-2, lower on 136), but the mean error was 0.192 against 0.184: below the paper's
+On all 10 seeds of scenes 0-15 (160 pairs) the closing search still halved the loss (5.5e-3
+against 1.1e-2, lower on 143), but the mean error was 0.187 against 0.182: below the paper's
 optimiser's level, lower minima of one seed's canopies fit those canopies, not the parameters.
 """
 
