@@ -491,7 +491,8 @@ class _Evaluations:
     def restore_all(self, limit: int | None = None) -> None:
         """Adopt the first ``limit`` (default: every) stored evaluations as-is (BO resume: its
         state is rebuilt, not replayed); later ones are replayed through :meth:`__call__`."""
-        for i in range(min(len(self._replay_y), len(self._replay_y) if limit is None else limit)):
+        n = len(self._replay_y) if limit is None else min(limit, len(self._replay_y))
+        for i in range(n):
             self.X.append(self._replay_X[i].copy())
             self.y.append(float(self._replay_y[i]))
             self.t_opt.append(float(self._replay_t[i]))
@@ -749,10 +750,15 @@ def _local_search(
     u0, y0 = np.clip((X[k] - lo) / width, 0.0, 1.0), float(y[k])
     d = u0.size
 
+    class _Spent(Exception):
+        """The budget is used up (SciPy checks its maxfev only between iterations)."""
+
     def f(u: np.ndarray) -> float:
         u = np.clip(u, 0.0, 1.0)
         if np.array_equal(u, u0):
             return y0
+        if ev.n >= cfg.n_evals:
+            raise _Spent
         value = ev(lo + width * u)
         if ev.new_since_checkpoint >= cfg.checkpoint_every:
             save(snapshot(False))
@@ -760,25 +766,18 @@ def _local_search(
 
     steps = np.where(u0 < 0.5, cfg.local_step, -cfg.local_step)
     simplex = np.vstack([u0] + [u0 + np.eye(d)[j] * steps[j] for j in range(d)])
-
-    class _Spent(Exception):
-        pass
-
-    def counted(u: np.ndarray) -> float:
-        if ev.n >= cfg.n_evals and not np.array_equal(np.clip(u, 0.0, 1.0), u0):
-            raise _Spent
-        return f(u)
-
     with contextlib.suppress(_Spent):
         minimize(
-            counted,
+            f,
             u0,
             method="Nelder-Mead",
+            # SciPy's own caps (200 d by default) must not end the search before the budget
             options={
                 "initial_simplex": simplex,
                 "xatol": 1e-3,
                 "fatol": 0.0,
-                "maxfev": 10 * cfg.local_evals + d + 1,
+                "maxiter": cfg.local_evals + d + 1,
+                "maxfev": cfg.local_evals + d + 1,
             },
         )
 
