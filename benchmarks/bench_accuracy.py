@@ -254,12 +254,12 @@ def _fit_all(observations, b: Budget, label: str, ex, checkpoint_dir, preset_ove
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
     tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
-    local = cfg.local_evals(observations[0].crop)
-    if cfg.gp_output != "none" or local:  # another optimiser: its own checkpoints
-        tag += f"-g{cfg.gp_output}-l{local}"
+    crop = observations[0].crop
+    if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
+        tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
     if preset_overrides:  # another loss or other statistics: another fit, its own checkpoints
         tag += "-p" + config_hash(preset_overrides)[:8]
-    default_h = preset(observations[0].crop).render_height
+    default_h = preset(crop).render_height
 
     def name(i: int, obs, s: int) -> str:
         # a scene observed from a raised camera is another fit: its own checkpoints

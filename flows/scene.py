@@ -158,7 +158,12 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
     (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
     cached seeds instead of serving the old default's answer."""
-    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE, DEFAULT_LOCAL_SHARE
+    from cropcraft_core.fit.fitting import (
+        DEFAULT_CANOPIES,
+        DEFAULT_COMBINE,
+        DEFAULT_LOCAL_SHARE,
+        FitConfig,
+    )
 
     layout = {"layout": dict(cfg["layout"])}
     fit = dict(cfg["fit"])
@@ -167,9 +172,9 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     if crop is not None and fit.get("local_share") is None:
         fit["local_share"] = DEFAULT_LOCAL_SHARE[crop]
     # The paper's optimiser is hashed as it was before these settings existed, so that seeds
-    # fitted then are still served; any other value (or default) is a key of its own.
-    if fit.get("gp_output", "none") == "none" and fit.get("local_share") in (0, 0.0):
-        fit.pop("gp_output", None)
+    # fitted then are still served; any other optimiser (or default) is a key of its own.
+    if crop is not None and FitConfig(**fit).papers_optimiser(crop):
+        fit.pop("gp_output")
         fit.pop("local_share")
     seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
     agg = dict(fit)

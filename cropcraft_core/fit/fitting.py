@@ -149,6 +149,11 @@ class FitConfig:
         share = DEFAULT_LOCAL_SHARE[crop] if self.local_share is None else self.local_share
         return min(round(share * self.n_evals), self.n_evals - self.n_initial)
 
+    def papers_optimiser(self, crop: str) -> bool:
+        """Whether BO runs as the paper's: the GP on the loss itself, no closing local search
+        (so a seed fitted before these settings existed is the same fit)."""
+        return self.gp_output == "none" and self.local_evals(crop) == 0
+
     def to_dict(self) -> dict:
         return asdict(self)
 
