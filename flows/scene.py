@@ -158,28 +158,24 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
     (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
     cached seeds instead of serving the old default's answer."""
-    from cropcraft_core.fit.fitting import (
-        DEFAULT_CANOPIES,
-        DEFAULT_COMBINE,
-        DEFAULT_LOCAL_SHARE,
-        FitConfig,
-    )
+    from cropcraft_core.fit.fitting import FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
     fit = dict(cfg["fit"])
-    if crop is not None and fit.get("canopies_per_eval") is None:
-        fit["canopies_per_eval"] = DEFAULT_CANOPIES[crop]
-    if crop is not None and fit.get("local_share") is None:
-        fit["local_share"] = DEFAULT_LOCAL_SHARE[crop]
-    # The paper's optimiser is hashed as it was before these settings existed, so that seeds
-    # fitted then are still served; any other optimiser (or default) is a key of its own.
-    if crop is not None and FitConfig(**fit).papers_optimiser(crop):
-        fit.pop("gp_output")
-        fit.pop("local_share")
+    agg_only: dict[str, Any] = {}
+    if crop is not None:
+        resolved = FitConfig(**fit).resolved(crop)
+        fit["canopies_per_eval"] = resolved.canopies_per_eval
+        fit["local_share"] = resolved.local_share
+        agg_only["combine"] = resolved.combine
+        # The paper's optimiser is hashed as it was before these settings existed, so that
+        # seeds fitted then are still served; any other optimiser (or default) is a key of
+        # its own.
+        if resolved.papers_optimiser(crop):
+            fit.pop("gp_output")
+            fit.pop("local_share")
     seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
-    agg = dict(fit)
-    if crop is not None and agg.get("combine") is None:
-        agg["combine"] = DEFAULT_COMBINE[crop]
+    agg = {**fit, **agg_only}
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),

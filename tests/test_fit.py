@@ -145,6 +145,24 @@ def test_local_share_is_a_share_of_the_seed_budget_capped_after_the_design():
     assert (cfg.local_evals, cfg.output_transform) == (100, "log")
 
 
+def test_resolved_writes_out_the_crop_defaults_and_keeps_what_was_given():
+    """One place reads the crop defaults; what a user set is never replaced."""
+    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE, DEFAULT_LOCAL_SHARE
+
+    for crop in ("soybean", "maize"):
+        r = FitConfig().resolved(crop)
+        assert (r.combine, r.canopies_per_eval, r.local_share) == (
+            DEFAULT_COMBINE[crop],
+            DEFAULT_CANOPIES[crop],
+            DEFAULT_LOCAL_SHARE[crop],
+        )
+        given = FitConfig(combine="mean", canopies_per_eval=3, local_share=0.0, n_evals=80)
+        assert given.resolved(crop) == FitConfig(
+            combine="mean", canopies_per_eval=3, local_share=0.0, n_evals=80
+        )
+    assert FitConfig().resolved("soybean").resolved("soybean") == FitConfig().resolved("soybean")
+
+
 def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_path):
     """``bench accuracy --preset lambda_lateral=...`` fits observations with those weights,
     records them, and keeps its seeds apart from the default weights' checkpoints."""

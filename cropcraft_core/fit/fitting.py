@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -93,11 +93,23 @@ class FitConfig:
     true parameters over 6 draws: loss 0.123 ± 0.064 with K = 1, 0.079 ± 0.023 with K = 2,
     0.072 ± 0.028 with K = 4; maize's loss noise is ~0.0002, so K = 1)."""
 
+    def resolved(self, crop: str) -> FitConfig:
+        """This config with every setting left to ``crop``'s default (None) written out:
+        ``combine`` (``DEFAULT_COMBINE``), ``canopies_per_eval`` (``DEFAULT_CANOPIES``) and
+        ``local_share`` (``DEFAULT_LOCAL_SHARE``). The one place those defaults are read: the
+        fit uses it, and the flows hash it so that a release changing a default recomputes."""
+        return replace(
+            self,
+            combine=self.combine or DEFAULT_COMBINE[crop],
+            canopies_per_eval=self.canopies_per_eval or DEFAULT_CANOPIES[crop],
+            local_share=DEFAULT_LOCAL_SHARE[crop] if self.local_share is None else self.local_share,
+        )
+
     def canopies(self, crop: str) -> int:
-        return self.canopies_per_eval or DEFAULT_CANOPIES[crop]
+        return self.resolved(crop).canopies_per_eval
 
     def combine_rule(self, crop: str) -> str:
-        return self.combine or DEFAULT_COMBINE[crop]
+        return self.resolved(crop).combine
 
     def reevaluates(self, crop: str) -> bool:
         """Whether :func:`combine` re-scores candidates (and so needs the observation)."""
@@ -146,7 +158,7 @@ class FitConfig:
     def local_evals(self, crop: str) -> int:
         """BO's closing local-search evaluations: the share (``local_share`` or the crop's
         default) of ``n_evals``, at most those after the initial design."""
-        share = DEFAULT_LOCAL_SHARE[crop] if self.local_share is None else self.local_share
+        share = self.resolved(crop).local_share
         return min(round(share * self.n_evals), self.n_evals - self.n_initial)
 
     def papers_optimiser(self, crop: str) -> bool:
