@@ -1,4 +1,5 @@
-"""The synthetic accuracy benchmark as a flow: one task per (method, scene, optimiser seed).
+"""The synthetic accuracy benchmark as a flow: one task per (method, scene, optimiser seed),
+then one per (method, scene) that combines its seeds under every table row.
 
 At the default budget a crop is 30 scenes × 10 seeds × 500 evaluations (~3 h per crop on one
 2-core machine). Every seed is an independent task whose inputs are four small values (the
@@ -35,6 +36,21 @@ def bench_seed(crop: str, scene: int, seed: int, fit: dict, scale: float) -> dic
     return {"scene": scene, "seed": seed, "result": r, "seconds": seed_seconds(r)}
 
 
+@task(name="bench-combine", cache_policy=NO_CACHE)
+def bench_combine(
+    crop: str, scene: int, rows: list, results: list, seconds: float, scale: float
+) -> dict[str, Any]:
+    """One scene's answers under every table row (``[(row, FitConfig dict)]``) from its seeds'
+    results: ``{row: (params, seconds)}``. Its own task because the re-scoring rows cost
+    minutes per scene, so a cluster spreads them like the seeds."""
+    from benchmarks.bench_accuracy import combine_scene, scene_observation
+
+    configs = [(row, FitConfig(**fit)) for row, fit in rows]
+    needs_obs = any(cfg.reevaluates(crop) for _, cfg in configs)
+    obs = scene_observation(crop, scene, scale)[1] if needs_obs else None
+    return combine_scene(crop, configs, results, seconds, obs)
+
+
 @flow(name="benchmark", persist_result=False)
 def benchmark(
     crop: str = "soybean",
@@ -51,14 +67,7 @@ def benchmark(
     {...}, "predictions": {method: [params per scene]}, "budget": {...}}``. ``overrides``
     (FitConfig fields, e.g. ``{"n_seeds": 3}``) and ``image_scale`` change the budget as in
     ``cropcraft bench accuracy``."""
-    from benchmarks.bench_accuracy import (
-        budget,
-        combine_scenes,
-        rules,
-        scene_observation,
-        score,
-        truth_record,
-    )
+    from benchmarks.bench_accuracy import budget, rules, score, truth_record
 
     log = get_run_logger()
     methods = list(methods or ["bo", "trust-region", "random"])
@@ -85,19 +94,21 @@ def benchmark(
     done = [f.result() for f in futures]
     out: dict[str, Any] = {"crop": crop, "quick": quick, "scenes": b0.scenes, "methods": {}}
     for m in methods:
-        mine = [
-            (d["scene"], d["result"], d["seconds"])
-            for (mm, _, _), d in zip(jobs, done, strict=True)
-            if mm == m
-        ]
-        for row, cfg in rules(crop, m, configs[m]):
-            params, seconds = combine_scenes(
-                crop,
-                cfg,
-                mine,
-                b0.scenes,
-                observation=lambda i: scene_observation(crop, i, b0.scale)[1],
-            )
+        mine = [d for (mm, _, _), d in zip(jobs, done, strict=True) if mm == m]
+        rows = rules(crop, m, configs[m])
+        scenes = range(b0.scenes)
+        answers = bench_combine.map(
+            [crop] * b0.scenes,
+            list(scenes),
+            [[(row, cfg.to_dict()) for row, cfg in rows]] * b0.scenes,
+            [[d["result"] for d in mine if d["scene"] == i] for i in scenes],
+            [sum(d["seconds"] for d in mine if d["scene"] == i) for i in scenes],
+            [b0.scale] * b0.scenes,
+        )
+        answers = [a.result() for a in answers]
+        for row, cfg in rows:
+            params = [a[row][0] for a in answers]
+            seconds = [a[row][1] for a in answers]
             out["methods"][row] = score(crop, params, truths, seconds, log=log.info)
             out["methods"][row]["budget"] = {**cfg.to_dict(), "image_scale": b0.scale}
     out["truths"] = truths

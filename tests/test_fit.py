@@ -187,3 +187,22 @@ def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_
         _parse_preset("maize", ["lambda_lateal=0.25"])
     with pytest.raises(SystemExit, match="KEY=VALUE"):
         _parse_preset("maize", ["lambda_lateral"])
+
+
+def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_process(tmp_path):
+    """With ``--workers`` each scene's answers (re-scoring and polish included) are combined in
+    the worker processes as soon as its seeds are in; the answers are the ones the in-process
+    run gives from the same seeds (here resumed from the workers' finished checkpoints)."""
+    from benchmarks.bench_accuracy import run
+
+    budget = {"n_seeds": 2, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
+    kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
+    pooled = run("maize", ["bo"], True, 2, workers=2, **kw)
+    local = run("maize", ["bo"], True, 2, workers=1, **kw)
+    assert len(list(tmp_path.iterdir())) == 4
+    rows = ["bo", "bo-median", "bo-mean", "bo-unpolished"]
+    assert list(pooled["methods"]) == list(local["methods"]) == rows
+    for row in rows:
+        got = [p["params"] for p in pooled["methods"][row]["predictions"]]
+        assert got == [p["params"] for p in local["methods"][row]["predictions"]], row
+        assert pooled["methods"][row]["errors"] == local["methods"][row]["errors"], row
