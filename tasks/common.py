@@ -66,6 +66,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: the best row's direction from the lateral profile's period, not its raw sharpness
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
     "rowfit": 2,
+    # 2: predictions are cut by the observation's box (height >= 0.1 m, |y| limit) like the
+    # observation itself; before, the low leaves it drops counted on the predicted side only
+    "fit_seed": 2,
+    "aggregate": 2,
 }
 
 #: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).

@@ -409,6 +409,45 @@ def test_observation_from_depth(obs):
     assert obs.loss_of(np.where(obs.mask, obs.depth, np.nan)).total == 0.0
 
 
+def test_a_prediction_is_cut_by_the_box_the_observation_was_cut_by():
+    """Leaves under ``mask_min_height`` that the observation's mask drops are dropped from a
+    prediction too: the scene itself, rendered as a prediction, scores zero. Uncut, it would
+    not, and a fit tilts the leaves to hide the low ones (the demo's leaf angle read 24° for
+    15°)."""
+    d = canopy()
+    scene = np.where(np.isfinite(d), d, plane(0.95)).astype(np.float32)  # + a 5 cm-high layer
+    o = Observation.from_depth("soybean", scene, CAM)
+    assert o.box_mask and not o.mask[np.isnan(d)].any()
+    assert o.loss_of(scene).total == 0.0
+    uncut = o.predicted_stats(scene, predicted_mask(scene))
+    assert loss(o.stats, uncut, o.preset).total > 1e-3
+    paper = Observation.from_depth(
+        "soybean", scene, CAM, preset=preset("soybean", mask_predictions=False)
+    )
+    assert paper.predicted_stats(scene).equals(uncut)
+    with pytest.raises(ConfigError, match="mask_predictions must be true or false"):
+        preset("soybean", mask_predictions=1)
+    # a render without background, masked by its finite depth: no box on either side
+    s = Observation("soybean", CAM, scene, np.isfinite(scene), box_mask=False)
+    assert s.loss_of(scene).total == 0.0
+    assert s.predicted_stats(scene).equals(compute_stats(scene, CAM, np.isfinite(scene), SOY))
+
+
+def test_box_mask_round_trips_and_records_without_it_read_as_cut(tmp_path):
+    d = canopy()
+    s = Observation("soybean", CAM, d, np.isfinite(d), box_mask=False)
+    s.save(tmp_path / "s")
+    back = Observation.load(tmp_path / "s")
+    assert back.box_mask is False and back.equals(s)
+    assert not back.equals(Observation("soybean", CAM, d, np.isfinite(d)))
+    rec = json.loads((tmp_path / "s" / "observation.json").read_text())
+    del rec["box_mask"]  # as written before the field existed, by observation_mask's callers
+    (tmp_path / "s" / "observation.json").write_text(json.dumps(rec))
+    assert Observation.load(tmp_path / "s").box_mask is True
+    with pytest.raises(ConfigError, match="box_mask"):
+        Observation("soybean", CAM, d, np.isfinite(d), box_mask="no")
+
+
 def test_save_load_round_trip_is_exact(obs, tmp_path):
     obs.save(tmp_path / "o")
     assert {p.name for p in (tmp_path / "o").iterdir()} == {"observation.npz", "observation.json"}

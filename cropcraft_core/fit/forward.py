@@ -106,9 +106,16 @@ def observe_canopy(
     canopy: Canopy, observation_preset, camera: PinholeCamera | None = None, meta=None
 ) -> Observation:
     """A synthetic observation: ``canopy`` rendered from the row camera (default: the preset's,
-    over the origin) with no background — the paper's synthetic-scene protocol."""
+    over the origin) with no background, its mask the finite depth and no box (``box_mask``
+    False, so neither are the predictions cut) — the paper's synthetic-scene protocol."""
     cam = camera or observation_preset.row_camera()
     d = render_depth(canopy.mesh.vertices, canopy.mesh.faces, cam).depth
     return Observation(
-        canopy.crop, cam, d, np.isfinite(d), preset=observation_preset, meta=dict(meta or {})
+        canopy.crop,
+        cam,
+        d,
+        np.isfinite(d),
+        preset=observation_preset,
+        meta=dict(meta or {}),
+        box_mask=False,
     )

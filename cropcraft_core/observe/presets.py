@@ -144,6 +144,11 @@ class ObservePreset:
     """Pixels lower than this above the ground are background, metres (0.1)."""
     mask_max_lateral: float = 0.5
     """Pixels with ``|y| >=`` this are background, metres (soybean 0.5, maize 3.0)."""
+    mask_predictions: bool = True
+    """Cut a prediction by the same box (``mask_min_height``, ``mask_max_lateral``) whenever
+    the observation's own mask is cut by it (``Observation.box_mask``). False: the paper's
+    predicted mask, every rendered pixel, which counts the low leaves the observation drops on
+    the predicted side only (README, "Where the fit departs from the paper")."""
 
     def __post_init__(self) -> None:
         if self.crop not in _BASE:
@@ -165,6 +170,10 @@ class ObservePreset:
             _finite("mask_l_min", self.mask_l_min)
         for name in ("mask_top_band", "mask_min_height", "mask_max_lateral"):
             _finite(name, getattr(self, name), minimum=0.0)
+        if not isinstance(self.mask_predictions, bool):
+            raise ConfigError(
+                f"mask_predictions must be true or false, got {self.mask_predictions!r}"
+            )
         lo, hi, _ = self.depth_range
         if not hi > lo:
             raise ConfigError(
@@ -289,6 +298,7 @@ CROPS: tuple[str, ...] = tuple(_BASE)
 
 _OBS_FIELDS = {f.name: f for f in fields(ObservePreset) if f.name not in ("crop", "loss")}
 _LOSS_FIELDS = {f.name: f for f in fields(LossPreset)}
+_BOOL_FIELDS = {"mask_predictions"}
 _INT_FIELDS = {"image_width", "image_height", "depth_bins", "lateral_bins", "sobel_bins"}
 _INT_FIELDS |= {"blur_kernel"}
 _OPTIONAL_FIELDS = {"depth_max", "lateral_max", "mask_l_min"}
@@ -300,6 +310,10 @@ def _coerce(name: str, value: Any) -> Any:
         if name in _OPTIONAL_FIELDS:
             return None
         raise ConfigError(f"{name} cannot be None")
+    if name in _BOOL_FIELDS:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name} must be true or false, got {value!r}")
+        return value
     if name == "normalisation":
         if not isinstance(value, str):
             raise ConfigError(f"normalisation must be a string, got {value!r}")
