@@ -65,7 +65,9 @@ STAGE_VERSIONS: dict[str, int] = {
     "surfaces": 2,
     # 2: the best row's direction from the lateral profile's period, not its raw sharpness
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
-    "rowfit": 2,
+    # 3: ... and the camera clears the colour band too (soybean 0.25 m), in which the
+    # observation's mask drops green leaves while a prediction keeps them
+    "rowfit": 3,
     # 2: predictions are cut by the observation's box (height >= 0.1 m, |y| limit) like the
     # observation itself; before, the low leaves it drops counted on the predicted side only
     "fit_seed": 2,

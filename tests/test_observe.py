@@ -514,7 +514,7 @@ def test_bad_observations_raise_named_errors(tmp_path):
 
 
 def test_render_height_is_raised_only_over_a_canopy_that_reaches_the_depth_range():
-    from cropcraft_core.observe import clear_render_height
+    from cropcraft_core.observe import clear_render_height, observed_clearance
 
     assert clear_render_height("soybean", 1.0, 0.6) == 1.0
     assert clear_render_height("soybean", 1.0, 0.9) == 1.0  # exactly at the 0.1 m edge
@@ -522,5 +522,11 @@ def test_render_height_is_raised_only_over_a_canopy_that_reaches_the_depth_range
     assert clear_render_height("soybean", 1.25, 1.2) == pytest.approx(1.3)
     assert clear_render_height("maize", 5.0, 3.0) == 5.0  # maize's depth bins start at 2 m
     assert clear_render_height("maize", 5.0, 3.21) == pytest.approx(5.25)
+    # an observed canopy also clears the mask's colour band (green leaves in it are dropped)
+    assert observed_clearance("soybean") == 0.25 and observed_clearance("maize") == 2.0
+    assert clear_render_height("soybean", 1.0, 0.8, observed_clearance("soybean")) == 1.05
+    assert clear_render_height("soybean", 1.0, 0.75, observed_clearance("soybean")) == 1.0
+    with pytest.raises(ConfigError, match="clearance"):
+        clear_render_height("soybean", 1.0, 0.5, -0.1)
     with pytest.raises(ConfigError):
         clear_render_height("wheat", 1.0, 0.5)

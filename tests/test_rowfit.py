@@ -341,8 +341,10 @@ def test_scale_from_rows_of_visible_surfaces_of_a_closed_canopy():
 
 def test_camera_is_raised_over_a_tall_canopy():
     """A 1.4 m soybean canopy (the benchmark's tallest kind) would put the paper's 1.0 / 1.25 m
-    camera among its leaves: the row fit raises it to 0.1 m (the depth histogram's lower edge)
-    over the canopy's top, and says so; ``clear_canopy=False`` is the paper's fixed height."""
+    camera among its leaves: the row fit raises it to 0.25 m over the canopy's top (clear of
+    the depth histogram's lower edge, 0.1 m, and of the mask's colour band, 0.25 m, in which
+    the observation drops green leaves), and says so; ``clear_canopy=False`` is the paper's
+    fixed height."""
     tall = {"leaf_length": 1.2, "internode_length": 1.7, "num_nodes": 14.0}
     pts, col, lay = make_cloud("soybean", tall, 0.0, seed=8, density=1500)
     top = np.percentile(pts[:, 2], 99.5)
@@ -351,7 +353,7 @@ def test_camera_is_raised_over_a_tall_canopy():
     fit = fit_ground_and_rows(scene, col, "soybean", preset("soybean", box_size=None), rng=8)
     d = fit.diagnostics
     assert d["render_height_raised_from"] == (1.25 if fit.dense else 1.0)
-    assert d["canopy_top"] + 0.1 <= fit.render_height < d["canopy_top"] + 0.15
+    assert d["canopy_top"] + 0.25 <= fit.render_height < d["canopy_top"] + 0.3
     assert fit.camera.center[2] == pytest.approx(fit.render_height)
     assert fit.to_dict()["render_height"] == fit.render_height
     paper = fit_ground_and_rows(

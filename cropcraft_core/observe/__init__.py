@@ -20,6 +20,7 @@ from cropcraft_core.observe.presets import (
     LossPreset,
     ObservePreset,
     clear_render_height,
+    observed_clearance,
     preset,
     soybean_render_height,
     with_overrides,
@@ -40,6 +41,7 @@ __all__ = [
     "predicted_mask",
     "preset",
     "clear_render_height",
+    "observed_clearance",
     "soybean_render_height",
     "with_overrides",
 ]

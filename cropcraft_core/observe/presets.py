@@ -372,11 +372,14 @@ def soybean_render_height(plant_fraction: float) -> float:
     return float(_BASE["soybean"]["render_height"])
 
 
-def clear_render_height(crop: str, render_height: float, canopy_top: float) -> float:
+def clear_render_height(
+    crop: str, render_height: float, canopy_top: float, clearance: float | None = None
+) -> float:
     """``render_height``, raised where the canopy's top (metres above the ground) comes closer
-    to the camera than the depth histogram's lower edge (``depth_min``: soybean 0.1 m, maize
-    2 m) -- the row camera must look down on the canopy, not from inside it. Raised to
-    ``canopy_top + depth_min``, rounded up to 5 cm.
+    to the camera than ``clearance`` -- by default the depth histogram's lower edge
+    (``depth_min``: soybean 0.1 m, maize 2 m): the row camera must look down on the canopy,
+    not from inside it. Raised to ``canopy_top + clearance``, rounded up to 5 cm. An observed
+    canopy (a reconstruction, with colour) needs :func:`observed_clearance`.
 
     Not in the paper, whose fixed soybean camera (1.0 m, 1.25 m dense) assumes canopies below
     0.9 m; 5 of the accuracy benchmark's 30 uniformly drawn soybean canopies reach 0.90-1.48 m,
@@ -386,10 +389,23 @@ def clear_render_height(crop: str, render_height: float, canopy_top: float) -> f
         raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(_BASE)}")
     _finite("render_height", render_height, minimum=0.0)
     _finite("canopy_top", canopy_top)
-    need = float(canopy_top) + float(_BASE[crop]["depth_min"])
+    if clearance is None:
+        clearance = float(_BASE[crop]["depth_min"])
+    _finite("clearance", clearance, minimum=0.0)
+    need = float(canopy_top) + float(clearance)
     if need <= render_height:
         return float(render_height)
     return math.ceil(round(need / 0.05, 9)) * 0.05
+
+
+def observed_clearance(crop: str) -> float:
+    """How far below the row camera an observed canopy's top must stay (metres): the depth
+    histogram's lower edge, and the observation mask's colour band (``mask_top_band``: soybean
+    0.25 m), inside which plant-green pixels count as background -- a leaf there would be cut
+    from the observation while a prediction keeps it."""
+    if crop not in _BASE:
+        raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(_BASE)}")
+    return float(max(_BASE[crop]["depth_min"], _BASE[crop]["mask_top_band"]))
 
 
 __all__ = [
@@ -400,6 +416,7 @@ __all__ = [
     "LossPreset",
     "ObservePreset",
     "clear_render_height",
+    "observed_clearance",
     "preset",
     "soybean_render_height",
     "with_overrides",

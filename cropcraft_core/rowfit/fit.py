@@ -471,9 +471,9 @@ def fit_ground_and_rows(
     top = float(np.percentile(q[:, 2], 99.5))
     diag["canopy_top"] = top
     if used.clear_canopy:
-        from cropcraft_core.observe.presets import clear_render_height
+        from cropcraft_core.observe.presets import clear_render_height, observed_clearance
 
-        h = clear_render_height(crop, used.render_height, top)
+        h = clear_render_height(crop, used.render_height, top, observed_clearance(crop))
         if h != used.render_height:
             diag["render_height_raised_from"] = float(used.render_height)
             used = replace(used, render_height=h)

@@ -126,7 +126,8 @@ class RowFitPreset:
     clear_canopy: bool = True
     """Not in the paper (``False`` = exactly the paper): raise the render height where the
     canopy's top (99.5th percentile of plant-point heights in the ROI) comes within the depth
-    histogram's lower edge of the camera (``observe.clear_render_height``)."""
+    histogram's lower edge or the observation mask's colour band of the camera
+    (``observe.clear_render_height``, ``observe.observed_clearance``: soybean 0.25 m)."""
     roi_radius: float | None = None
     """Row fitting only uses plant points within this distance of a vertical axis through the
     frame origin (the scene-box centre projected onto the ground); maize 2.0, soybean ``None``."""
