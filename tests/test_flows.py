@@ -240,7 +240,9 @@ def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkey
     out = _run("plotA", base_run["store"], scene_dir)
     executed = set(_executed(out["states"]))
     assert sum(name.startswith("fit_seed") for name in executed) == N_SEEDS
-    assert {"aggregate", "generate", "metrics"} <= executed
+    # the stages after aggregate rerun only where the new seeds change the answer (at this
+    # tiny budget the lowest points may be the same initial draws, and then they are cached)
+    assert "aggregate" in executed
     assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
 
 
