@@ -8,6 +8,7 @@ imported only by the sub-commands that need them.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -62,6 +63,85 @@ def cmd_generate(args: argparse.Namespace) -> int:
     canopy = generate_canopy(args.crop, params, layout, seed=args.seed)
     metrics = write_bundle(canopy, args.out)
     _print_summary(args.out, metrics)
+    return 0
+
+
+#: What ``make_scene`` writes at the top of its folder (moved into ``--out`` when complete).
+SYNTH_ENTRIES = ("images", "depth", "colmap", "transforms.json", "truth", "scene.json")
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    w, sep, h = text.lower().partition("x")
+    try:
+        if not sep:
+            raise ValueError
+        return int(w), int(h)
+    except ValueError:
+        raise ConfigError(
+            f"--resolution expects WIDTHxHEIGHT, e.g. 640x480, got {text!r}"
+        ) from None
+
+
+def _publish_tree(tmp: Path, out: Path, entries: tuple[str, ...]) -> None:
+    """Move ``entries`` of the complete ``tmp`` folder into ``out``, each replacing the old one
+    whole (a folder is renamed aside first, then removed), so ``out`` never mixes two scenes'
+    files of one kind and a failure before this point leaves it untouched."""
+    import shutil
+
+    for name in entries:
+        src, dst = tmp / name, out / name
+        if not src.exists():
+            continue
+        old = None
+        if dst.is_dir():
+            old = tmp / f".old-{name}"
+            os.replace(dst, old)
+        os.replace(src, dst)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    import shutil
+    import tempfile
+
+    from cropcraft_core.bundle import check_output_dir
+    from cropcraft_core.config import resolve_params
+    from cropcraft_core.errors import OutputError
+    from cropcraft_core.synth import make_scene
+
+    params = resolve_params(args.crop, _param_pairs(args.param))
+    layout = _layout(args.crop, args)
+    size = _resolution(args.resolution)
+    if args.views < 2:
+        raise ConfigError(f"a scene needs at least 2 views, got --views {args.views}")
+    trajectory = args.trajectory or ("drone" if args.crop == "maize" else "walk")
+    out = check_output_dir(args.out)
+    tmp = Path(tempfile.mkdtemp(dir=out, prefix=".synth-"))
+    try:
+        summary = make_scene(
+            args.crop,
+            tmp,
+            params,
+            seed=args.seed,
+            views=args.views,
+            resolution=size,
+            trajectory=trajectory,
+            layout=layout,
+            image_format=args.format,
+        )
+        try:
+            _publish_tree(tmp, out, SYNTH_ENTRIES)
+        except OSError as e:
+            raise OutputError(f"cannot write the scene into {out}: {e}") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    lo, hi = summary["camera_height_range_m"]
+    print(
+        f"{summary['views']} {trajectory} views at {size[0]}x{size[1]}, cameras "
+        f"{lo:.2f}-{hi:.2f} m high, {summary['plot_plants']} plants in the plot"
+    )
+    print(f"written to {out.resolve()} (images/, transforms.json, colmap/, depth/, truth/)")
     return 0
 
 
@@ -144,6 +224,32 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, metavar="DIR")
     g.set_defaults(func=cmd_generate)
 
+    y = sub.add_parser(
+        "synth", help="render a synthetic photo scene with its poses and truth (test data)"
+    )
+    y.add_argument("crop", help="soybean or maize")
+    y.add_argument("--out", required=True, metavar="DIR")
+    y.add_argument(
+        "--param",
+        action="append",
+        metavar="NAME=VALUE",
+        help="model parameter (repeatable); missing ones take the middle of their range",
+    )
+    y.add_argument("--seed", type=int, default=0, help="canopy, trajectory, light and noise")
+    y.add_argument("--views", type=int, default=50, help="photos (50)")
+    y.add_argument("--resolution", default="640x480", metavar="WxH", help="photo size (640x480)")
+    y.add_argument(
+        "--trajectory",
+        choices=["walk", "drone"],
+        help="a person walking around the plot at 1-1.8 m, or a drone at ~13 m "
+        "(default: walk for soybean, drone for maize)",
+    )
+    y.add_argument("--format", choices=["jpg", "png"], default="jpg", help="image format")
+    y.add_argument("--plot", metavar="W,L", help="plot width (across rows) and length (m)")
+    y.add_argument("--row-spacing", type=float, metavar="M")
+    y.add_argument("--density", type=float, metavar="PLANTS_PER_M2")
+    y.set_defaults(func=cmd_synth)
+
     f = sub.add_parser("fit", help="fit a metric, z-up mesh or point cloud (LiDAR, other tools)")
     f.add_argument("crop", help="soybean or maize")
     f.add_argument("--geometry", required=True, metavar="FILE.ply")
@@ -187,8 +293,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import os
-
     # an offline batch service: no telemetry calls to the outside (they fail here anyway)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     parser = build_parser()

@@ -1,4 +1,5 @@
-"""`cropcraft generate`: the bundle it writes and its errors (one line, exit 2, nothing written)."""
+"""`cropcraft generate` and `cropcraft synth`: what they write and their errors (one line,
+exit 2, nothing written)."""
 
 import json
 
@@ -130,3 +131,39 @@ def test_demo_inputs_are_remade_when_the_demo_scene_changes(tmp_path, monkeypatc
     poses = json.loads(store.get_bytes(inbox + "/transforms.json"))
     assert len(poses["frames"]) == 4
     assert store.get_json("/".join(service_cli.DEMO_SCENE) + "/truth/synth.json")["views"] == 4
+
+
+def test_synth_writes_a_photo_scene_and_replaces_an_older_one_whole(tmp_path, capsys):
+    """Photos, both pose formats, per-view true depth and the truth; a second scene written
+    into the same folder replaces the first one's files of each kind instead of mixing."""
+    out = tmp_path / "scene"
+    args = ["synth", "soybean", "--out", str(out), "--resolution", "96x72", "--seed", "2"]
+    assert main([*args, "--views", "5", "--param", "num_nodes=3"]) == 0
+    assert len(list((out / "images").iterdir())) == 5 == len(list((out / "depth").iterdir()))
+    assert len(json.loads((out / "transforms.json").read_text())["frames"]) == 5
+    assert (out / "colmap" / "sparse" / "0" / "images.txt").is_file()
+    truth = json.loads((out / "truth" / "params.json").read_text())
+    assert truth["params"]["num_nodes"] == 3 and truth["seed"] == 2
+    assert {p.name for p in (out / "truth").iterdir()} >= {"canopy.ply", "metrics.json"}
+    assert "5 walk views at 96x72" in capsys.readouterr().out
+    assert main([*args, "--views", "3"]) == 0
+    assert len(list((out / "images").iterdir())) == 3
+    assert json.loads((out / "truth" / "params.json").read_text())["params"]["num_nodes"] == 7.5
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["synth", "wheat"], "unknown crop 'wheat'"),
+        (["synth", "maize", "--param", "num_nodes=40"], "outside its range [1, 18]"),
+        (["synth", "soybean", "--resolution", "640"], "--resolution expects WIDTHxHEIGHT"),
+        (["synth", "soybean", "--views", "1"], "at least 2 views"),
+    ],
+)
+def test_synth_bad_input(tmp_path, capsys, args, message):
+    out = tmp_path / "out"
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cropcraft: error:") and message in err and "\n" not in err
+    assert not out.exists()
