@@ -44,6 +44,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "imported_metric": True,
         # SfM (and non-metric imported) poses are levelled: z up, plot-centred, ~metres
         "camera_height": None,  # measured median camera height (m): exact scale
+        "camera_distance": None,  # [photo A, photo B, metres between their cameras]: exact scale
         "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
     },
     # bbox "auto": the crop's scene box around the levelled frame's origin
@@ -142,6 +143,21 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         v = cfg["poses"][key]
         if v is not None and (not isinstance(v, int | float) or isinstance(v, bool) or v <= 0):
             raise ConfigError(f"poses.{key} must be a positive number of metres or null, got {v!r}")
+    cd = cfg["poses"]["camera_distance"]
+    if cd is not None and not (
+        isinstance(cd, list | tuple)
+        and len(cd) == 3
+        and all(isinstance(x, str) and x for x in cd[:2])
+        and isinstance(cd[2], int | float)
+        and not isinstance(cd[2], bool)
+        and cd[2] > 0
+    ):
+        raise ConfigError(
+            "poses.camera_distance must be [photo A, photo B, metres between their cameras] "
+            f"or null, got {cd!r}"
+        )
+    if cd is not None and cfg["poses"]["camera_height"] is not None:
+        raise ConfigError("give poses.camera_height or poses.camera_distance, not both")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
     return cfg

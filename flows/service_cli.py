@@ -54,6 +54,14 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             help="median height of the cameras above the ground (m): sets the metric scale of "
             "SfM poses (else it is measured from the row spacing); = --set poses.camera_height=M",
         )
+        p.add_argument(
+            "--camera-distance",
+            nargs=3,
+            metavar=("PHOTO_A", "PHOTO_B", "M"),
+            help="measured distance (m) between the spots two photos were taken from (e.g. two "
+            "tripod marks): sets the metric scale of SfM poses; = --set "
+            'poses.camera_distance=\'["A","B",M]\'',
+        )
 
 
 def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
@@ -61,6 +69,12 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
     out = parse_sets(args.set)
     if getattr(args, "camera_height", None) is not None:
         out["poses.camera_height"] = float(args.camera_height)
+    if getattr(args, "camera_distance", None) is not None:
+        a, b, metres = args.camera_distance
+        try:
+            out["poses.camera_distance"] = [a, b, float(metres)]
+        except ValueError:
+            raise ConfigError(f"--camera-distance: {metres!r} is not a number of metres") from None
     return out
 
 

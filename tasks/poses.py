@@ -65,9 +65,10 @@ def poses(
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``).
     SfM and non-metric imported poses are then levelled by
     :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred, metres from
-    ``config["camera_height"]`` if given, else provisional from ``prior_camera_height`` or the
-    crop's typical capture height); the summary's ``frame`` records how, and ``metric`` is true
-    when the scale is known (metric poses or a camera-height hint).
+    ``config["camera_height"]`` or ``config["camera_distance"]`` ([photo A, photo B, metres]
+    between their cameras; source names or stems) if given, else provisional from
+    ``prior_camera_height`` or the crop's typical capture height); the summary's ``frame``
+    records how, and ``metric`` is true when the scale is known (metric poses or a hint).
     """
     import_colmap, import_transforms_json, run_sfm, level_poses = core(
         "poses",
@@ -82,12 +83,17 @@ def poses(
     crop = scene.split("/")[1]
     prior = config.get("prior_camera_height") or PRIOR_CAMERA_HEIGHT_M.get(crop, 1.4)
     hint = config.get("camera_height")
+    distance = config.get("camera_distance")
 
     def level(found, points, summary: dict):
         """Level the poses; record how in ``summary`` (``frame``, and ``metric`` when the scale
         is known rather than provisional)."""
         out_poses, out_points, frame = level_poses(
-            found, points, camera_height_m=hint, prior_camera_height_m=float(prior)
+            found,
+            points,
+            camera_height_m=hint,
+            camera_distance=tuple(distance) if distance else None,
+            prior_camera_height_m=float(prior),
         )
         summary["frame"] = frame.summary()
         summary["metric"] = frame.metric

@@ -17,8 +17,9 @@ def rowfit(
 
     config: ``preset`` (RowFitPreset overrides), ``seed``, ``scale`` (metres per scene unit),
     ``layout`` (planting; its row spacing is the known one). The scale source is
-    ``metric_poses`` when the poses stage imported metric poses, ``camera_height`` when it
-    levelled SfM poses with the user's camera height, ``user_hint`` when ``scale``
+    ``metric_poses`` when the poses stage imported metric poses, ``camera_height`` or
+    ``camera_distance`` when it levelled SfM poses with the user's camera height or measured
+    distance between two photos, ``user_hint`` when ``scale``
     is given, else ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
     ``assumed_metric`` when it cannot be measured). The known row spacing also snaps the best
     row onto the periodic row pattern (``RowFitPreset.row_spacing``).
@@ -33,11 +34,9 @@ def rowfit(
         cloud = store.get_npz(key_of(upstream["surfaces"], "points"))
         poses_summary = upstream["poses"].get("summary", {})
         metric = bool(poses_summary.get("metric"))
-        metric_source = (
-            "camera_height"
-            if poses_summary.get("frame", {}).get("scale_source") == "camera_height"
-            else "metric_poses"
-        )
+        frame_source = poses_summary.get("frame", {}).get("scale_source")
+        hinted = ("camera_height", "camera_distance")
+        metric_source = frame_source if frame_source in hinted else "metric_poses"
         scale = config.get("scale")
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}

@@ -167,3 +167,15 @@ def test_synth_bad_input(tmp_path, capsys, args, message):
     err = capsys.readouterr().err.strip()
     assert err.startswith("cropcraft: error:") and message in err and "\n" not in err
     assert not out.exists()
+
+
+def test_camera_distance_is_a_scale_shortcut():
+    from cropcraft_core.errors import ConfigError
+    from flows.cli import build_parser
+    from flows.service_cli import overrides_of
+
+    args = build_parser().parse_args(["demo", "--camera-distance", "a.jpg", "b.jpg", "2.5"])
+    assert overrides_of(args)["poses.camera_distance"] == ["a.jpg", "b.jpg", 2.5]
+    bad = build_parser().parse_args(["demo", "--camera-distance", "a.jpg", "b.jpg", "far"])
+    with pytest.raises(ConfigError, match="not a number of metres"):
+        overrides_of(bad)

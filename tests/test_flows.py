@@ -11,6 +11,7 @@ temporary PREFECT_HOME and local result storage. The scene is computed once (mod
 from __future__ import annotations
 
 import io
+import json
 import math
 import shutil
 import socket
@@ -437,6 +438,27 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         run_scene("plotA", CROP, DATE, images=str(scene_dir / "images"), store="s3://nope/x")
     assert time.perf_counter() - t < 30
     assert not (tmp_path / "store").exists() or not any((tmp_path / "store").rglob("*.npz"))
+
+
+def test_a_measured_distance_between_two_photos_sets_the_scale(base_run, scene_dir):
+    """Imported poses read as non-metric are levelled; the measured distance between two
+    photos' cameras (``--camera-distance``) sets their scale exactly, and the row fit keeps
+    it (and says so) instead of measuring it from the rows."""
+    frames = json.loads((scene_dir / "transforms.json").read_text())["frames"]
+    a, b = (np.array(frames[i]["transform_matrix"])[:3, 3] for i in (2, 9))
+    names = [Path(frames[i]["file_path"]).name for i in (2, 9)]
+    hint = {
+        "poses.imported_metric": False,
+        "poses.camera_distance": [*names, float(np.linalg.norm(a - b))],
+    }
+    out = _run("plotD", base_run["store"], scene_dir, {**OVERRIDES, **hint})
+    assert set(out["states"].values()) == {"Completed"}
+    rowfit = SceneStore(str(base_run["store"])).get_json(f"plotD/{CROP}/{DATE}/rowfit/rowfit.json")
+    assert rowfit["scale_source"] == "camera_distance" and rowfit["scale"] == 1.0
+    with pytest.raises(ConfigError, match="camera_distance must be"):
+        _run("plotD", base_run["store"], scene_dir, {"poses.camera_distance": ["a", 2.0]})
+    with pytest.raises(ConfigError, match="not both"):
+        _run("plotD", base_run["store"], scene_dir, {**hint, "poses.camera_height": 1.4})
 
 
 def test_report_builder_is_self_contained():

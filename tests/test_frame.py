@@ -113,3 +113,28 @@ def test_named_errors():
         level_poses(Poses(poses.views[:2]))
     with pytest.raises(InputError, match="positive"):
         level_poses(poses, camera_height_m=-1.0)
+
+
+def test_a_measured_distance_between_two_photos_sets_the_scale_exactly():
+    """``camera_distance``: (photo A, photo B, metres between where they were taken); names as
+    posed or their stems."""
+    rng = np.random.default_rng(7)
+    cams = walk_trajectory(default_layout("soybean"), 30, rng, canopy_top=0.6)
+    pts = _sparse_points(rng, 1.0, 0.6)
+    poses, spts = _scrambled(cams, pts, 7, scale=0.37)
+    d = float(np.linalg.norm(cams[3].center - cams[17].center))
+    out, _, frame = level_poses(poses, spts, camera_distance=("v003", "v017.png", d))
+    assert frame.scale_source == "camera_distance" and frame.metric
+    _, s, _ = _truth_error(out, cams)
+    assert s == pytest.approx(1.0, rel=1e-9)
+    # no ground is needed for it: the cameras alone
+    _, _, frame = level_poses(poses, camera_distance=("v003.png", "v017.png", d))
+    assert frame.scale == pytest.approx(1 / 0.37, rel=1e-9)
+    with pytest.raises(InputError, match="photo 'v099.png', which has no pose"):
+        level_poses(poses, spts, camera_distance=("v003", "v099.png", d))
+    with pytest.raises(InputError, match="same spot"):
+        level_poses(poses, spts, camera_distance=("v003", "v003.png", d))
+    with pytest.raises(InputError, match="positive number of metres"):
+        level_poses(poses, spts, camera_distance=("v003", "v017", 0.0))
+    with pytest.raises(InputError, match="not both"):
+        level_poses(poses, spts, camera_height_m=1.4, camera_distance=("v003", "v017", d))

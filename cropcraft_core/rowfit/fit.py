@@ -46,7 +46,14 @@ from cropcraft_core.rowfit.lab import srgb_to_lab
 from cropcraft_core.rowfit.presets import RowFitPreset
 from cropcraft_core.rowfit.presets import preset as make_preset
 
-SCALE_SOURCES = ("metric_poses", "camera_height", "user_hint", "row_spacing", "assumed_metric")
+SCALE_SOURCES = (
+    "metric_poses",
+    "camera_height",
+    "camera_distance",
+    "user_hint",
+    "row_spacing",
+    "assumed_metric",
+)
 
 
 class RowFitError(CropCraftError, ValueError):
@@ -839,7 +846,8 @@ def fit_rows_with_scale(
     """:func:`fit_ground_and_rows` with the metric scale chosen by priority:
 
     1. ``metric_scale`` (metres per scene unit from metric imported poses, usually 1) →
-       ``metric_source`` (``"metric_poses"``, or ``"camera_height"`` for SfM poses scaled by
+       ``metric_source`` (``"metric_poses"``, or ``"camera_height"`` / ``"camera_distance"``
+       for SfM poses scaled by
        the user's camera height in :func:`cropcraft_core.sfm.level_poses`);
     2. ``scale_hint`` (a user-given metres per scene unit) → ``"user_hint"``;
     3. ``known_row_spacing`` (metres): fit at scale 1, measure the row spacing, rescale and refit

@@ -18,7 +18,9 @@ that frame (nerfstudio's data parsers do the same with their ``orientation_metho
   the axes do not converge (drone lawnmower); without points, at that point itself, or below
   the cameras' centroid;
 * **scale**: 1 for metric poses; from a user's camera height above the ground
-  (``camera_height_m``, a precise hint: ``scale_source="camera_height"``); else provisional from
+  (``camera_height_m``, a precise hint: ``scale_source="camera_height"``) or a measured
+  distance between two photos' camera positions (``camera_distance``, e.g. two tripod spots or
+  the ends of a tape laid along the walk: ``"camera_distance"``); else provisional from
   a typical capture height for the crop (``prior_camera_height_m``, ``"camera_height_prior"``),
   which row fitting replaces by the scale measured from the row spacing.
 """
@@ -38,7 +40,7 @@ from cropcraft_core.sfm.poses import Poses
 #: a phone held over a soybean plot; a drone over maize (the issue's captures).
 PRIOR_CAMERA_HEIGHT_M = {"soybean": 1.4, "maize": 13.0}
 
-FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_height_prior")
+FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_distance", "camera_height_prior")
 
 
 @dataclass(frozen=True)
@@ -60,7 +62,7 @@ class GravityFrame:
 
     @property
     def metric(self) -> bool:
-        """Whether the scale is known (metric poses or a camera-height hint), not provisional."""
+        """Whether the scale is known (metric poses or a user's hint), not provisional."""
         return self.scale_source != "camera_height_prior"
 
     def summary(self) -> dict:
@@ -123,12 +125,45 @@ def _axes_focus(poses: Poses) -> np.ndarray | None:
     return np.linalg.solve(a, b)
 
 
+def _camera_span(poses: Poses, hint: tuple[str, str, float]) -> float:
+    """Metres per input unit from (photo A, photo B, metres between their cameras)."""
+    try:
+        a, b, metres = hint
+        metres = float(metres)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"camera_distance must be (photo A, photo B, metres), got {hint!r}"
+        ) from None
+    if not (math.isfinite(metres) and metres > 0):
+        raise InputError(f"camera_distance must be a positive number of metres, got {metres!r}")
+    names = [n for n, _ in poses]
+    stems = {n.rsplit("/", 1)[-1].rsplit(".", 1)[0]: n for n in names}
+
+    def centre(photo: str) -> np.ndarray:
+        name = photo if photo in names else stems.get(str(photo).rsplit(".", 1)[0])
+        if name is None:
+            raise InputError(
+                f"camera_distance names photo {photo!r}, which has no pose "
+                f"({len(names)} posed photos, e.g. {', '.join(names[:3])})"
+            )
+        return poses.camera(name).center
+
+    d = float(np.linalg.norm(centre(a) - centre(b)))
+    if not d > 1e-9 * max(1.0, float(np.ptp(poses.centers(), axis=0).max())):
+        raise InputError(
+            f"photos {a!r} and {b!r} were taken from the same spot: their distance cannot "
+            "set the scale"
+        )
+    return metres / d
+
+
 def level_poses(
     poses: Poses,
     points: np.ndarray | None = None,
     *,
     metric: bool = False,
     camera_height_m: float | None = None,
+    camera_distance: tuple[str, str, float] | None = None,
     prior_camera_height_m: float = 1.4,
     min_look_down_deg: float = 10.0,
     plane_threshold: float = 0.01,
@@ -141,15 +176,21 @@ def level_poses(
     centred, roughly metric frame; return (poses, points or None, :class:`GravityFrame`).
 
     metric: the input is already in metres (only rotate and move). camera_height_m: the user's
-    measured median camera height above the ground (sets the scale exactly). prior_camera_height_m:
-    the assumed one otherwise (``PRIOR_CAMERA_HEIGHT_M``). Raises ``InputError`` for fewer than 3
-    cameras, a non-positive height, or a camera-height hint without a ground estimate.
+    measured median camera height above the ground (sets the scale exactly). camera_distance:
+    (photo A, photo B, metres) the measured distance between two photos' camera centres (names
+    as in ``poses``, or their stems; sets the scale exactly). prior_camera_height_m: the assumed
+    height otherwise (``PRIOR_CAMERA_HEIGHT_M``). Raises ``InputError`` for fewer than 3
+    cameras, a non-positive height or distance, both hints at once, a photo the poses do not
+    have, two photos taken from one spot, or a camera-height hint without a ground estimate.
     """
     if len(poses) < 3:
         raise InputError(f"levelling needs at least 3 posed cameras, got {len(poses)}")
     for name, v in (("camera_height_m", camera_height_m), ("prior", prior_camera_height_m)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"{name} must be a positive number of metres, got {v!r}")
+    if camera_height_m is not None and camera_distance is not None:
+        raise InputError("give the camera height or a camera distance for the scale, not both")
+    span = None if camera_distance is None else _camera_span(poses, camera_distance)
     centres = poses.centers()
     up_cam = cameras_up(poses)
     pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
@@ -198,6 +239,8 @@ def level_poses(
     med_h = float(np.median(heights))
     if metric:
         scale, scale_source = 1.0, "metric_poses"
+    elif span is not None:
+        scale, scale_source = span, "camera_distance"
     elif ground_z is None or med_h <= 0:
         if camera_height_m is not None:
             raise InputError(
