@@ -128,7 +128,7 @@ def test_a_measured_distance_between_two_photos_sets_the_scale_exactly():
     _, s, _ = _truth_error(out, cams)
     assert s == pytest.approx(1.0, rel=1e-9)
     # no ground is needed for it: the cameras alone
-    _, _, frame = level_poses(poses, camera_distance=("v003.png", "v017.png", d))
+    _, _, frame = level_poses(poses, camera_distance=("photos/v003.JPG", "v017.png", d))
     assert frame.scale == pytest.approx(1 / 0.37, rel=1e-9)
     with pytest.raises(InputError, match="photo 'v099.png', which has no pose"):
         level_poses(poses, spts, camera_distance=("v003", "v099.png", d))

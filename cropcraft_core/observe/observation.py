@@ -335,8 +335,7 @@ class Observation:
             cut = self.box_mask and self.preset.mask_predictions
             box = (self.camera, self.preset) if cut else (None, None)
             mask = predicted_mask(depth, *box)
-        m = mask
-        return compute_stats(depth, self.camera, m, self.preset)
+        return compute_stats(depth, self.camera, mask, self.preset)
 
     def loss_of(self, depth: np.ndarray, mask: np.ndarray | None = None) -> LossBreakdown:
         """The loss of a procedural render (see :meth:`predicted_stats`) against this

@@ -137,10 +137,14 @@ def _camera_span(poses: Poses, hint: tuple[str, str, float]) -> float:
     if not (math.isfinite(metres) and metres > 0):
         raise InputError(f"camera_distance must be a positive number of metres, got {metres!r}")
     names = [n for n, _ in poses]
-    stems = {n.rsplit("/", 1)[-1].rsplit(".", 1)[0]: n for n in names}
+
+    def stem(path: str) -> str:
+        return str(path).replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0]
+
+    stems = {stem(n): n for n in names}
 
     def centre(photo: str) -> np.ndarray:
-        name = photo if photo in names else stems.get(str(photo).rsplit(".", 1)[0])
+        name = photo if photo in names else stems.get(stem(photo))
         if name is None:
             raise InputError(
                 f"camera_distance names photo {photo!r}, which has no pose "
