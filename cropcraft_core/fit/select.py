@@ -77,6 +77,7 @@ from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.optimize import SeedResult, aggregate
 from cropcraft_core.optimize import gp as gpmod
+from cropcraft_core.optimize.bo import first_simplex
 
 #: Canopy seeds of the re-scoring: base + 104_729 k, disjoint from every optimiser seed's
 #: canopies (``fitting.CANOPY_SEED_BASE`` + s, s < 10^5) and from the benchmark's truths.
@@ -201,15 +202,13 @@ def polish(
     b = param_bounds(forward.crop)
     lo, span = b[:, 0], b[:, 1] - b[:, 0]
     u0 = np.clip((np.asarray(x0, dtype=np.float64) - lo) / span, 0.0, 1.0)
-    d = len(u0)
     crop = forward.crop
 
     def f(u: np.ndarray) -> float:
         v = forward.loss(params_from_vector(crop, lo + span * np.clip(u, 0.0, 1.0)), canopy_seeds)
         return float(v) if np.isfinite(v) else float("inf")
 
-    steps = np.where(u0 < 0.9, POLISH_STEP, -POLISH_STEP)
-    simplex = np.vstack([u0] + [u0 + np.eye(d)[j] * steps[j] for j in range(d)])
+    simplex = first_simplex(u0, POLISH_STEP, turn_above=0.9)
     res = minimize(
         f,
         u0,

@@ -734,6 +734,14 @@ def _propose(model: gpmod.MaternGP, cfg: BOConfig, rng: np.random.Generator) -> 
     return best_x
 
 
+def first_simplex(u0: np.ndarray, step: float, turn_above: float = 0.5) -> np.ndarray:
+    """Nelder-Mead's first simplex in the unit cube, (d + 1, d): ``u0`` and ``u0`` moved by
+    ``step`` along each axis, backwards where that coordinate is above ``turn_above`` (so the
+    vertices stay inside the cube)."""
+    u0 = np.asarray(u0, dtype=np.float64)
+    return np.vstack([u0, u0 + np.diag(np.where(u0 < turn_above, step, -step))])
+
+
 def _local_search(
     ev: _Evaluations,
     cfg: BOConfig,
@@ -764,8 +772,7 @@ def _local_search(
             save(snapshot(False))
         return value
 
-    steps = np.where(u0 < 0.5, cfg.local_step, -cfg.local_step)
-    simplex = np.vstack([u0] + [u0 + np.eye(d)[j] * steps[j] for j in range(d)])
+    simplex = first_simplex(u0, cfg.local_step)
     with contextlib.suppress(_Spent):
         minimize(
             f,
