@@ -205,6 +205,10 @@ def run(a: argparse.Namespace) -> dict:
     out["hist_truth"] = h_true.round(4).tolist()
     out["depth_bins"] = list(obs.preset.depth_range)
     out["mask_area"] = area
+    if getattr(backend, "raw_depth_maps", None):
+        out["holes"] = _holes(
+            root, poses, truth_poses, backend, fit, scene_from_true, a.image_scale, d_true, obs
+        )
     both = np.isfinite(depth_m) & np.isfinite(d_true)
     out["median_abs_depth_err_m"] = float(np.median(np.abs(depth_m[both] - d_true[both])))
     # bias where both see plants (observation − truth, + = reconstructed too deep, i.e. low)
@@ -248,6 +252,92 @@ def _observe(fit, backend, image_scale: float):
         fit.render_height,
         image_scale=image_scale,
     )
+
+
+#: Where the row camera's holes were lost, in pipeline order (``hole_breakdown``).
+HOLE_CAUSES = ("unseen", "no_stereo", "inconsistent", "fusion")
+
+
+def _sample(depth: np.ndarray, cam, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(depth map value at each point's pixel, NaN off the image; the point's z-depth)."""
+    uv, z = cam.project(points)
+    ok = np.isfinite(uv).all(axis=1) & (z > 0)
+    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    ok &= (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+    out = np.full(len(points), np.nan)
+    out[ok] = depth[v[ok], u[ok]]
+    return out, z
+
+
+def hole_breakdown(
+    points: np.ndarray,
+    true_cams: list,
+    true_depths: list[np.ndarray],
+    stereo_cams: list,
+    raw_maps: list[np.ndarray],
+    fused_maps: list[np.ndarray],
+    scene_from_true: np.ndarray,
+    rel: float = 0.02,
+) -> dict:
+    """Why the true surface behind each of the row camera's holes is missing, as fractions of
+    the holes (in pipeline order, each point counted once, at its first loss):
+
+    * ``unseen``: fewer than two photos see the point (its true depth in the view agrees within
+      1 cm + 0.5 %): no reconstruction could place it;
+    * ``no_stereo``: seen, but no view's stereo depth map has it (within ``rel``);
+    * ``inconsistent``: some stereo map has it, but the consistency filter dropped it in all;
+    * ``fusion``: a filtered depth map has it, and the fused surface still lost it.
+
+    points: (n, 3) true surface points (truth frame) behind the holes; true_cams/true_depths:
+    the photos' true cameras and z-depth maps; stereo_cams: the backend's cameras at its depth
+    maps' size (scene frame, same order); ``scene_from_true``: the 4×4 similarity to it."""
+    n = len(points)
+    if n == 0:
+        return {"holes": 0, **{k: 0.0 for k in HOLE_CAUSES}}
+    seen = np.zeros(n, np.int64)
+    raw_ok = np.zeros(n, bool)
+    fused_ok = np.zeros(n, bool)
+    p_scene = points @ scene_from_true[:3, :3].T + scene_from_true[:3, 3]
+    for tc, td, sc, rm, fm in zip(
+        true_cams, true_depths, stereo_cams, raw_maps, fused_maps, strict=True
+    ):
+        dv, z = _sample(td, tc, points)
+        with np.errstate(invalid="ignore"):
+            vis = np.abs(dv - z) < 0.01 + 0.005 * z
+        seen += vis
+        for arr, m in ((raw_ok, rm), (fused_ok, fm)):
+            ds, zs = _sample(m, sc, p_scene)
+            with np.errstate(invalid="ignore"):
+                arr |= vis & (np.abs(ds - zs) < rel * zs)
+    cause = np.select([seen < 2, ~raw_ok, ~fused_ok], list(HOLE_CAUSES[:3]), default=HOLE_CAUSES[3])
+    return {"holes": n, **{k: float(np.mean(cause == k)) for k in HOLE_CAUSES}}
+
+
+def _holes(
+    root: Path, poses, truth_poses, backend, fit, scene_from_true, image_scale, d_true, obs
+) -> dict:
+    """The row camera's holes (no reconstructed surface where the true mesh has one): their
+    share of the view and :func:`hole_breakdown` of the true points behind them."""
+    from cropcraft_core.rowfit.truth import camera_in_truth
+
+    cam = camera_in_truth(fit, scene_from_true)
+    if image_scale != 1.0:
+        cam = cam.scaled(image_scale)
+    hole = ~np.isfinite(obs.depth) & np.isfinite(d_true)
+    true_cam = {Path(n).stem: c for n, c in truth_poses}
+    stems = [Path(n).stem for n, _ in poses]
+    s = float(backend.config.mvs_scale)
+    parts = hole_breakdown(
+        cam.unproject(d_true)[hole],
+        [true_cam[k] for k in stems],
+        [np.load(root / "depth" / f"{k}.npy") for k in stems],
+        [c.scaled(s) for c in backend.cameras],
+        backend.raw_depth_maps,
+        backend.depth_maps,
+        scene_from_true,
+    )
+    return {"fraction": float(hole.mean()), **parts}
 
 
 def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) -> np.ndarray:
@@ -331,6 +421,13 @@ def _print(out: dict) -> None:
         print(
             f"  depth histogram L1 with the true scale instead of the rows': "
             f"{out['hist_l1_true_scale']:.4f} (the reconstruction's share)"
+        )
+    if out.get("holes"):
+        h = out["holes"]
+        print(
+            f"  holes: {100 * h['fraction']:.1f} % of the row camera's view has no surface where "
+            f"the truth has one; lost as: "
+            + ", ".join(f"{k} {100 * h[k]:.0f} %" for k in HOLE_CAUSES)
         )
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():

@@ -201,3 +201,44 @@ def test_nerfacto_fits_on_gpu(scene, tmp_path):  # pragma: no cover - GPU hosts 
     both = np.isfinite(depth) & np.isfinite(d_true)
     assert np.median(np.abs(depth[both] - d_true[both])) < 0.05
     assert len(b.point_cloud(1000)[0]) > 0
+
+
+def test_hole_breakdown_names_the_stage_that_lost_each_hole():
+    """bench pipeline's diagnosis of the row camera's holes: four true points on the ground,
+    each lost at a different stage, found through a shifted scene frame."""
+    from benchmarks.bench_pipeline import hole_breakdown
+
+    size = (64, 48)
+    true_cams = [PinholeCamera.look_down((x, 0.0), 1.0, size=size) for x in (0.0, 0.1)]
+    shift = np.eye(4)
+    shift[:3, 3] = (0.5, -0.25, 2.0)  # scene frame = truth frame moved
+    stereo_cams = []
+    for c in true_cams:
+        m = c.cam_to_world.copy()
+        m[:3, 3] += shift[:3, 3]
+        stereo_cams.append(PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, m))
+    true_depths = [np.ones(size[::-1]) for _ in true_cams]
+    pts = np.array([[0.02, 0.01, 0.0], [0.05, -0.02, 0.0], [0.08, 0.03, 0.0], [9.0, 0.0, 0.0]])
+    raw = [np.full(size[::-1], np.nan) for _ in true_cams]
+    fused = [np.full(size[::-1], np.nan) for _ in true_cams]
+
+    def put(maps, view, point):
+        uv, z = stereo_cams[view].project((point + shift[:3, 3])[None])
+        maps[view][int(uv[0, 1]), int(uv[0, 0])] = z[0]
+
+    put(raw, 0, pts[1])  # stereo found it, the consistency filter dropped it
+    put(raw, 1, pts[2])  # found and kept: fusion lost it
+    put(fused, 1, pts[2])
+    out = hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)
+    assert out == {
+        "holes": 4,
+        "unseen": 0.25,
+        "no_stereo": 0.25,
+        "inconsistent": 0.25,
+        "fusion": 0.25,
+    }
+    # a wrong depth is no find: 5 % too far in every map leaves the second point unmatched
+    raw[0] *= 1.05
+    assert hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)[
+        "no_stereo"
+    ] == pytest.approx(0.5)
