@@ -521,11 +521,18 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
 def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]) -> dict:
     """The small result of a scene run: where everything is, the key numbers, stage states."""
     store = SceneStore(req.store_root)
+    from cropcraft_core.observe import coverage_warning
+
+    seen = records["observe"]["summary"].get("no_surface_fraction")  # older records: None
     return {
         "scene": req.scene.prefix,
         "store": req.store_root,
         "config_hash": config_hash(req.config),
         "states": dict(states),
+        "observation": {
+            "no_surface_fraction": seen,
+            "warning": None if seen is None else coverage_warning(seen),
+        },
         "metrics": records["metrics"]["summary"],
         "params": records["aggregate"]["summary"]["params"],
         "params_std": records["aggregate"]["summary"]["params_std"],
@@ -594,6 +601,8 @@ def reconstruct_scene(
     ex = _PrefectRun(req, result_storage(req.store_root))
     records = _wire(ex, req)
     out = summarize(req, records, ex.states)
+    if out["observation"]["warning"]:
+        ex.log.warning("%s: %s", req.scene.prefix, out["observation"]["warning"])
     out["flow_seconds"] = time.perf_counter() - t0
     try:
         from prefect.runtime import flow_run

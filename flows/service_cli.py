@@ -146,8 +146,19 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"cached   {', '.join(cached) or '-'}")
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
+    _print_coverage(out)
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
+
+
+def _print_coverage(out: Mapping[str, Any]) -> None:
+    """The share of the row camera's view without a reconstructed surface, and its warning."""
+    seen = (out.get("observation") or {}).get("no_surface_fraction")
+    if seen is None:
+        return
+    print(f"row view without a reconstructed surface: {100 * seen:.1f} %")
+    if out["observation"].get("warning"):
+        print(f"WARNING  {out['observation']['warning']}")
 
 
 # --------------------------------------------------------------------------- run
@@ -347,7 +358,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"{label:<24}{_fmt(est)}{_fmt(tru)}")
     states = out.get("states", {})
     n_cached = sum(1 for v in states.values() if v == "Cached")
-    print(f"\nstages cached: {n_cached} of {len(states)}")
+    print()
+    _print_coverage(out)
+    print(f"stages cached: {n_cached} of {len(states)}")
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
     print(f"done in {time.perf_counter() - t0:.1f} s")

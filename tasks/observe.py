@@ -18,13 +18,15 @@ def observe(
 ) -> dict[str, Any]:
     """Render the fitted surfaces from the row camera and build the
     :class:`~cropcraft_core.observe.Observation` (``Observation.from_surfaces``: the paper's mask
-    and histograms); store it as ``{scene}/observe/observation.npz``.
+    and histograms); store it as ``{scene}/observe/observation.npz``. The record's summary
+    carries ``no_surface_fraction``, the share of the view where the surfaces have nothing
+    (``cropcraft_core.observe.coverage_warning``).
 
     config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5) and
     ``preset`` (ObservePreset overrides). Depth is converted to metres with the row fit's scale.
     """
     from cropcraft_core.geometry.camera import PinholeCamera
-    from cropcraft_core.observe import Observation
+    from cropcraft_core.observe import Observation, no_surface_fraction
 
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
@@ -57,6 +59,7 @@ def observe(
         {
             "size_px": [obs.camera.width, obs.camera.height],
             "foreground_fraction": float(np.mean(obs.mask)),
+            "no_surface_fraction": no_surface_fraction(obs.depth),
             "render_height_m": float(rf["render_height"]),
         },
         t.seconds,

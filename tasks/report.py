@@ -32,6 +32,10 @@ def _timings(upstream: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def _percent(x: float | None) -> str | None:
+    return None if x is None else f"{100 * float(x):.1f} %"
+
+
 @stage_task("report")
 def report(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
@@ -88,6 +92,9 @@ def report(
             "up direction from": frame.get("up_source"),
             "surfaces backend": upstream["surfaces"]["summary"].get("backend"),
             "rows found": rf.get("n_rows"),
+            "row view without surface": _percent(
+                upstream["observe"]["summary"].get("no_surface_fraction")
+            ),
             "row camera height (m)": rf.get("render_height_m"),
             "scale (m per unit)": rf.get("scale"),
             "scale source": rf.get("scale_source"),

@@ -26,6 +26,7 @@ pytest.importorskip("cropcraft_core.synth")
 pytest.importorskip("cropcraft_core.surfaces")
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError  # noqa: E402
+from cropcraft_core.observe import Observation, coverage_warning  # noqa: E402
 from cropcraft_core.store import SceneKey, SceneStore, StoreError  # noqa: E402
 from tests.conftest_s3 import s3_server  # noqa: E402, F401
 
@@ -145,6 +146,12 @@ def test_scene_flow_produces_everything(base_run):
     html = store.get_bytes(f"{scene}/report/report.html").decode()
     for needle in ("data:image/png;base64,", "observed", "predicted", "Stage timings", "m2"):
         assert needle in html
+    # the share of the row view the surfaces left empty, from the stored observation
+    obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
+    seen = out["observation"]["no_surface_fraction"]
+    assert seen == pytest.approx(float(np.mean(~np.isfinite(obs.depth))))
+    assert out["observation"]["warning"] == coverage_warning(seen)
+    assert f"{100 * seen:.1f} %" in html and "row view without surface" in html
     for name in ("canopy.ply", "canopy.glb", "canopy.helios.xml", "preview.png", "metrics.json"):
         assert store.isfile(f"{scene}/export/bundle/{name}")
     manifest = store.load_manifest(SceneKey.parse(scene))

@@ -530,3 +530,17 @@ def test_render_height_is_raised_only_over_a_canopy_that_reaches_the_depth_range
         clear_render_height("soybean", 1.0, 0.5, -0.1)
     with pytest.raises(ConfigError):
         clear_render_height("wheat", 1.0, 0.5)
+
+
+def test_no_surface_fraction_and_its_warning():
+    from cropcraft_core.observe import NO_SURFACE_WARN, coverage_warning, no_surface_fraction
+
+    d = np.ones((4, 10))
+    d[0, :3] = np.nan
+    d[1, 0] = np.inf
+    assert no_surface_fraction(d) == pytest.approx(4 / 40)
+    assert no_surface_fraction(np.zeros((0, 0))) == 0.0
+    assert coverage_warning(0.10) is None
+    assert coverage_warning(NO_SURFACE_WARN) is None  # the threshold itself passes
+    msg = coverage_warning(0.235)
+    assert msg is not None and "24 % of the row camera's view" in msg and "LAI" in msg

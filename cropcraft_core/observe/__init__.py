@@ -10,8 +10,11 @@ per-crop presets: ``preset("soybean", **overrides)``.
 from cropcraft_core.observe.histograms import HistogramStats, bin_edges, compute_stats
 from cropcraft_core.observe.loss import LossBreakdown, loss
 from cropcraft_core.observe.observation import (
+    NO_SURFACE_WARN,
     Observation,
     check_row_camera,
+    coverage_warning,
+    no_surface_fraction,
     observation_mask,
     predicted_mask,
 )
@@ -28,6 +31,7 @@ from cropcraft_core.observe.presets import (
 
 __all__ = [
     "CROPS",
+    "NO_SURFACE_WARN",
     "HistogramStats",
     "LossBreakdown",
     "LossPreset",
@@ -36,6 +40,8 @@ __all__ = [
     "bin_edges",
     "check_row_camera",
     "compute_stats",
+    "coverage_warning",
+    "no_surface_fraction",
     "loss",
     "observation_mask",
     "predicted_mask",
