@@ -292,9 +292,19 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Seconds ``cropcraft`` lets Prefect wait for its temporary (ephemeral) API server to start.
+EPHEMERAL_STARTUP_TIMEOUT_S = 180
+
+
 def main(argv: list[str] | None = None) -> int:
     # an offline batch service: no telemetry calls to the outside (they fail here anyway)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    # Prefect's own 20 s wait for its temporary server is too short on a fresh 2-core machine:
+    # the first start creates and migrates ~/.prefect/prefect.db (19.7 s measured idle), and
+    # `cropcraft demo` timed out there while it was also making the scene
+    os.environ.setdefault(
+        "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(EPHEMERAL_STARTUP_TIMEOUT_S)
+    )
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -166,3 +166,34 @@ def test_camera_distance_is_a_scale_shortcut():
     bad = build_parser().parse_args(["demo", "--camera-distance", "a.jpg", "b.jpg", "far"])
     with pytest.raises(ConfigError, match="not a number of metres"):
         overrides_of(bad)
+
+
+def test_cli_gives_prefects_temporary_server_time_to_start(tmp_path):
+    """Prefect waits 20 s for its temporary server; a fresh machine's first start (creating its
+    database) took 19.7 s here, so `cropcraft demo` timed out. The CLI raises the wait unless
+    the user set one (checked in a fresh process: Prefect reads its settings once)."""
+    import os
+    import subprocess
+    import sys
+
+    from flows.cli import EPHEMERAL_STARTUP_TIMEOUT_S
+
+    key = "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"
+    code = (
+        "from flows.cli import main; "
+        f"assert main(['generate', 'rice', '--out', {str(tmp_path / 'out')!r}]) == 2; "
+        "from prefect.settings import get_current_settings; "
+        "print(get_current_settings().server.ephemeral.startup_timeout_seconds)"
+    )
+
+    def timeout_seen(**env: str) -> int:
+        base = {k: v for k, v in os.environ.items() if k != key}
+        run = subprocess.run(
+            [sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True
+        )
+        assert run.returncode == 0, run.stderr
+        return int(run.stdout.strip().splitlines()[-1])
+
+    assert EPHEMERAL_STARTUP_TIMEOUT_S >= 60
+    assert timeout_seen() == EPHEMERAL_STARTUP_TIMEOUT_S
+    assert timeout_seen(**{key: "45"}) == 45
