@@ -44,6 +44,9 @@ SEASON_COLUMNS = (
     ("plant_height_m", "plant_height_m"),
     ("node_count", "node_count"),
     ("internode_mean_m", "internode_mean_m"),
+    # not a trait: the share of the row camera's view the reconstruction left empty (a flag on
+    # the date's LAI; ``observe.coverage_warning``)
+    ("no_surface_fraction", "row_view_no_surface_fraction"),
 )
 
 

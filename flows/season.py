@@ -16,16 +16,33 @@ def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
     return [d.scene.date for d in store.discover(site, crop) if d.stages.get("report") != "done"]
 
 
+def _no_surface(store: SceneStore, folder: str) -> float | None:
+    """The share of the date's row-camera view without a reconstructed surface (None if its
+    observation is not stored)."""
+    import io
+
+    from cropcraft_core.observe import Observation, no_surface_fraction
+
+    key = folder + "observation.npz"
+    if not store.isfile(key):
+        return None
+    return no_surface_fraction(Observation.load(io.BytesIO(store.get_bytes(key))).depth)
+
+
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
-    and ``summary.png``. Returns the keys and the rows."""
+    and ``summary.png``, with each date's share of the row view without a reconstructed
+    surface beside its traits. Returns the keys and the rows."""
     from cropcraft_core.report import season_csv, season_plot_png, season_rows
 
     per_date = {}
     for d in store.discover(site, crop):
         key = f"{d.scene.prefix}/metrics/metrics.json"
         if d.stages.get("metrics") == "done" and store.isfile(key):
-            per_date[d.scene.date] = store.get_json(key)
+            per_date[d.scene.date] = {
+                **store.get_json(key),
+                "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
+            }
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"
     png_key = f"{site}/{crop}/season/summary.png"

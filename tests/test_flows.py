@@ -160,6 +160,29 @@ def test_scene_flow_produces_everything(base_run):
     assert len(repr(out)) < 20_000
 
 
+def test_season_summary_carries_each_dates_row_view_coverage(base_run, scene_dir, tmp_path):
+    """The season summary reads the dates with photos in their inbox: a copy of the run's store
+    with the scene's photos put there, as a user's season store has them."""
+    from flows.season import write_summary
+
+    root = tmp_path / "store"
+    shutil.copytree(base_run["store"], root)
+    store = SceneStore(str(root))
+    for photo in sorted((scene_dir / "images").iterdir()):
+        store.put_bytes(f"plotA/{CROP}/{DATE}/images/{photo.name}", photo.read_bytes())
+    season = write_summary(store, "plotA", CROP)
+    (row,) = season["rows"]
+    out = base_run["first"]
+    assert row["date"] == DATE
+    assert row["row_view_no_surface_fraction"] == pytest.approx(
+        out["observation"]["no_surface_fraction"]
+    )
+    assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
+    head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
+    assert head.split(",")[-1] == "row_view_no_surface_fraction"
+    assert line.startswith(DATE)
+
+
 def test_rerun_is_cached_everywhere(base_run):
     second = base_run["second"]
     assert set(second["states"].values()) == {"Cached"}
