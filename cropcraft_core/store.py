@@ -1242,8 +1242,10 @@ class SceneStore:
 
     # ---- season helpers ---------------------------------------------------------------------
 
-    def list_dates(self, site: str, crop: str) -> list[str]:
-        """Sorted ISO dates of ``site``/``crop`` that have at least one object in ``images/``."""
+    def list_dates(self, site: str, crop: str, *, with_runs: bool = False) -> list[str]:
+        """Sorted ISO dates of ``site``/``crop`` that have at least one object in ``images/``
+        (their inbox), and with ``with_runs`` also those with a run manifest (a scene run from
+        photos kept elsewhere, ``cropcraft run --images URI``)."""
         _check_name(site, "site")
         if crop not in CROPS:
             raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(sorted(CROPS))}")
@@ -1256,14 +1258,17 @@ class SceneStore:
                 _check_date(name)
             except ConfigError:
                 continue
-            if self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
+            if self._children(f"{prefix}/{name}/{IMAGES_STAGE}") or (
+                with_runs and self.isfile(f"{prefix}/{name}/{MANIFEST_NAME}")
+            ):
                 dates.append(name)
         return dates
 
-    def discover(self, site: str, crop: str) -> list[DiscoveredScene]:
-        """Every dated scene of ``site``/``crop`` with images, with its stage statuses."""
+    def discover(self, site: str, crop: str, *, with_runs: bool = False) -> list[DiscoveredScene]:
+        """Every dated scene of ``site``/``crop`` with images (and with ``with_runs`` every one
+        with a run manifest, see :meth:`list_dates`), with its stage statuses."""
         found = []
-        for date in self.list_dates(site, crop):
+        for date in self.list_dates(site, crop, with_runs=with_runs):
             scene = SceneKey(site, crop, date)
             n_images = len(self.list(stage_prefix(scene, IMAGES_STAGE)))
             try:

@@ -36,7 +36,7 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     from cropcraft_core.report import season_csv, season_plot_png, season_rows
 
     per_date = {}
-    for d in store.discover(site, crop):
+    for d in store.discover(site, crop, with_runs=True):  # ad hoc runs' dates too
         key = f"{d.scene.prefix}/metrics/metrics.json"
         if d.stages.get("metrics") == "done" and store.isfile(key):
             per_date[d.scene.date] = {

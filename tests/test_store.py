@@ -290,6 +290,17 @@ def test_list_dates_and_discover(store):
     assert found[0].n_images == 2 and found[0].has_manifest
     assert found[0].stages == {"rowfit": "running", "sfm": "done"} and found[0].done == ("sfm",)
     assert found[1].n_images == 1 and not found[1].has_manifest and found[1].done == ()
+    # a scene run from photos kept elsewhere: no inbox, a manifest
+    sept = SceneKey("plotA", "maize", "2024-09-01")
+    store.init_manifest(sept, {}, {"seeds": 1})
+    assert "2024-09-01" not in store.list_dates("plotA", "maize")
+    assert store.list_dates("plotA", "maize", with_runs=True) == [
+        "2024-06-01",
+        "2024-07-15",
+        "2024-09-01",
+    ]
+    run = store.discover("plotA", "maize", with_runs=True)[-1]
+    assert run.scene == sept and run.n_images == 0 and run.has_manifest
     with pytest.raises(ConfigError):
         store.list_dates("../etc", "maize")
 
