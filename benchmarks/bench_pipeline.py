@@ -24,6 +24,9 @@ centres, used only for scoring):
   to sum 1; the two mask areas are reported beside it, and as a yardstick the L1 the true
   depth scores against itself moved by 0.5 % of the render height (a sixth of the height
   target);
+* coverage (CPU surfaces): the share of the row camera's view with no reconstructed surface
+  where the true mesh has one, and where those holes were lost (``hole_breakdown``: seen by
+  fewer than two photos, no stereo match, dropped by the consistency filter, lost in fusion);
 * with ``--fit``: LAI, leaf angle, nodes and internode of the fitted canopy against the truth's
   (LAI target: within 15 %).
 * speed: images → observation ≤ 8 minutes on the 2-core machine (50 images at 640 × 480).
