@@ -261,18 +261,6 @@ def _observe(fit, backend, image_scale: float):
 HOLE_CAUSES = ("unseen", "no_stereo", "inconsistent", "fusion")
 
 
-def _sample(depth: np.ndarray, cam, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(depth map value at each point's pixel, NaN off the image; the point's z-depth)."""
-    uv, z = cam.project(points)
-    ok = np.isfinite(uv).all(axis=1) & (z > 0)
-    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
-    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
-    ok &= (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
-    out = np.full(len(points), np.nan)
-    out[ok] = depth[v[ok], u[ok]]
-    return out, z
-
-
 def hole_breakdown(
     points: np.ndarray,
     true_cams: list,
@@ -295,6 +283,8 @@ def hole_breakdown(
     points: (n, 3) true surface points (truth frame) behind the holes; true_cams/true_depths:
     the photos' true cameras and z-depth maps; stereo_cams: the backend's cameras at its depth
     maps' size (scene frame, same order); ``scene_from_true``: the 4×4 similarity to it."""
+    from cropcraft_core.surfaces.tsdf import sample_depth
+
     n = len(points)
     if n == 0:
         return {"holes": 0, **{k: 0.0 for k in HOLE_CAUSES}}
@@ -305,12 +295,12 @@ def hole_breakdown(
     for tc, td, sc, rm, fm in zip(
         true_cams, true_depths, stereo_cams, raw_maps, fused_maps, strict=True
     ):
-        dv, z = _sample(td, tc, points)
+        dv, z = sample_depth(td, tc, points)
         with np.errstate(invalid="ignore"):
             vis = np.abs(dv - z) < 0.01 + 0.005 * z
         seen += vis
         for arr, m in ((raw_ok, rm), (fused_ok, fm)):
-            ds, zs = _sample(m, sc, p_scene)
+            ds, zs = sample_depth(m, sc, p_scene)
             with np.errstate(invalid="ignore"):
                 arr |= vis & (np.abs(ds - zs) < rel * zs)
     cause = np.select([seen < 2, ~raw_ok, ~fused_ok], list(HOLE_CAUSES[:3]), default=HOLE_CAUSES[3])

@@ -409,6 +409,23 @@ def _sgm(cost, p1, p2):  # pragma: no cover - numba
 # --------------------------------------------------------------------------- consistency
 
 
+def sample_depth(
+    depth: np.ndarray, camera: PinholeCamera, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) value of the (h, w) depth map ``depth`` (matching ``camera``) at the pixel each of
+    the (n, 3) world ``points`` projects to (NaN off the image or behind the camera), and (n,)
+    the points' own z-depths in that camera."""
+    uv, z = camera.project(points)
+    ok = np.isfinite(uv).all(axis=1) & (z > 0)
+    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    h, w = depth.shape
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    out = np.full(len(points), np.nan)
+    out[ok] = depth[v[ok], u[ok]]
+    return out, z
+
+
 def consistency_count(
     depths: list[np.ndarray], cams: list[PinholeCamera], i: int, others: list[int], rel: float
 ) -> np.ndarray:
@@ -421,14 +438,7 @@ def consistency_count(
         return count
     pts = cams[i].unproject(d)[valid]
     for j in others:
-        uv, z = cams[j].project(pts)
-        ok = np.isfinite(uv).all(axis=1) & (z > 0)
-        ui = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
-        vi = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
-        hj, wj = depths[j].shape
-        ok &= (ui >= 0) & (ui < wj) & (vi >= 0) & (vi < hj)
-        dj = np.full(len(pts), np.nan)
-        dj[ok] = depths[j][vi[ok], ui[ok]]
+        dj, z = sample_depth(depths[j], cams[j], pts)
         with np.errstate(invalid="ignore"):
             agree = np.abs(dj - z) <= rel * z
         count[valid] += agree
