@@ -17,8 +17,9 @@ def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
 
 
 def _no_surface(store: SceneStore, folder: str) -> float | None:
-    """The share of the date's row-camera view without a reconstructed surface (None if its
-    observation is not stored)."""
+    """The share of the date's row-camera view without a fully supported reconstructed surface
+    (the observe stage's figure, kept in the observation's meta; None if no observation is
+    stored)."""
     import io
 
     from cropcraft_core.observe import Observation, no_surface_fraction
@@ -26,7 +27,9 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     key = folder + "observation.npz"
     if not store.isfile(key):
         return None
-    return no_surface_fraction(Observation.load(io.BytesIO(store.get_bytes(key))).depth)
+    obs = Observation.load(io.BytesIO(store.get_bytes(key)))
+    seen = obs.meta.get("no_surface_fraction")  # older observations: from the rendered depth
+    return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:

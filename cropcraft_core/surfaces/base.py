@@ -128,7 +128,21 @@ class SurfacesConfig:
     consistency_rel: float = 0.01
     """tsdf: relative z-depth tolerance of that agreement (0.01 = 1 %)."""
     weight_threshold: float = 1.0
-    """tsdf: minimum fused weight (views) of a voxel on the extracted surface."""
+    """tsdf: the extracted surface keeps a marching-cubes cell only where all 8 of its voxels have
+    a fused weight *above* this (Open3D's rule): 1.0 = every voxel fused from two or more depth
+    maps."""
+    fill_one_view: bool = True
+    """tsdf: where that surface leaves a ray empty, render the surface whose voxels each have at
+    least one depth map (a second mesh, ``fill_faces``). Measured with true poses on three
+    synthetic soybean canopies, the row camera at full resolution, fits of 10 seeds × 300
+    evaluations (without → with the fill): row view without surface 11.6 → 7.7 % / 23.2 →
+    16.4 % / 21.7 → 12.8 %, LAI read −5.4 → +9.1 % / −30.1 → −9.8 % / −46.4 → −25.5 % at true
+    LAI 1.26 (default) / 2.32 / 3.66, depth-histogram L1 0.097 → 0.090 / 0.328 → 0.263 / 0.340
+    → 0.321. What it adds is mostly coverage, not accurate depth: of its pixels above 0.1 m only
+    14 % (LAI 1.26) and 24 % (LAI 3.66) lie within 2 cm of the true surface; most are the one-view
+    skirts of leaf edges reaching into the gaps, in front of the low leaves there. Rendering the
+    one-view surface everywhere instead (a weight threshold of 0) read +36 % and −13 % on the
+    first and last canopies: its skirts also cover what the two-view surface shows."""
     nerf_iterations: int = 20000
     """nerfacto: training iterations (the paper: 20K)."""
     near_plane: float | None = None
@@ -301,6 +315,12 @@ class SurfaceBackend(ABC):
     def render(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
         """(depth (H, W) float32 z-depth in metres, NaN where empty; rgb (H, W, 3) uint8) seen
         by ``camera``."""
+
+    def render_supported(self, camera: PinholeCamera) -> np.ndarray:
+        """(H, W) float32 z-depth of only the surfaces the backend reconstructed with full
+        support, NaN elsewhere: what ``render`` shows less whatever it filled in (tsdf: the fill
+        from single depth maps). The share of NaN in it is the scene's coverage figure."""
+        return self.render(camera)[0]
 
     @abstractmethod
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:

@@ -21,11 +21,19 @@ Pipeline (``TsdfSurfaces.fit``):
    the bounding box are dropped.
 4. **Fusion.** Open3D's ``VoxelBlockGrid`` integrates the filtered depth maps with colour into a
    TSDF (``config.voxel_size``, truncation ``config.trunc_voxels`` voxels); marching cubes extracts
-   a triangle mesh with vertex colours, cropped to the bounding box.
-5. **Rendering** casts one ray per pixel centre at that mesh (Open3D ``RaycastingScene``) and
-   interpolates the vertex colours with the hit's barycentric coordinates.
+   a triangle mesh with vertex colours, cropped to the bounding box, from the cells whose voxels
+   were all fused from two or more depth maps (``config.weight_threshold``), and (with
+   ``config.fill_one_view``) a second, *fill* mesh: the faces that the cells with one or more
+   depth maps add to it.
+5. **Rendering** casts one ray per pixel centre at the mesh (Open3D ``RaycastingScene``), and the
+   rays it leaves empty at the fill mesh, and interpolates the vertex colours with the hit's
+   barycentric coordinates. In a dense canopy the low leaves seen through gaps are matched by few
+   views; much of what survives the consistency filter reaches each voxel from one depth map only,
+   so the two-view surface has holes there that the fill closes, while the leaf edges' one-view
+   skirts stay behind the two-view surface wherever it has one.
 
-``save`` writes the mesh as ``surface.ply`` (binary, float32 positions, uint8 colours).
+``save`` writes the mesh as ``surface.ply`` and the fill as ``surface_fill.ply`` (binary, float32
+positions, uint8 colours).
 """
 
 from __future__ import annotations
@@ -54,6 +62,7 @@ from cropcraft_core.surfaces.base import (
 )
 
 MESH_FILE = "surface.ply"
+FILL_FILE = "surface_fill.ply"
 # Pixel-centre shift between PinholeCamera (centres at +0.5) and OpenCV/Open3D index coordinates.
 _T_IDX = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
 _T_IDX_INV = np.linalg.inv(_T_IDX)
@@ -463,11 +472,17 @@ class TsdfSurfaces(SurfaceBackend):
         self.vertices = np.zeros((0, 3))
         self.faces = np.zeros((0, 3), np.int32)
         self.vertex_colors = np.zeros((0, 3))
+        self.fill_vertices = np.zeros((0, 3))
+        self.fill_faces = np.zeros((0, 3), np.int32)
+        """faces of the surface fused from one depth map that the two-view mesh lacks, rendered
+        where it leaves a ray empty (``config.fill_one_view``)"""
+        self.fill_colors = np.zeros((0, 3))
         self.depth_maps: list[np.ndarray] = []
         """after ``fit``: per view the (h, w) float32 z-depth map fused (at ``mvs_scale``)"""
         self.raw_depth_maps: list[np.ndarray] = []
         """after ``fit``: per view the (h, w) float32 stereo depth before consistency filtering"""
         self._scene = None
+        self._fill_scene = None
 
     # ------------------------------------------------------------------ fit
     def fit(self, images, cameras, bbox=None, progress: Progress | None = None) -> None:
@@ -523,7 +538,6 @@ class TsdfSurfaces(SurfaceBackend):
         self.cameras = cams
         self.depth_maps = filtered
         self.raw_depth_maps = raw
-        self._scene = None
         n_valid = [float(np.isfinite(d).mean()) for d in filtered]
         self.timings = {
             "stereo": t1 - t0,
@@ -571,33 +585,32 @@ class TsdfSurfaces(SurfaceBackend):
         )  # fmt: skip
         for depth_img, color_img, intr, extr, far, bc in frames:
             vbg.integrate(bc, depth_img, color_img, intr, extr, 1.0, far, trunc)
-        mesh = vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold))
-        v = mesh.vertex.positions.numpy().astype(np.float64)
-        f = mesh.triangle.indices.numpy().astype(np.int32) if len(v) else np.zeros((0, 3), int)
-        c = mesh.vertex.colors.numpy().astype(np.float64) if len(v) else np.zeros((0, 3))
-        self._set_mesh(v, f.reshape(-1, 3), c)
+        v, f, c = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold)))
+        fill = (np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3)))
+        if cfg.fill_one_view:
+            # weight > 0: every voxel of the cell fused from at least one depth map
+            vl, fl, cl = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=0.0))
+            fill = (vl, fl[~faces_shared(vl, fl, v, f)], cl)
+        self._set_mesh(v, f, c, fill)
 
-    def _set_mesh(self, v: np.ndarray, f: np.ndarray, c: np.ndarray) -> None:
-        """Store the surface exactly as ``save`` writes it (float32 positions, 8-bit colours), so
-        that a saved and reloaded surface renders identically; faces leaving the bounding box
-        (grown by two voxels) are dropped."""
-        f = np.asarray(f, np.int32).reshape(-1, 3)
-        if self.bbox is not None and len(f):
-            pad = 2 * float(self.config.voxel_size)
-            inside = np.all((v >= self.bbox[0] - pad) & (v <= self.bbox[1] + pad), axis=1)
-            f = f[inside[f].all(axis=1)]
-        if len(f):
-            used, inv = np.unique(f, return_inverse=True)
-            v, c, f = v[used], c[used], inv.reshape(-1, 3).astype(np.int32)
-        else:
-            v, c = np.zeros((0, 3)), np.zeros((0, 3))
-        self.vertices = np.asarray(v, np.float32).astype(np.float64)
-        self.vertex_colors = np.rint(np.clip(c, 0.0, 1.0) * 255.0) / 255.0
-        self.faces = f
+    def _set_mesh(self, v, f, c, fill=None) -> None:
+        """Store the surface and its fill (``(v, f, c)`` or None: none) exactly as ``save`` writes
+        them (float32 positions, 8-bit colours), so that a saved and reloaded surface renders
+        identically; faces leaving the bounding box (grown by two voxels) are dropped."""
+        pad = 2 * float(self.config.voxel_size)
+        self.vertices, self.faces, self.vertex_colors = _stored(v, f, c, self.bbox, pad)
+        if fill is None:
+            fill = (np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3)))
+        self.fill_vertices, self.fill_faces, self.fill_colors = _stored(*fill, self.bbox, pad)
         self._scene = None
+        self._fill_scene = None
 
     # ------------------------------------------------------------------ queries
-    def _raycaster(self):
+    def _raycaster(self, fill: bool = False):
+        if fill:
+            if self._fill_scene is None:
+                self._fill_scene = build_scene(self.fill_vertices, self.fill_faces)
+            return self._fill_scene
         if self._scene is None:
             self._scene = build_scene(self.vertices, self.faces)
         return self._scene
@@ -611,47 +624,114 @@ class TsdfSurfaces(SurfaceBackend):
         rays = np.empty((len(d), 6), np.float32)
         rays[:, :3] = camera.center
         rays[:, 3:] = d
-        ans = self._raycaster().cast_rays(o3d.core.Tensor(rays))
-        t = ans["t_hit"].numpy()
-        prim = ans["primitive_ids"].numpy().astype(np.int64)
-        hit = np.isfinite(t) & (prim != o3d.t.geometry.RaycastingScene.INVALID_ID)
-        depth = np.where(hit, t, np.nan).astype(np.float32).reshape(h, w)
+        depth = np.full(len(d), np.nan, np.float32)
         rgb = np.zeros((len(d), 3))
-        if hit.any():
+        todo = np.arange(len(d))
+        for fill, faces, col in (
+            (False, self.faces, self.vertex_colors),
+            (True, self.fill_faces, self.fill_colors),
+        ):
+            if not len(todo) or not len(faces):
+                continue
+            ans = self._raycaster(fill).cast_rays(o3d.core.Tensor(rays[todo]))
+            t = ans["t_hit"].numpy()
+            prim = ans["primitive_ids"].numpy().astype(np.int64)
+            hit = np.isfinite(t) & (prim != o3d.t.geometry.RaycastingScene.INVALID_ID)
+            idx = todo[hit]
+            depth[idx] = t[hit]
             uv = ans["primitive_uvs"].numpy()[hit].astype(np.float64)
-            tri = self.faces[prim[hit]]
-            col = self.vertex_colors
-            rgb[hit] = (
+            tri = faces[prim[hit]]
+            rgb[idx] = (
                 (1 - uv[:, :1] - uv[:, 1:]) * col[tri[:, 0]]
                 + uv[:, :1] * col[tri[:, 1]]
                 + uv[:, 1:] * col[tri[:, 2]]
             )
+            todo = todo[~hit]
         rgb8 = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8).reshape(h, w, 3)
-        return depth, rgb8
+        return depth.reshape(h, w), rgb8
+
+    def render_supported(self, camera: PinholeCamera) -> np.ndarray:
+        """z-depth of the two-view mesh alone (without the one-view fill)."""
+        fill = self.fill_faces
+        try:
+            self.fill_faces = fill[:0]
+            return self.render(camera)[0]
+        finally:
+            self.fill_faces = fill
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
-        """Vertices of the fused mesh inside the bounding box (about one per voxel of surface),
-        with their fused colours."""
+        """Vertices of the fused (two-view) mesh inside the bounding box (about one per voxel of
+        surface), with their fused colours; the fill is left out."""
         self._require_fitted()
         keep = in_bbox(self.vertices, self.bbox)
         return subsample(self.vertices[keep], self.vertex_colors[keep], n_max, self.config.seed)
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vertices (n, 3) float64 m, faces (m, 3) int32, vertex colours (n, 3) float in
-        [0, 1]) of the fused surface."""
+        [0, 1]) of the fused (two-view) surface; ``fill_vertices/faces/colors`` hold its fill."""
         self._require_fitted()
         return self.vertices, self.faces, self.vertex_colors
 
     # ------------------------------------------------------------------ persistence
     def _save_payload(self, folder: Path) -> dict:
         write_colored_ply(folder / MESH_FILE, self.vertices, self.faces, self.vertex_colors)
-        return {"mesh": MESH_FILE, "vertices": len(self.vertices), "faces": len(self.faces)}
+        out = {"mesh": MESH_FILE, "vertices": len(self.vertices), "faces": len(self.faces)}
+        if len(self.fill_faces):
+            write_colored_ply(
+                folder / FILL_FILE, self.fill_vertices, self.fill_faces, self.fill_colors
+            )
+            out.update(fill_mesh=FILL_FILE, fill_faces=len(self.fill_faces))
+        return out
 
     def _load_payload(self, folder: Path, meta: dict) -> None:
         self.depth_maps = []
-        self._scene = None
         v, f, c = read_colored_ply(folder / meta.get("mesh", MESH_FILE))
-        self._set_mesh(v, f, c)
+        fill = read_colored_ply(folder / meta["fill_mesh"]) if meta.get("fill_mesh") else None
+        self._set_mesh(v, f, c, fill)
+
+
+def _o3d_mesh(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices float64, faces (m, 3) int32, colours float64) of an Open3D tensor mesh."""
+    v = mesh.vertex.positions.numpy().astype(np.float64)
+    if not len(v):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+    f = mesh.triangle.indices.numpy().astype(np.int32).reshape(-1, 3)
+    return v, f, mesh.vertex.colors.numpy().astype(np.float64)
+
+
+def _stored(v, f, c, bbox, pad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A mesh as it is saved: faces inside ``bbox`` grown by ``pad`` (all of them without a box),
+    unused vertices dropped, float32 positions, colours rounded to 8 bits."""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    f = np.asarray(f, np.int32).reshape(-1, 3)
+    if bbox is not None and len(f):
+        inside = np.all((v >= bbox[0] - pad) & (v <= bbox[1] + pad), axis=1)
+        f = f[inside[f].all(axis=1)]
+    if not len(f):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+    used, inv = np.unique(f, return_inverse=True)
+    v, c = v[used], np.asarray(c, np.float64)[used]
+    return (
+        np.asarray(v, np.float32).astype(np.float64),
+        inv.reshape(-1, 3).astype(np.int32),
+        np.rint(np.clip(c, 0.0, 1.0) * 255.0) / 255.0,
+    )
+
+
+def faces_shared(v: np.ndarray, f: np.ndarray, v_other: np.ndarray, f_other: np.ndarray):
+    """(m,) bool: which faces of mesh (v, f) are also faces of (v_other, f_other), matched by
+    their vertices' exact float32 positions (orientation and vertex order ignored). Two marching
+    cubes extractions of one TSDF place a shared cell's triangles at identical positions."""
+    if not len(f) or not len(f_other):
+        return np.zeros(len(f), bool)
+    pos = np.ascontiguousarray(np.concatenate([v, v_other]).astype(np.float32))
+    _, ids = np.unique(pos.view(np.dtype((np.void, 12))).ravel(), return_inverse=True)
+    ids = ids.ravel()
+    a = np.sort(ids[: len(v)][f], axis=1)
+    b = np.sort(ids[len(v) :][f_other], axis=1)
+    _, inv = np.unique(np.concatenate([a, b]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return np.isin(inv[: len(a)], inv[len(a) :])
 
 
 # --------------------------------------------------------------------------- PLY with colours
