@@ -311,7 +311,8 @@ def _holes(
     root: Path, poses, truth_poses, backend, fit, scene_from_true, image_scale, d_true, obs
 ) -> dict:
     """The row camera's holes (no reconstructed surface where the true mesh has one): their
-    share of the view and :func:`hole_breakdown` of the true points behind them."""
+    share of the view, the share without a fully supported surface (``render_supported``) and
+    :func:`hole_breakdown` of the true points behind the holes."""
     from cropcraft_core.rowfit.truth import camera_in_truth
 
     cam = camera_in_truth(fit, scene_from_true)
@@ -330,7 +331,11 @@ def _holes(
         backend.depth_maps,
         scene_from_true,
     )
-    return {"fraction": float(hole.mean()), **parts}
+    cam_scene = fit.camera_in_scene()
+    if image_scale != 1.0:
+        cam_scene = cam_scene.scaled(image_scale)
+    bare = ~np.isfinite(backend.render_supported(cam_scene)) & np.isfinite(d_true)
+    return {"fraction": float(hole.mean()), "unsupported": float(bare.mean()), **parts}
 
 
 def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) -> np.ndarray:
@@ -419,8 +424,8 @@ def _print(out: dict) -> None:
         h = out["holes"]
         print(
             f"  holes: {100 * h['fraction']:.1f} % of the row camera's view has no surface where "
-            f"the truth has one; lost as: "
-            + ", ".join(f"{k} {100 * h[k]:.0f} %" for k in HOLE_CAUSES)
+            f"the truth has one ({100 * h['unsupported']:.1f} % without a fully supported one, "
+            "before a fill); lost as: " + ", ".join(f"{k} {100 * h[k]:.0f} %" for k in HOLE_CAUSES)
         )
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():

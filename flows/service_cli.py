@@ -152,11 +152,12 @@ def _print_summary(out: Mapping[str, Any]) -> None:
 
 
 def _print_coverage(out: Mapping[str, Any]) -> None:
-    """The share of the row camera's view without a reconstructed surface, and its warning."""
+    """The share of the row camera's view without a fully supported reconstructed surface, and
+    its warning."""
     seen = (out.get("observation") or {}).get("no_surface_fraction")
     if seen is None:
         return
-    print(f"row view without a reconstructed surface: {100 * seen:.1f} %")
+    print(f"row view without a fully supported surface: {100 * seen:.1f} %")
     if out["observation"].get("warning"):
         print(f"WARNING  {out['observation']['warning']}")
 
