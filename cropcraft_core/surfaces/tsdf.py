@@ -616,6 +616,13 @@ class TsdfSurfaces(SurfaceBackend):
         return self._scene
 
     def render(self, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+        return self._cast(camera, with_fill=True)
+
+    def render_supported(self, camera: PinholeCamera) -> np.ndarray:
+        """z-depth of the two-view mesh alone (without the one-view fill)."""
+        return self._cast(camera, with_fill=False)[0]
+
+    def _cast(self, camera: PinholeCamera, with_fill: bool) -> tuple[np.ndarray, np.ndarray]:
         self._require_fitted()
         if not isinstance(camera, PinholeCamera):
             raise InputError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
@@ -627,10 +634,10 @@ class TsdfSurfaces(SurfaceBackend):
         depth = np.full(len(d), np.nan, np.float32)
         rgb = np.zeros((len(d), 3))
         todo = np.arange(len(d))
-        for fill, faces, col in (
-            (False, self.faces, self.vertex_colors),
-            (True, self.fill_faces, self.fill_colors),
-        ):
+        passes = [(False, self.faces, self.vertex_colors)]
+        if with_fill:
+            passes.append((True, self.fill_faces, self.fill_colors))
+        for fill, faces, col in passes:
             if not len(todo) or not len(faces):
                 continue
             ans = self._raycaster(fill).cast_rays(o3d.core.Tensor(rays[todo]))
@@ -649,15 +656,6 @@ class TsdfSurfaces(SurfaceBackend):
             todo = todo[~hit]
         rgb8 = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8).reshape(h, w, 3)
         return depth.reshape(h, w), rgb8
-
-    def render_supported(self, camera: PinholeCamera) -> np.ndarray:
-        """z-depth of the two-view mesh alone (without the one-view fill)."""
-        fill = self.fill_faces
-        try:
-            self.fill_faces = fill[:0]
-            return self.render(camera)[0]
-        finally:
-            self.fill_faces = fill
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
         """Vertices of the fused (two-view) mesh inside the bounding box (about one per voxel of
