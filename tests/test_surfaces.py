@@ -175,6 +175,23 @@ def test_one_view_fill_closes_holes_behind_the_two_view_surface(scene, fitted):
     assert (raised & (z_true >= 0.05)).sum() > 0.5 * raised.sum()
 
 
+def test_surfaces_saved_before_the_fill_load_without_it(fitted, tmp_path):
+    """A store's older surfaces (no fill in surfaces.json, no surface_fill.ply) load and render
+    their one mesh, as they did when they were made."""
+    import json
+
+    folder = fitted.save(tmp_path / "old")
+    meta = json.loads((folder / "surfaces.json").read_text())
+    assert meta["payload"].pop("fill_mesh") == "surface_fill.ply"
+    del meta["payload"]["fill_faces"], meta["config"]["fill_one_view"]
+    (folder / "surfaces.json").write_text(json.dumps(meta))
+    (folder / "surface_fill.ply").unlink()
+    old = load_surfaces(folder)
+    cam = PinholeCamera.look_down(height_m=1.0, size=(120, 90))
+    assert len(old.fill_faces) == 0
+    np.testing.assert_array_equal(old.render(cam)[0], fitted.render_supported(cam))
+
+
 def test_faces_shared_matches_faces_by_vertex_positions():
     from cropcraft_core.surfaces.tsdf import faces_shared
 
