@@ -143,8 +143,9 @@ def test_save_load_round_trip(fitted, tmp_path):
 
 
 def test_one_view_fill_closes_holes_behind_the_two_view_surface(scene, fitted):
-    """The fill mesh holds only faces the two-view mesh lacks, is rendered only where that mesh
-    leaves a ray empty, survives save/load, and config.fill_one_view=False renders without it."""
+    """The fill mesh holds only faces the two-view mesh lacks and is rendered only where that
+    mesh (alone: ``render_supported``) leaves a ray empty; save/load keeps it
+    (test_save_load_round_trip)."""
     import dataclasses
 
     from cropcraft_core.surfaces.tsdf import faces_shared

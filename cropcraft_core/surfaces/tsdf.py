@@ -586,7 +586,7 @@ class TsdfSurfaces(SurfaceBackend):
         for depth_img, color_img, intr, extr, far, bc in frames:
             vbg.integrate(bc, depth_img, color_img, intr, extr, 1.0, far, trunc)
         v, f, c = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold)))
-        fill = (np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3)))
+        fill = None
         if cfg.fill_one_view:
             # weight > 0: every voxel of the cell fused from at least one depth map
             vl, fl, cl = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=0.0))
@@ -599,9 +599,9 @@ class TsdfSurfaces(SurfaceBackend):
         identically; faces leaving the bounding box (grown by two voxels) are dropped."""
         pad = 2 * float(self.config.voxel_size)
         self.vertices, self.faces, self.vertex_colors = _stored(v, f, c, self.bbox, pad)
-        if fill is None:
-            fill = (np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3)))
-        self.fill_vertices, self.fill_faces, self.fill_colors = _stored(*fill, self.bbox, pad)
+        self.fill_vertices, self.fill_faces, self.fill_colors = _stored(
+            *(fill or _empty_mesh()), self.bbox, pad
+        )
         self._scene = None
         self._fill_scene = None
 
@@ -688,11 +688,16 @@ class TsdfSurfaces(SurfaceBackend):
         self._set_mesh(v, f, c, fill)
 
 
+def _empty_mesh() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices (0, 3), faces (0, 3) int32, colours (0, 3)): no surface."""
+    return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+
+
 def _o3d_mesh(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(vertices float64, faces (m, 3) int32, colours float64) of an Open3D tensor mesh."""
     v = mesh.vertex.positions.numpy().astype(np.float64)
     if not len(v):
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+        return _empty_mesh()
     f = mesh.triangle.indices.numpy().astype(np.int32).reshape(-1, 3)
     return v, f, mesh.vertex.colors.numpy().astype(np.float64)
 
@@ -706,7 +711,7 @@ def _stored(v, f, c, bbox, pad: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
         inside = np.all((v >= bbox[0] - pad) & (v <= bbox[1] + pad), axis=1)
         f = f[inside[f].all(axis=1)]
     if not len(f):
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+        return _empty_mesh()
     used, inv = np.unique(f, return_inverse=True)
     v, c = v[used], np.asarray(c, np.float64)[used]
     return (
