@@ -100,7 +100,7 @@ def run(a: argparse.Namespace) -> dict:
     from cropcraft_core.surfaces import SurfacesConfig, make_backend, resolve_bbox
     from cropcraft_core.synth import make_scene
 
-    w, h = (int(x) for x in a.resolution.lower().split("x"))
+    w, h = a.resolution
     root = Path(a.scene_dir) if a.scene_dir else Path(tempfile.mkdtemp(prefix="bench_pipe_"))
     out: dict = {"views": a.views, "resolution": [w, h], "poses": a.poses, "seconds": {}}
     sec = out["seconds"]

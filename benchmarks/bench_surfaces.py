@@ -175,16 +175,26 @@ def run(
 def add_scene_arguments(ap: argparse.ArgumentParser) -> None:
     """The synthetic scene's options, shared by the photo benchmarks."""
     ap.add_argument("--views", type=int, default=50)
-    ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
+    ap.add_argument("--resolution", default=(640, 480), type=size, help="WIDTHxHEIGHT")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scene-dir", default=None, help="reuse (or create) the scene here")
+
+
+def size(text: str) -> tuple[int, int]:
+    """``"640x480"`` → ``(640, 480)``; anything else is argparse's usage error."""
+    w, sep, h = text.lower().partition("x")
+    if sep and w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0:
+        return int(w), int(h)
+    raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x480, got {text!r}")
 
 
 def parse_kv(items: list[str]) -> dict:
     """``["a=1", "b=text"]`` → ``{"a": 1, "b": "text"}`` (values are JSON, else strings)."""
     out = {}
     for kv in items:
-        k, v = kv.split("=", 1)
+        k, sep, v = kv.partition("=")
+        if not sep or not k:
+            raise SystemExit(f"expected KEY=VALUE, got {kv!r}")
         try:
             out[k] = json.loads(v)
         except json.JSONDecodeError:
@@ -200,8 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="SurfacesConfig field=value")
     a = ap.parse_args(argv)
     overrides = parse_kv(a.set)
-    w, h = (int(x) for x in a.resolution.lower().split("x"))
-    res = run(a.views, (w, h), a.seed, a.scene_dir, overrides)
+    res = run(a.views, a.resolution, a.seed, a.scene_dir, overrides)
     print(json.dumps(res, indent=1))
     return 0
 

@@ -197,3 +197,14 @@ def test_cli_gives_prefects_temporary_server_time_to_start(tmp_path):
     assert EPHEMERAL_STARTUP_TIMEOUT_S >= 60
     assert timeout_seen() == EPHEMERAL_STARTUP_TIMEOUT_S
     assert timeout_seen(**{key: "45"}) == 45
+
+
+@pytest.mark.parametrize("what", ["pipeline", "surfaces"])
+@pytest.mark.parametrize("size", ["640", "640y480", "0x480", "640x-480"])
+def test_photo_benchmarks_name_a_bad_resolution_before_making_a_scene(tmp_path, capsys, what, size):
+    scene = tmp_path / "scene"
+    with pytest.raises(SystemExit) as e:
+        main(["bench", what, "--resolution", size, "--scene-dir", str(scene)])
+    assert e.value.code == 2
+    assert f"expected WIDTHxHEIGHT such as 640x480, got {size!r}" in capsys.readouterr().err
+    assert not scene.exists()
