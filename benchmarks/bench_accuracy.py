@@ -39,6 +39,7 @@ from benchmarks.workers import SHARED, pool
 from cropcraft_core.config import default_layout, param_space
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import COMBINE_RULES, combine
+from cropcraft_core.fit.select import unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
 from cropcraft_core.procedural import generate_canopy
@@ -120,9 +121,17 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     summed compute: ``{row: (params, seconds of fitting incl. any re-scoring)}``. Re-scoring
     rows need the scene's ``observation``."""
     results = sorted(results, key=lambda r: r.seed)
-    out = {}
+    out, polished = {}, {}
     for row, cfg in rows:
+        src = polished.get(replace(cfg, polish_evals=None))
+        if cfg.reevaluates(crop) and cfg.polish_evals == 0 and src is not None:
+            # the same re-scoring without its polish: read from the polished row's record
+            _, params, rescore = unpolished(src.extra["selection"])
+            out[row] = (params, seconds + rescore)
+            continue
         f = combine(crop, results, cfg, seconds, observation if cfg.reevaluates(crop) else None)
+        if cfg.reevaluates(crop) and cfg.polish_evals > 0:
+            polished[replace(cfg, polish_evals=None)] = f
         out[row] = (f.params, f.seconds)
     return out
 

@@ -11,7 +11,13 @@ from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.config.params import params_from_vector
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, ForwardModel, combine, fit_seed, observe_canopy
-from cropcraft_core.fit.select import averaged_minimum, candidates, polish, reevaluation_seeds
+from cropcraft_core.fit.select import (
+    averaged_minimum,
+    candidates,
+    polish,
+    reevaluation_seeds,
+    unpolished,
+)
 from cropcraft_core.observe import preset
 from cropcraft_core.optimize import SeedResult, aggregate
 from cropcraft_core.procedural import generate_canopy
@@ -140,6 +146,10 @@ def test_polish_refines_the_lowest_rescored_candidate_on_the_same_canopies(soybe
     got, v, n = polish(fm, x0, sel["canopy_seeds"], 25)
     assert n <= 26 and v == pytest.approx(losses[f"polished-{rescored[0]}"], rel=1e-12)
     assert np.allclose(got, list(sel["candidates"][f"polished-{rescored[0]}"]["params"].values()))
+    # the unpolished answer read back from the polished record is the plain re-scoring's
+    name, params, rescore = unpolished(sel)
+    assert name == plain.extra["selection"]["chosen"] and params == plain.params
+    assert 0 < rescore < sel["seconds"]
 
 
 def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):

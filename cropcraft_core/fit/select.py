@@ -97,6 +97,8 @@ class Selection:
     losses: dict[str, float]
     canopy_seeds: list[int]
     seconds: float
+    #: the part of ``seconds`` spent re-scoring, before any polish
+    rescore_seconds: float
 
     def to_dict(self, crop: str) -> dict:
         return {
@@ -104,6 +106,7 @@ class Selection:
             "chosen": self.chosen,
             "canopy_seeds": list(self.canopy_seeds),
             "seconds": self.seconds,
+            "rescore_seconds": self.rescore_seconds,
             "candidates": {
                 k: {"params": params_from_vector(crop, v), "loss": self.losses[k]}
                 for k, v in self.candidates.items()
@@ -238,6 +241,7 @@ def select(
     finite = {k: v for k, v in losses.items() if np.isfinite(v)}
     if not finite:
         raise ConfigError("every candidate's re-scored loss is non-finite")
+    rescore_seconds = time.perf_counter() - t
     if polish_evals > 0:
         for k in sorted(finite, key=finite.__getitem__)[:polish_starts]:
             x, v, _ = polish(forward, cands[k], seeds, polish_evals)
@@ -245,4 +249,21 @@ def select(
             if np.isfinite(v):
                 finite[f"polished-{k}"] = v
     chosen = min(finite, key=finite.__getitem__)
-    return Selection(chosen, cands[chosen], cands, losses, seeds, time.perf_counter() - t)
+    return Selection(
+        chosen, cands[chosen], cands, losses, seeds, time.perf_counter() - t, rescore_seconds
+    )
+
+
+def unpolished(selection: dict) -> tuple[str, dict[str, float], float]:
+    """What the same re-scoring picks without its polish, read from a polished selection's
+    record (``Selection.to_dict``; ``FitResult.extra["selection"]``) instead of re-scoring
+    again: (candidate name, its parameters, seconds of the re-scoring). The polished points are
+    the only candidates the polish adds, and the winner is the lowest finite loss in candidate
+    order, so this is exactly :func:`select` with ``polish_evals=0``."""
+    cands = {
+        k: c
+        for k, c in selection["candidates"].items()
+        if not k.startswith("polished-") and np.isfinite(c["loss"])
+    }
+    chosen = min(cands, key=lambda k: cands[k]["loss"])
+    return chosen, dict(cands[chosen]["params"]), float(selection["rescore_seconds"])
