@@ -10,6 +10,7 @@ from cropcraft_core.fit import FitConfig, ForwardModel, fit_observation, fit_see
 from cropcraft_core.fit.mlp import MLPConfig, predict_params
 from cropcraft_core.metrics import canopy_metrics
 from cropcraft_core.observe import preset
+from cropcraft_core.optimize import SeedResult
 from cropcraft_core.procedural import generate_canopy
 
 # a quarter of the paper's 994 x 738 keeps the tests fast; the statistics are resolution-free
@@ -96,7 +97,11 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
     with pytest.raises(Killed):
         fit_seed(obs, 3, cfg, checkpoint=ck, callback=kill_at_20)
     assert ck.exists()
-    resumed = fit_seed(obs, 3, cfg, checkpoint=ck)
+    # the kill came after evaluation 20 was stored: the checkpoint holds 21 evaluations
+    assert SeedResult.load(ck).n_evals == 21
+    seen = []
+    resumed = fit_seed(obs, 3, cfg, checkpoint=ck, callback=lambda i, x, y: seen.append(i))
+    assert seen == list(range(21, 30))  # only the missing evaluations were run again
     assert np.array_equal(resumed.X, clean.X) and np.array_equal(resumed.y, clean.y)
     assert np.array_equal(resumed.reported_x, clean.reported_x)
 

@@ -212,7 +212,9 @@ def test_random_baseline_end_to_end(crop, tmp_path):
     obj = Noisy(2, raise_at=123)
     with pytest.raises(KeyboardInterrupt):
         run_random(obj, b, n_evals=200, seed=2, checkpoint=ck)
-    resumed = run_random(Noisy(2), b, n_evals=200, seed=2, checkpoint=ck)
+    again = Noisy(2)
+    resumed = run_random(again, b, n_evals=200, seed=2, checkpoint=ck)
+    assert again.calls == list(range(123, 200))  # evaluations 0-122 came from the checkpoint
     full = run_random(Noisy(2), b, n_evals=200, seed=2)
     np.testing.assert_array_equal(resumed.y, full.y)
 
@@ -237,7 +239,15 @@ def test_trust_region_baseline_end_to_end(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         run_trust_region(killer, b, seed=0, n_starts=3, maxiter=30, checkpoint=ck)
-    resumed = run_trust_region(noisy, b, seed=0, n_starts=3, maxiter=30, checkpoint=ck)
+    called = []
+
+    def counting(x, i):
+        called.append(i)
+        return noisy(x, i)
+
+    resumed = run_trust_region(counting, b, seed=0, n_starts=3, maxiter=30, checkpoint=ck)
+    # the stored evaluations are replayed, not recomputed: the objective sees only the rest
+    assert called == list(range(full.n_evals // 2, full.n_evals))
     np.testing.assert_array_equal(resumed.X, full.X)
     np.testing.assert_array_equal(resumed.y, full.y)
     capped = run_trust_region(noisy, b, seed=0, max_evals=40)
