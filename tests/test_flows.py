@@ -190,22 +190,22 @@ def test_rerun_is_cached_everywhere(base_run):
     assert second["params"] == base_run["first"]["params"]
 
 
-def test_unchanged_scene_answered_without_prefect(base_run, scene_dir):
+def _cached(store, scene_dir, overrides=OVERRIDES):
+    """``flows.scene.cached_result`` for these settings: the summary or None (no flow run)."""
     from flows.scene import cached_result, prepare
 
-    req = prepare(
-        "plotA",
-        CROP,
-        DATE,
-        str(scene_dir / "images"),
-        str(scene_dir / "transforms.json"),
-        OVERRIDES,
-        str(base_run["store"]),
-    )
+    images, poses = str(scene_dir / "images"), str(scene_dir / "transforms.json")
+    return cached_result(prepare("plotA", CROP, DATE, images, poses, overrides, str(store)))
+
+
+def test_unchanged_scene_answered_without_prefect(base_run, scene_dir):
+    """``cropcraft run`` answers an unchanged scene from the stage records without a flow run,
+    and only then: settings never run are a miss (None), not another run's answer."""
     t = time.perf_counter()
-    hit = cached_result(req)
+    hit = _cached(base_run["store"], scene_dir)
     assert hit is not None and time.perf_counter() - t < 10
     assert hit["params"] == base_run["first"]["params"]
+    assert _cached(base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 99}) is None
 
 
 def test_late_config_change_recomputes_from_that_stage_on(base_run, scene_dir):
@@ -307,12 +307,15 @@ def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, s
     other = "mean" if default["config"]["combine"] != "mean" else "median"
     _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": other})
     assert store.get_json(fit_key)["config"]["combine"] == other
+    # the first settings' records are still there, but their files are not: no cached answer
+    assert _cached(base_run["store"], scene_dir) is None
     out = _run("plotA", base_run["store"], scene_dir)
     executed = set(_executed(out["states"]))
     assert {"aggregate", "generate", "export", "report"} <= executed
     assert not any(k.startswith("fit_seed") for k in executed)
     assert store.get_json(fit_key) == default
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+    assert _cached(base_run["store"], scene_dir)["params"] == default["params"]
 
 
 def test_a_stage_that_fails_part_way_does_not_leave_a_cached_record_served(
