@@ -6,10 +6,18 @@ import numpy as np
 import pytest
 
 from cropcraft_core.config import default_layout
-from cropcraft_core.export import write_ply
-from cropcraft_core.fit.geometry import load_geometry, observe_geometry, splat_depth
+from cropcraft_core.errors import InputError
+from cropcraft_core.export import read_ply, write_ply
+from cropcraft_core.fit.geometry import (
+    LEAF_RGB,
+    SOIL_RGB,
+    load_geometry,
+    observe_geometry,
+    splat_depth,
+)
 from cropcraft_core.geometry import PinholeCamera
 from cropcraft_core.procedural import generate_canopy, plot_region
+from cropcraft_core.render import render_depth
 from flows.cli import main
 
 
@@ -30,7 +38,82 @@ def test_young_bare_canopy_gets_a_ground(tmp_path):
     write_ply(tmp_path / "young.ply", c.mesh)
     geo = load_geometry(tmp_path / "young.ply", n_points=20_000)
     assert "ground" in geo.meta and geo.meta["colours"] == "by height"
-    assert geo.points[:, 2].min() < 1e-3
+    # a grid of 30 % as many points at the mesh's lowest z, spanning its footprint
+    z0 = geo.points[:20_000, 2].min()
+    grid = geo.points[20_000:]
+    assert len(grid) == 6_000 and np.all(grid[:, 2] == z0)
+    footprint = np.ptp(c.mesh.vertices[:, :2], axis=0)
+    assert np.all(np.ptp(grid[:, :2], axis=0) > 0.9 * footprint)
+    # coloured by height: soil within 3 cm of the ground, leaf above
+    low = geo.points[:, 2] < z0 + 0.03
+    assert np.all(geo.colors[low] == SOIL_RGB) and np.all(geo.colors[~low] == LEAF_RGB)
+    assert (~low).sum() > 10_000  # the canopy itself stands above the band
+
+
+def _write_points(path, points, colors=None):
+    """An ASCII PLY point cloud (float x y z, uchar red green blue where given)."""
+    props = "property float x\nproperty float y\nproperty float z\n"
+    rows = [" ".join(f"{v:.6f}" for v in p) for p in points]
+    if colors is not None:
+        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        rgb = np.round(np.asarray(colors) * 255).astype(int)
+        rows = [f"{r} {' '.join(map(str, c))}" for r, c in zip(rows, rgb, strict=True)]
+    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\n{props}end_header\n"
+    path.write_text(head + "\n".join(rows) + "\n")
+    return path
+
+
+def test_coloured_point_cloud_keeps_its_colours_and_fits_the_rows(canopy_ply, tmp_path):
+    """A scan (coloured points, no faces): its own colours split ground from plant, its depth
+    is splatted, and the rows and camera come out as for the mesh."""
+    import open3d as o3d
+
+    mesh = load_geometry(canopy_ply, n_points=400_000, seed=1)
+    plant = mesh.points[mesh.points[:, 2] > 0.03]
+    rng = np.random.default_rng(0)
+    lo, hi = plant[:, :2].min(0), plant[:, :2].max(0)
+    soil = np.column_stack([rng.uniform(lo, hi, (20_000, 2)), np.zeros(20_000)])
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([plant, soil])))
+    pc.colors = o3d.utility.Vector3dVector(
+        np.concatenate([np.tile(LEAF_RGB, (len(plant), 1)), np.tile(SOIL_RGB, (20_000, 1))])
+    )
+    path = tmp_path / "scan.ply"
+    assert o3d.io.write_point_cloud(str(path), pc)
+    geo = load_geometry(path)
+    assert geo.meta["kind"] == "points" and "colours" not in geo.meta and geo.mesh is None
+    assert len(geo.points) == len(plant) + 20_000  # no ground grid added: the scan has one
+    obs, rowfit = observe_geometry(path, "soybean", row_spacing=0.76)
+    assert obs.meta["kind"] == "points"
+    assert abs(rowfit.best_row.azimuth_deg) < 3.0
+    y = rowfit.camera.center[1]
+    assert min(abs(y - k * 0.76) for k in (-1, 0, 1)) < 0.06
+    # the splatted depth lies on the mesh's depth from the same camera where both see a surface
+    m = rowfit.world_from_scene
+    canopy = read_ply(canopy_ply)
+    ref = render_depth(canopy.vertices @ m[:3, :3].T + m[:3, 3], canopy.faces, obs.camera).depth
+    both = obs.mask & np.isfinite(ref)
+    err = np.abs(obs.depth[both] - ref[both])
+    # (sparse points let farther ones show between the nearest: not every pixel is exact)
+    assert obs.stats.mask_area > 0.3 and np.median(err) < 0.002 and (err < 0.01).mean() > 0.6
+
+
+def test_bad_geometry_is_named(tmp_path):
+    pts = np.random.default_rng(0).uniform(0, 1, (500, 3))
+    with pytest.raises(InputError, match="few.ply: only 50 points; a point cloud needs at least"):
+        load_geometry(_write_points(tmp_path / "few.ply", pts[:50]))
+    nan = pts.copy()
+    nan[7, 2] = np.nan
+    with pytest.raises(InputError, match="nan.ply: geometry has non-finite coordinates"):
+        load_geometry(_write_points(tmp_path / "nan.ply", nan))
+    empty = tmp_path / "empty.ply"
+    _write_points(empty, pts)
+    empty.write_text(
+        empty.read_text().replace(
+            "end_header", "element face 0\nproperty list uchar int vertex_indices\nend_header"
+        )
+    )
+    with pytest.raises(InputError, match="empty.ply: mesh has no faces"):
+        load_geometry(empty)
 
 
 def test_canopy_rows_and_camera(canopy_ply):
