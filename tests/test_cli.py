@@ -151,7 +151,8 @@ def test_synth_writes_a_photo_scene_and_replaces_an_older_one_whole(tmp_path, ca
     assert {p.name for p in (out / "truth").iterdir()} >= {"canopy.ply", "metrics.json"}
     assert "5 walk views at 96x72" in capsys.readouterr().out
     assert main([*args, "--views", "3"]) == 0
-    assert len(list((out / "images").iterdir())) == 3
+    assert len(list((out / "images").iterdir())) == 3 == len(list((out / "depth").iterdir()))
+    assert len(json.loads((out / "transforms.json").read_text())["frames"]) == 3
     assert json.loads((out / "truth" / "params.json").read_text())["params"]["num_nodes"] == 7.5
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 

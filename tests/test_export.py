@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import struct
 from pathlib import Path
 
@@ -322,8 +323,11 @@ def test_atomic_path_keeps_old_file_when_writer_raises(tmp_path: Path) -> None:
             raise RuntimeError("boom")
     assert target.read_text() == "previous\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.ply"]
+    umask = os.umask(0o022)
+    os.umask(umask)
     atomic_write_bytes(target, b"new")
-    assert target.read_bytes() == b"new" and (target.stat().st_mode & 0o777) != 0o600
+    # the temporary file's private mode is not kept: a new file's usual mode under the umask
+    assert target.read_bytes() == b"new" and target.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
 def test_helios_writer_failing_midway_leaves_previous_file(tmp_path: Path) -> None:

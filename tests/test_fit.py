@@ -22,8 +22,8 @@ def observation(crop, params, seed=11):
     return observe_canopy(canopy, preset(crop, **SMALL)), canopy
 
 
-def test_prediction_with_true_parameters_matches_best():
-    """The loss is lowest near the truth: the true parameters beat far-off ones."""
+def test_true_parameters_beat_a_far_off_point():
+    """The loss tells the truth from a far-off point (fewer nodes, smaller leaves)."""
     truth = {
         "leaf_length": 1.2,
         "petiole_length": 1.0,

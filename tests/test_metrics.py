@@ -302,7 +302,7 @@ def test_metrics_dict_is_json_with_a_definition_for_every_number():
     assert all(set(d) == {"unit", "method"} and d["method"] for d in defs.values())
     assert defs["lai"]["unit"] == "m2 m-2" and defs["internode_mean_m"]["unit"] == "m"
     traits = canopy_traits(make_canopy(make_mesh(parts), [True]), gap_fraction=False)
-    assert all(isinstance(t, Trait) for t in traits)
+    assert traits and all(isinstance(t, Trait) for t in traits)
 
 
 def test_canopy_without_leaves_or_plants_gives_nulls_not_nans():

@@ -144,13 +144,13 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, kill_at):
         assert r.best_y == full.best_y and r.best_mean_posterior == full.best_mean_posterior
 
     # Hard kill: only an earlier periodic checkpoint survives.
-    if snapshots:
-        ck2 = tmp_path / "hard.json"
-        ck2.write_bytes(snapshots[0])
-        assert SeedResult.load(ck2).n_evals < kill_at
-        again = run_seed(Noisy(7), b, cfg, seed=7, checkpoint=ck2)
-        np.testing.assert_array_equal(again.X, full.X)
-        np.testing.assert_array_equal(again.y, full.y)
+    assert snapshots
+    ck2 = tmp_path / "hard.json"
+    ck2.write_bytes(snapshots[0])
+    assert SeedResult.load(ck2).n_evals < kill_at
+    again = run_seed(Noisy(7), b, cfg, seed=7, checkpoint=ck2)
+    np.testing.assert_array_equal(again.X, full.X)
+    np.testing.assert_array_equal(again.y, full.y)
 
     # A finished checkpoint is returned without calling the objective.
     def boom(x, i):

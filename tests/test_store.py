@@ -215,7 +215,7 @@ def test_manifest_roundtrip_and_stage_updates(store):
     assert m.config_hash == config_hash(config) == config_hash({"fit": config["fit"], **config})
     assert m.code_version.startswith(__version__)
     loaded = store.load_manifest(SCENE)
-    assert loaded == store.load_manifest(SCENE)
+    assert loaded == m
     assert loaded.inputs == inputs and loaded.config == config and loaded.scene == SCENE
 
     cameras = artefact_key(SCENE, "sfm", "cameras.json")

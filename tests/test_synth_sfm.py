@@ -115,8 +115,8 @@ def test_depth_consistent_with_camera_and_canopy(scene):
     d = scene_o3d.compute_distance(o3d.core.Tensor(above.astype(np.float32))).numpy()
     lo, hi = mesh.vertices[:, :2].min(0) + 0.3, mesh.vertices[:, :2].max(0) - 0.3
     inside = np.all((above[:, :2] > lo) & (above[:, :2] < hi), axis=1)
-    if inside.sum() >= 10:
-        assert np.median(d[inside]) < 1e-3
+    assert inside.sum() >= 10
+    assert np.median(d[inside]) < 1e-3
 
 
 def test_trajectories_look_down_and_inward():
