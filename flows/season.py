@@ -71,6 +71,9 @@ def process_season(
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
     ``transforms.json`` beside them) and no finished report, one after another, on ``runner``;
     a failed date does not stop the others. Then write the season summary.
+
+    Returns ``{"scenes": {date: final state, with the reason where not Completed}, "failed":
+    [dates], "csv": URL, "png": URL or None}``.
     """
     from flows.runners import make_task_runner
     from flows.scene import prepare, reconstruct_scene
@@ -100,6 +103,7 @@ def process_season(
         scenes[date] = state.name
         if not state.is_completed():
             failed.append(date)
+            scenes[date] = f"{state.name}: {state.message}"  # what the UI and CLI print
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
     summary = write_summary(st, site, crop)
     return {"scenes": scenes, "failed": failed, "csv": summary["csv"], "png": summary["png"]}

@@ -181,6 +181,39 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     assert line.startswith(DATE)
 
 
+def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
+    prefect_harness, scene_dir, tmp_path
+):
+    """The nightly deployment's flow: every date with photos in the store's inbox and no
+    report is run; a date that fails (two photos: too few) does not stop the others; the
+    summary holds the finished date; the next night only the failed date is pending."""
+    from flows.season import pending_dates, run_season
+
+    store = SceneStore(str(tmp_path / "store"))
+    good, bad = "2024-07-08", "2024-07-15"
+    photos = sorted((scene_dir / "images").iterdir())
+    for p in photos:
+        store.put_bytes(f"plotS/{CROP}/{good}/images/{p.name}", p.read_bytes())
+    store.put_bytes(
+        f"plotS/{CROP}/{good}/images/transforms.json", (scene_dir / "transforms.json").read_bytes()
+    )
+    for p in photos[:2]:
+        store.put_bytes(f"plotS/{CROP}/{bad}/images/{p.name}", p.read_bytes())
+    assert pending_dates(store, "plotS", CROP) == [good, bad]
+
+    out = run_season("plotS", CROP, str(tmp_path / "store"), OVERRIDES)
+    assert out["failed"] == [bad] and out["scenes"][good] == "Completed", out["scenes"]
+    # the reason, named: ingest's error for the inbox holding two photos
+    assert (
+        out["scenes"][bad].startswith("Failed: ") and "at least 3 are needed" in out["scenes"][bad]
+    )
+    csv = store.get_bytes(f"plotS/{CROP}/season/summary.csv").decode().splitlines()
+    assert len(csv) == 2 and csv[1].startswith(good)
+    assert store.isfile(f"plotS/{CROP}/season/summary.png")
+    assert store.isfile(f"plotS/{CROP}/{good}/export/bundle/canopy.helios.xml")
+    assert pending_dates(store, "plotS", CROP) == [bad]
+
+
 def test_rerun_is_cached_everywhere(base_run):
     second = base_run["second"]
     assert set(second["states"].values()) == {"Cached"}
