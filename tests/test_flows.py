@@ -478,6 +478,34 @@ def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  
     assert first["report"].startswith("s3://")
 
 
+def test_imported_poses_of_other_photos_are_named(prefect_harness, scene_dir, tmp_path):
+    """A COLMAP model imported through the flow whose images are not the ingested photos
+    (renamed on the way: other names, other stems) fails in the poses stage, naming the
+    mismatch, and nothing downstream runs."""
+    from flows.scene import run_scene
+
+    photos = tmp_path / "renamed"
+    photos.mkdir()
+    for i, p in enumerate(sorted((scene_dir / "images").iterdir())):
+        (photos / f"plot_{i:03d}{p.suffix}").write_bytes(p.read_bytes())
+    store = tmp_path / "store"
+    with pytest.raises(InputError, match=r"name 16 images but only 0 of them were ingested"):
+        run_scene(
+            "plotC",
+            CROP,
+            DATE,
+            images=str(photos),
+            poses=str(scene_dir / "colmap" / "sparse" / "0"),
+            overrides=OVERRIDES,
+            store=str(store),
+        )
+    manifest = SceneStore(str(store)).load_manifest(SceneKey("plotC", CROP, DATE))
+    assert manifest.stages["ingest"].status == "done"
+    assert manifest.stages["poses"].status == "failed"
+    assert "were ingested" in manifest.stages["poses"].error
+    assert "surfaces" not in manifest.stages or manifest.stages["surfaces"].status != "done"
+
+
 def _dead_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
