@@ -3,6 +3,7 @@
 import io
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -364,6 +365,15 @@ def test_sfm_small_scene(tmp_path):
     s, r, _ = umeyama(levelled.centers(), np.array([truth.camera(n).center for n in names]))
     assert math.degrees(math.acos(min(1.0, r[2, 2]))) < 3.0
     assert s == pytest.approx(1.0, abs=0.1)
+    # the same photos among more unrelated ones: fewer than half registered is a named failure
+    mixed = tmp_path / "mixed"
+    shutil.copytree(out / "images", mixed)
+    rng = np.random.default_rng(1)
+    for i in range(9):
+        noise = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
+        Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(mixed / f"z_noise{i}.png")
+    with pytest.raises(SfmError, match=r"registered only 8 of 17 images \(47 %, need 50 %\)"):
+        run_sfm(mixed, tmp_path / "work-mixed", num_threads=2, focal_length_px=f0)
 
 
 @pytest.mark.slow
