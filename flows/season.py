@@ -100,10 +100,10 @@ def process_season(
             store=store,
             return_state=True,
         )
-        scenes[date] = state.name
+        # what the UI and the CLI print: the final state, with the reason where it failed
+        scenes[date] = state.name if state.is_completed() else f"{state.name}: {state.message}"
         if not state.is_completed():
             failed.append(date)
-            scenes[date] = f"{state.name}: {state.message}"  # what the UI and CLI print
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
     summary = write_summary(st, site, crop)
     return {"scenes": scenes, "failed": failed, "csv": summary["csv"], "png": summary["png"]}

@@ -18,6 +18,7 @@ from cropcraft_core.fit.geometry import (
 from cropcraft_core.geometry import PinholeCamera
 from cropcraft_core.procedural import generate_canopy, plot_region
 from cropcraft_core.render import render_depth
+from cropcraft_core.surfaces.tsdf import write_colored_ply
 from flows.cli import main
 
 
@@ -50,16 +51,13 @@ def test_young_bare_canopy_gets_a_ground(tmp_path):
     assert (~low).sum() > 10_000  # the canopy itself stands above the band
 
 
-def _write_points(path, points, colors=None):
-    """An ASCII PLY point cloud (float x y z, uchar red green blue where given)."""
-    props = "property float x\nproperty float y\nproperty float z\n"
-    rows = [" ".join(f"{v:.6f}" for v in p) for p in points]
-    if colors is not None:
-        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        rgb = np.round(np.asarray(colors) * 255).astype(int)
-        rows = [f"{r} {' '.join(map(str, c))}" for r, c in zip(rows, rgb, strict=True)]
-    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\n{props}end_header\n"
-    path.write_text(head + "\n".join(rows) + "\n")
+def _write_points(path, points):
+    """An ASCII PLY point cloud of float x y z (NaN kept as written)."""
+    head = (
+        f"ply\nformat ascii 1.0\nelement vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    path.write_text(head + "".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in points))
     return path
 
 
@@ -105,13 +103,8 @@ def test_bad_geometry_is_named(tmp_path):
     nan[7, 2] = np.nan
     with pytest.raises(InputError, match="nan.ply: geometry has non-finite coordinates"):
         load_geometry(_write_points(tmp_path / "nan.ply", nan))
-    empty = tmp_path / "empty.ply"
-    _write_points(empty, pts)
-    empty.write_text(
-        empty.read_text().replace(
-            "end_header", "element face 0\nproperty list uchar int vertex_indices\nend_header"
-        )
-    )
+    # a surface file with a face element but no faces (the surfaces stage's own writer)
+    empty = write_colored_ply(tmp_path / "empty.ply", pts, np.zeros((0, 3), np.int32), pts)
     with pytest.raises(InputError, match="empty.ply: mesh has no faces"):
         load_geometry(empty)
 
