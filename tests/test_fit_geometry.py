@@ -13,6 +13,7 @@ from cropcraft_core.fit.geometry import (
     SOIL_RGB,
     load_geometry,
     observe_geometry,
+    sample_mesh,
     splat_depth,
 )
 from cropcraft_core.geometry import PinholeCamera
@@ -66,9 +67,10 @@ def test_coloured_point_cloud_keeps_its_colours_and_fits_the_rows(canopy_ply, tm
     is splatted, and the rows and camera come out as for the mesh."""
     import open3d as o3d
 
-    mesh = load_geometry(canopy_ply, n_points=400_000, seed=1)
-    plant = mesh.points[mesh.points[:, 2] > 0.03]
+    canopy = read_ply(canopy_ply)
     rng = np.random.default_rng(0)
+    plant = sample_mesh(canopy, 400_000, rng)
+    plant = plant[plant[:, 2] > 0.03]  # above the soil band: the scan's ground is its own
     lo, hi = plant[:, :2].min(0), plant[:, :2].max(0)
     soil = np.column_stack([rng.uniform(lo, hi, (20_000, 2)), np.zeros(20_000)])
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([plant, soil])))
@@ -87,7 +89,6 @@ def test_coloured_point_cloud_keeps_its_colours_and_fits_the_rows(canopy_ply, tm
     assert min(abs(y - k * 0.76) for k in (-1, 0, 1)) < 0.06
     # the splatted depth lies on the mesh's depth from the same camera where both see a surface
     m = rowfit.world_from_scene
-    canopy = read_ply(canopy_ply)
     ref = render_depth(canopy.vertices @ m[:3, :3].T + m[:3, 3], canopy.faces, obs.camera).depth
     both = obs.mask & np.isfinite(ref)
     err = np.abs(obs.depth[both] - ref[both])
