@@ -28,7 +28,9 @@ centres, used only for scoring):
   where the true mesh has one, and where those holes were lost (``hole_breakdown``: seen by
   fewer than two photos, no stereo match, dropped by the consistency filter, lost in fusion);
 * with ``--fit``: LAI, leaf angle, nodes and internode of the fitted canopy against the truth's
-  (LAI target: within 15 %).
+  (LAI target: within 15 %), and whose miss a wrong answer is (``loss_attribution``): the loss
+  of the answer and of the true parameters on the same fresh canopies, against the observation
+  and against the true mesh from the same camera.
 * speed: images → observation ≤ 8 minutes on the 2-core machine (50 images at 640 × 480).
 """
 
@@ -43,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments, parse_kv
+from cropcraft_core.fit.select import REEVALUATION_SEED_BASE
 
 TARGETS = {
     "direction_deg": 2.0,
@@ -238,7 +241,7 @@ def run(a: argparse.Namespace) -> dict:
     out["_observation"] = obs
 
     if a.fit:
-        out["fit"] = fit_and_compare(obs, root, a.fit)
+        out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
     return out
 
 
@@ -350,8 +353,10 @@ def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) ->
     return np.where(np.isfinite(d), d, np.nan)
 
 
-def fit_and_compare(obs, root: Path, budget: str) -> dict:
-    """Fit the observation at ``SEEDSxEVALS`` and compare the canopy's traits with the truth."""
+def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray | None = None) -> dict:
+    """Fit the observation at ``SEEDSxEVALS`` and compare the canopy's traits with the truth;
+    with the true mesh's depth ``d_true`` from the same camera, also say whose miss it is
+    (:func:`loss_attribution`)."""
     from cropcraft_core.config import default_layout
     from cropcraft_core.fit import FitConfig, fit_observation
     from cropcraft_core.metrics import canopy_metrics
@@ -365,17 +370,55 @@ def fit_and_compare(obs, root: Path, budget: str) -> dict:
     canopy = generate_canopy("soybean", res.params, default_layout("soybean"), seed=0)
     est = canopy_metrics(canopy, gap_fraction=False)
     true = json.loads((root / "truth" / "metrics.json").read_text())
+    true_params = json.loads((root / "truth" / "params.json").read_text())
     keys = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", "internode_mean_m")
     rows = {k: {"estimated": est.get(k), "true": true.get(k)} for k in keys if k in true}
     lai = rows.get("lai", {})
-    return {
+    out = {
         "budget": budget,
         "seconds": seconds,
         "params": res.params,
         "params_std": res.params_std,
-        "true_params": json.loads((root / "truth" / "params.json").read_text()),
+        "true_params": true_params,
         "traits": rows,
         "lai_rel_err": (lai["estimated"] - lai["true"]) / lai["true"] if lai else None,
+    }
+    if d_true is not None:
+        out["loss"] = loss_attribution(obs, d_true, res.params, true_params["params"])
+    return out
+
+
+#: Canopies on which ``--fit``'s answer and the true parameters are both scored: seeds that no
+#: optimiser seed and no re-scoring (up to 1,000 canopies) draws.
+ATTRIBUTION_SEEDS = tuple(REEVALUATION_SEED_BASE + 104_729 * (1_000 + i) for i in range(8))
+
+
+def loss_attribution(obs, d_true: np.ndarray, answer: dict, truth: dict) -> dict:
+    """Whose miss a wrong answer is: the loss of the fit's ``answer`` and of the ``truth``'s
+    parameters, each averaged over :data:`ATTRIBUTION_SEEDS` canopies, against the observation
+    and against the true mesh's depth ``d_true`` seen by the same camera with the same rules
+    (what a perfect reconstruction would give).
+
+    ``answer`` above ``truth`` on the observation: the optimiser (budget, seeds' combination)
+    stopped short of a better point it could have found. ``answer`` below ``truth`` on the
+    observation but above it on the true mesh: the reconstruction moved the loss's minimum.
+    Below on both: the loss itself prefers the answer (a draw of the canopy that its own
+    parameters rarely give, or a valley the statistics cannot resolve)."""
+    from cropcraft_core.fit.forward import ForwardModel
+    from cropcraft_core.observe import loss
+    from cropcraft_core.observe.observation import predicted_mask
+
+    fm = ForwardModel(obs)
+    # the true mesh gets the observation's own mask rules: its box clauses where it has them
+    box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
+    st_true = obs.predicted_stats(d_true, predicted_mask(d_true, *box))
+    stats = {
+        "answer": fm.stats(answer, ATTRIBUTION_SEEDS),
+        "truth": fm.stats(truth, ATTRIBUTION_SEEDS),
+    }
+    return {
+        against: {k: loss(ref, st, obs.preset).total for k, st in stats.items()}
+        for against, ref in (("observation", obs.stats), ("true_mesh", st_true))
     }
 
 
@@ -430,6 +473,15 @@ def _print(out: dict) -> None:
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
+        if "loss" in out["fit"]:
+            lo = out["fit"]["loss"]
+            print(
+                f"  loss on {len(ATTRIBUTION_SEEDS)} fresh canopies, answer / true parameters: "
+                + ", ".join(
+                    f"against the {k.replace('_', ' ')} {v['answer']:.4f} / {v['truth']:.4f}"
+                    for k, v in lo.items()
+                )
+            )
 
 
 def main(argv: list[str] | None = None) -> int:

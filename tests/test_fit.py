@@ -39,6 +39,29 @@ def test_true_parameters_beat_a_far_off_point():
     assert fm.timings["calls"] == 6
 
 
+def test_pipeline_bench_says_whose_miss_an_answer_is():
+    """``bench pipeline --fit`` scores the answer and the truth on the same fresh canopies,
+    against the observation and against the true mesh: the truth as the answer ties exactly,
+    and a far-off answer loses on both; a canopy's own render is its perfect reconstruction."""
+    from benchmarks.bench_pipeline import loss_attribution
+
+    truth = {
+        "leaf_length": 1.2,
+        "petiole_length": 1.0,
+        "petiole_angle": 2.0,
+        "internode_length": 1.2,
+        "num_nodes": 8.0,
+    }
+    obs, _ = observation("soybean", truth)
+    same = loss_attribution(obs, obs.depth, truth, truth)
+    assert same["observation"]["answer"] == same["observation"]["truth"] > 0
+    assert same["true_mesh"] == pytest.approx(same["observation"], rel=1e-9)
+    far = loss_attribution(obs, obs.depth, {**truth, "leaf_length": 0.5, "num_nodes": 3.0}, truth)
+    for against in ("observation", "true_mesh"):
+        assert far[against]["answer"] > 2 * far[against]["truth"]
+        assert far[against]["truth"] == same[against]["truth"]
+
+
 def test_bo_fit_recovers_maize_parameters():
     """A quick-budget BO fit recovers a maize canopy's LAI and node count."""
     truth = {
