@@ -17,6 +17,16 @@ from cropcraft_core.procedural import generate_canopy
 SMALL = {"image_width": 248, "image_height": 184}
 
 
+#: A mid-sized soybean canopy that the loss tests observe.
+SOY_TRUTH = {
+    "leaf_length": 1.2,
+    "petiole_length": 1.0,
+    "petiole_angle": 2.0,
+    "internode_length": 1.2,
+    "num_nodes": 8.0,
+}
+
+
 def observation(crop, params, seed=11):
     canopy = generate_canopy(crop, params, default_layout(crop), seed=seed)
     return observe_canopy(canopy, preset(crop, **SMALL)), canopy
@@ -24,13 +34,7 @@ def observation(crop, params, seed=11):
 
 def test_true_parameters_beat_a_far_off_point():
     """The loss tells the truth from a far-off point (fewer nodes, smaller leaves)."""
-    truth = {
-        "leaf_length": 1.2,
-        "petiole_length": 1.0,
-        "petiole_angle": 2.0,
-        "internode_length": 1.2,
-        "num_nodes": 8.0,
-    }
+    truth = SOY_TRUTH
     obs, _ = observation("soybean", truth)
     fm = ForwardModel(obs)
     at_truth = np.mean([fm.loss(truth, s) for s in range(3)])
@@ -45,13 +49,7 @@ def test_pipeline_bench_says_whose_miss_an_answer_is():
     and a far-off answer loses on both; a canopy's own render is its perfect reconstruction."""
     from benchmarks.bench_pipeline import loss_attribution
 
-    truth = {
-        "leaf_length": 1.2,
-        "petiole_length": 1.0,
-        "petiole_angle": 2.0,
-        "internode_length": 1.2,
-        "num_nodes": 8.0,
-    }
+    truth = SOY_TRUTH
     obs, _ = observation("soybean", truth)
     same = loss_attribution(obs, obs.depth, truth, truth)
     assert same["observation"]["answer"] == same["observation"]["truth"] > 0
