@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments, parse_kv
-from cropcraft_core.fit.select import REEVALUATION_SEED_BASE
+from cropcraft_core.fit.select import reevaluation_seeds
 
 TARGETS = {
     "direction_deg": 2.0,
@@ -64,17 +64,25 @@ SHIFT_REL = 0.005
 def observation_vs_truth(obs, d_true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     """The observation's depth histogram and the one the same statistics give for the true
     canopy mesh's depth ``d_true`` (NaN where no leaf) from the same camera, both normalised to
-    sum 1 (shape; the mask areas are returned beside them). The truth gets what a procedural
-    render gets: no background, the observation's height and lateral clauses."""
-    from cropcraft_core.observe.observation import predicted_mask
-
-    st_true = obs.predicted_stats(d_true, predicted_mask(d_true, obs.camera, obs.preset))
+    sum 1 (shape; the mask areas are returned beside them). The truth gets what a perfect
+    reconstruction would (:func:`truth_stats`)."""
+    st_true = truth_stats(obs, d_true)
 
     def unit(h: np.ndarray) -> np.ndarray:
         return h / max(float(h.sum()), 1e-12)
 
     area = {"observation": obs.stats.mask_area, "truth": st_true.mask_area}
     return unit(obs.stats.depth), unit(st_true.depth), area
+
+
+def truth_stats(obs, d_true: np.ndarray):
+    """Statistics of the true canopy mesh's depth ``d_true`` (NaN where no leaf) from the
+    observation's camera, as a perfect reconstruction would give them: no background, the
+    observation's own height and lateral clauses where its mask has them (``box_mask``)."""
+    from cropcraft_core.observe.observation import predicted_mask
+
+    box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
+    return obs.predicted_stats(d_true, predicted_mask(d_true, *box))
 
 
 def _scene_from_true(poses, truth_poses) -> np.ndarray:
@@ -353,9 +361,9 @@ def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) ->
     return np.where(np.isfinite(d), d, np.nan)
 
 
-def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray | None = None) -> dict:
-    """Fit the observation at ``SEEDSxEVALS`` and compare the canopy's traits with the truth;
-    with the true mesh's depth ``d_true`` from the same camera, also say whose miss it is
+def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray) -> dict:
+    """Fit the observation at ``SEEDSxEVALS``, compare the canopy's traits with the truth and
+    say whose miss it is against the true mesh's depth ``d_true`` from the same camera
     (:func:`loss_attribution`)."""
     from cropcraft_core.config import default_layout
     from cropcraft_core.fit import FitConfig, fit_observation
@@ -374,7 +382,7 @@ def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray | None = No
     keys = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", "internode_mean_m")
     rows = {k: {"estimated": est.get(k), "true": true.get(k)} for k in keys if k in true}
     lai = rows.get("lai", {})
-    out = {
+    return {
         "budget": budget,
         "seconds": seconds,
         "params": res.params,
@@ -382,15 +390,13 @@ def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray | None = No
         "true_params": true_params,
         "traits": rows,
         "lai_rel_err": (lai["estimated"] - lai["true"]) / lai["true"] if lai else None,
+        "loss": loss_attribution(obs, d_true, res.params, true_params["params"]),
     }
-    if d_true is not None:
-        out["loss"] = loss_attribution(obs, d_true, res.params, true_params["params"])
-    return out
 
 
 #: Canopies on which ``--fit``'s answer and the true parameters are both scored: seeds that no
 #: optimiser seed and no re-scoring (up to 1,000 canopies) draws.
-ATTRIBUTION_SEEDS = tuple(REEVALUATION_SEED_BASE + 104_729 * (1_000 + i) for i in range(8))
+ATTRIBUTION_SEEDS = tuple(reevaluation_seeds(1_008)[1_000:])
 
 
 def loss_attribution(obs, d_true: np.ndarray, answer: dict, truth: dict) -> dict:
@@ -406,12 +412,9 @@ def loss_attribution(obs, d_true: np.ndarray, answer: dict, truth: dict) -> dict
     parameters rarely give, or a valley the statistics cannot resolve)."""
     from cropcraft_core.fit.forward import ForwardModel
     from cropcraft_core.observe import loss
-    from cropcraft_core.observe.observation import predicted_mask
 
     fm = ForwardModel(obs)
-    # the true mesh gets the observation's own mask rules: its box clauses where it has them
-    box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
-    st_true = obs.predicted_stats(d_true, predicted_mask(d_true, *box))
+    st_true = truth_stats(obs, d_true)
     stats = {
         "answer": fm.stats(answer, ATTRIBUTION_SEEDS),
         "truth": fm.stats(truth, ATTRIBUTION_SEEDS),
@@ -473,15 +476,13 @@ def _print(out: dict) -> None:
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
-        if "loss" in out["fit"]:
-            lo = out["fit"]["loss"]
-            print(
-                f"  loss on {len(ATTRIBUTION_SEEDS)} fresh canopies, answer / true parameters: "
-                + ", ".join(
-                    f"against the {k.replace('_', ' ')} {v['answer']:.4f} / {v['truth']:.4f}"
-                    for k, v in lo.items()
-                )
+        print(
+            f"  loss on {len(ATTRIBUTION_SEEDS)} fresh canopies, answer / true parameters: "
+            + ", ".join(
+                f"against the {k.replace('_', ' ')} {v['answer']:.4f} / {v['truth']:.4f}"
+                for k, v in out["fit"]["loss"].items()
             )
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
