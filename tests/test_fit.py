@@ -57,21 +57,23 @@ def test_pipeline_bench_says_whose_miss_an_answer_is():
     same = loss_attribution(obs, obs.depth, truth, truth, floor_evals=12)
     assert same["observation"]["answer"] == same["observation"]["truth"] > 0
     assert same["true_mesh"] == pytest.approx(same["observation"], rel=1e-9)
-    assert same["floors"]["answer"] == same["floors"]["truth"]
-    assert same["floors"]["truth"]["observation"] <= same["observation"]["truth"]
+    assert same["floor_params"]["answer"] == same["floor_params"]["truth"]
+    assert same["floor_difference"]["observation"] == {"mean": 0.0, "se": 0.0}
+    assert same["whose"] == "loss"
 
     far = {**truth, "leaf_length": 0.5, "num_nodes": 3.0}
     miss = loss_attribution(obs, obs.depth, far, truth, floor_evals=12)
     for against in ("observation", "true_mesh"):
         assert miss[against]["answer"] > 2 * miss[against]["truth"]
         assert miss[against]["truth"] == same[against]["truth"]
+        assert miss[against]["answer_floor"] <= miss[against]["answer"]
     assert miss["whose"] == "optimiser"
 
     other = {**truth, "leaf_length": 0.8, "num_nodes": 5.0}
     wrong, _ = observation("soybean", other)
     moved = loss_attribution(wrong, obs.depth, other, truth, floor_evals=12)
-    assert moved["floors"]["answer"]["observation"] < moved["floors"]["truth"]["observation"]
-    assert moved["floors"]["answer"]["true_mesh"] > moved["floors"]["truth"]["true_mesh"]
+    assert moved["floor_difference"]["observation"]["mean"] < 0
+    assert moved["floor_difference"]["true_mesh"]["mean"] > 0
     assert moved["whose"] == "reconstruction"
 
 
