@@ -403,8 +403,9 @@ POLISH_SEEDS = tuple(reevaluation_seeds(1_016)[1_000:])
 FLOOR_EVALS = 80
 #: Groups of ``len(POLISH_SEEDS)`` fresh canopies, disjoint from the polish's, on which every
 #: point is scored. A floor scored on the canopies it was polished on is biased low by the
-#: polish (on E the two floors' order on the true mesh flipped between two sets of 16); six
-#: groups give each point's mean and the paired differences' standard error.
+#: polish (on E the two floors' order on the true mesh flipped between two sets of 16; on 128
+#: fresh canopies it held); six groups give each point's mean and the paired differences'
+#: standard error.
 SCORE_GROUPS = tuple(
     tuple(reevaluation_seeds(1_016 + 16 * (g + 1))[1_016 + 16 * g :]) for g in range(6)
 )
@@ -413,65 +414,69 @@ SIGNIFICANT_SE = 2.0
 
 
 def loss_attribution(
-    obs, d_true: np.ndarray, answer: dict, truth: dict, floor_evals: int = FLOOR_EVALS
+    obs,
+    d_true: np.ndarray,
+    answer: dict,
+    truth: dict,
+    floor_evals: int = FLOOR_EVALS,
+    polish_seeds: tuple[int, ...] = POLISH_SEEDS,
+    score_groups: tuple[tuple[int, ...], ...] = SCORE_GROUPS,
 ) -> dict:
-    """Whose miss a wrong answer is. The fit's ``answer`` and the ``truth``'s parameters are
-    each polished to their basin's *floor* (Nelder-Mead, ``select.polish``, ``floor_evals``
-    evaluations of the observation's loss averaged over :data:`POLISH_SEEDS` canopies). All
-    four points are then scored on :data:`SCORE_GROUPS` of fresh canopies, against the
-    observation and against the true mesh's depth ``d_true`` seen by the same camera with the
-    same rules (what a perfect reconstruction would give): per point the mean over the groups;
-    per side the answer's floor minus the truth's, paired by group, with its standard error.
+    """Whose miss a wrong answer is, asked on two sides: the observation, and the true mesh's
+    depth ``d_true`` seen by the same camera with the same rules (what a perfect reconstruction
+    would give). On each side the fit's ``answer`` and the ``truth``'s parameters are polished
+    to their basin's *floor* under that side's loss (Nelder-Mead, ``select.polish``,
+    ``floor_evals`` evaluations averaged over the ``polish_seeds`` canopies); then the points
+    and the floors are scored on the ``score_groups`` of fresh canopies: per point the mean
+    over the groups, per side the answer's floor minus the truth's, paired by group, with its
+    standard error.
 
     Points alone mislead: an answer that combines several seeds (their median) sits off its
-    basin's floor and can score worse than the truth while its basin is as deep. So the verdict
-    (``whose``) compares floors; a difference counts beyond :data:`SIGNIFICANT_SE` standard
-    errors:
+    basin's floor and can score worse than the truth while its basin is as deep. Floors must be
+    polished on the side they are compared on: from the truth, the observation's loss can slide
+    into the reconstruction's preferred basin, whose point the true mesh then rejects as it
+    rejects the answer. The verdict (``whose``) counts a difference beyond
+    :data:`SIGNIFICANT_SE` standard errors:
 
     * ``optimiser``: the truth's basin is deeper on the observation; the fit missed it.
     * ``reconstruction``: the observation ties the basins or prefers the answer's, the true mesh
       prefers the truth's: the reconstruction moved (or flattened) the loss's minimum.
-    * ``loss``: neither the observation nor the true mesh prefers the truth's basin (a valley
-      the statistics cannot resolve, or a draw of the canopy its parameters rarely give).
+    * ``loss``: neither side prefers the truth's basin (a valley the statistics cannot resolve,
+      or a draw of the canopy its parameters rarely give).
 
     The verdict is about a wrong answer: one in the truth's basin also reads ``loss``."""
+    from dataclasses import replace
+
     from cropcraft_core.config.params import params_from_vector, params_to_vector
     from cropcraft_core.fit.forward import ForwardModel
     from cropcraft_core.fit.select import polish
     from cropcraft_core.observe import loss
 
-    fm = ForwardModel(obs)
-    crop = obs.crop
-    refs = (("observation", obs.stats), ("true_mesh", truth_stats(obs, d_true)))
+    sides = {"observation": obs, "true_mesh": replace(obs, stats=truth_stats(obs, d_true))}
+    out: dict = {"floor_params": {}, "floor_difference": {}}
+    for side, o in sides.items():
+        fm = ForwardModel(o)
 
-    def scores(params: dict) -> dict[str, np.ndarray]:
-        per = {against: [] for against, _ in refs}
-        for group in SCORE_GROUPS:
-            st = fm.stats(params, group)
-            for against, ref in refs:
-                per[against].append(loss(ref, st, obs.preset).total)
-        return {k: np.asarray(v) for k, v in per.items()}
+        def scores(params: dict, fm=fm, o=o) -> np.ndarray:
+            return np.asarray(
+                [loss(o.stats, fm.stats(params, g), o.preset).total for g in score_groups]
+            )
 
-    points: dict = {"answer": answer, "truth": truth}
-    floors: dict = {}
-    for k, p in points.items():
-        x, _, _ = polish(fm, params_to_vector(crop, p), POLISH_SEEDS, floor_evals)
-        floors[k] = params_from_vector(crop, x)
-    per = {k: scores(p) for k, p in points.items()}
-    per |= {f"{k}_floor": scores(p) for k, p in floors.items()}
-    out: dict = {
-        against: {k: float(v[against].mean()) for k, v in per.items()} for against, _ in refs
-    }
-    diff = {}
-    for against, _ in refs:
-        d = per["answer_floor"][against] - per["truth_floor"][against]
-        diff[against] = {
+        per = {}
+        floors = {}
+        for k, p in (("answer", answer), ("truth", truth)):
+            per[k] = scores(p)
+            x, _, _ = polish(fm, params_to_vector(obs.crop, p), polish_seeds, floor_evals)
+            floors[k] = params_from_vector(obs.crop, x)
+            per[f"{k}_floor"] = scores(floors[k])
+        d = per["answer_floor"] - per["truth_floor"]
+        out[side] = {k: float(v.mean()) for k, v in per.items()}
+        out["floor_params"][side] = floors
+        out["floor_difference"][side] = {
             "mean": float(d.mean()),
             "se": float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else 0.0,
         }
-    out["floor_params"] = floors
-    out["floor_difference"] = diff
-    out["whose"] = whose_miss(diff)
+    out["whose"] = whose_miss(out["floor_difference"])
     return out
 
 
