@@ -394,9 +394,12 @@ def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray) -> dict:
     }
 
 
+#: Canopy seeds of :func:`loss_attribution`: past the first 1,000 of the re-scoring's sequence,
+#: so no optimiser seed and no re-scoring (up to 1,000 canopies) draws them.
+_ATTRIBUTION_CANOPIES = reevaluation_seeds(1_000 + 7 * 16)[1_000:]
 #: Canopies on which :func:`loss_attribution` polishes the answer and the truth to their basins'
-#: floors: seeds that no optimiser seed and no re-scoring (up to 1,000 canopies) draws.
-POLISH_SEEDS = tuple(reevaluation_seeds(1_016)[1_000:])
+#: floors.
+POLISH_SEEDS = tuple(_ATTRIBUTION_CANOPIES[:16])
 #: Nelder-Mead evaluations (each on :data:`POLISH_SEEDS`) that take a point to its basin's floor.
 #: On canopy E of RESULTS (true poses; answer 12.4 nodes against 8) 80 took the answer from 0.0346
 #: to 0.0239 and the truth from 0.0297 to 0.0235 on the observation (16 canopies).
@@ -406,9 +409,7 @@ FLOOR_EVALS = 80
 #: polish (on E the two floors' order on the true mesh flipped between two sets of 16; on 128
 #: fresh canopies it held); six groups give each point's mean and the paired differences'
 #: standard error.
-SCORE_GROUPS = tuple(
-    tuple(reevaluation_seeds(1_016 + 16 * (g + 1))[1_016 + 16 * g :]) for g in range(6)
-)
+SCORE_GROUPS = tuple(tuple(_ATTRIBUTION_CANOPIES[i : i + 16]) for i in range(16, 7 * 16, 16))
 #: A floor is deeper than the other when the paired difference exceeds this many standard errors.
 SIGNIFICANT_SE = 2.0
 
@@ -453,22 +454,28 @@ def loss_attribution(
     from cropcraft_core.observe import loss
 
     sides = {"observation": obs, "true_mesh": replace(obs, stats=truth_stats(obs, d_true))}
+    # the predicted statistics depend on the camera and the mask rules, not on the reference:
+    # each point's canopies are rendered once and scored against both sides
+    fm = ForwardModel(obs)
+
+    def scores(params: dict) -> dict[str, np.ndarray]:
+        st = [fm.stats(params, g) for g in score_groups]
+        return {
+            side: np.asarray([loss(o.stats, s, o.preset).total for s in st])
+            for side, o in sides.items()
+        }
+
+    points = {"answer": answer, "truth": truth}
+    at_points = {k: scores(p) for k, p in points.items()}
     out: dict = {"floor_params": {}, "floor_difference": {}}
     for side, o in sides.items():
-        fm = ForwardModel(o)
-
-        def scores(params: dict, fm=fm, o=o) -> np.ndarray:
-            return np.asarray(
-                [loss(o.stats, fm.stats(params, g), o.preset).total for g in score_groups]
-            )
-
-        per = {}
+        side_fm = ForwardModel(o)
+        per = {k: v[side] for k, v in at_points.items()}
         floors = {}
-        for k, p in (("answer", answer), ("truth", truth)):
-            per[k] = scores(p)
-            x, _, _ = polish(fm, params_to_vector(obs.crop, p), polish_seeds, floor_evals)
+        for k, p in points.items():
+            x, _, _ = polish(side_fm, params_to_vector(obs.crop, p), polish_seeds, floor_evals)
             floors[k] = params_from_vector(obs.crop, x)
-            per[f"{k}_floor"] = scores(floors[k])
+            per[f"{k}_floor"] = scores(floors[k])[side]
         d = per["answer_floor"] - per["truth_floor"]
         out[side] = {k: float(v.mean()) for k, v in per.items()}
         out["floor_params"][side] = floors
