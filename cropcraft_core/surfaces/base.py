@@ -38,7 +38,7 @@ from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.geometry.camera import PinholeCamera
 
 #: Backend names ``make_backend`` knows.
-BACKENDS = ("tsdf", "nerfacto", "truth")
+BACKENDS = ("tsdf", "points", "nerfacto", "truth")
 
 #: The scene box per crop in the levelled frame of :func:`cropcraft_core.sfm.level_poses` (z up,
 #: ground z = 0 at the plot centre, metres; m): the plot with a margin for a provisional scale
@@ -83,8 +83,10 @@ class SurfacesConfig:
     """Settings of the visible-surfaces stage. Unused fields are ignored by other backends."""
 
     backend: str = "tsdf"
-    """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'nerfacto' (nerfstudio, CUDA)
-    or 'truth' (the true mesh, for tests and benchmarks)."""
+    """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'points' (the same stereo,
+    its points filtered by visibility and splatted, no fusion), 'nerfacto' (nerfstudio, CUDA)
+    or 'truth' (the true mesh, for tests and benchmarks). The settings marked tsdf that shape
+    the stereo (neighbours to min_consistent) apply to points too."""
     voxel_size: float = 0.0075
     """tsdf: TSDF voxel edge (m)."""
     trunc_voxels: float = 3.5
@@ -143,6 +145,20 @@ class SurfacesConfig:
     skirts of leaf edges reaching into the gaps, in front of the low leaves there. Rendering the
     one-view surface everywhere instead (a weight threshold of 0) read +36 % and −13 % on the
     first and last canopies: its skirts also cover what the two-view surface shows."""
+    visibility_rel: float = 0.01
+    """points: relative z-depth tolerance of the visibility check: another view agrees with a
+    stereo point within it, and sees past the point beyond it."""
+    visibility_ratio: float = 0.25
+    """points: a stereo point is dropped where the views seeing past it outnumber this times the
+    views agreeing with it."""
+    splat_radius: float = 0.71
+    """points: each point's disc radius in units of its pixel's side at its depth (0.71: the
+    disc circumscribing the pixel's footprint)."""
+    splat_blend: float = 0.02
+    """points: a rendered pixel averages the fragments within this relative depth of its
+    nearest."""
+    splat_close: int = 5
+    """points: side of the neighbourhood closing the empty pixels between splats (≤ 1: off)."""
     nerf_iterations: int = 20000
     """nerfacto: training iterations (the paper: 20K)."""
     near_plane: float | None = None
@@ -167,7 +183,10 @@ class SurfacesConfig:
             raise ConfigError(
                 f"unknown surfaces backend {self.backend!r}: choose one of {', '.join(BACKENDS)}"
             )
-        for name in ("voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel"):
+        for name in (
+            "voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel", "visibility_rel",
+            "splat_radius",
+        ):  # fmt: skip
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
                 raise ConfigError(f"surfaces {name} must be a positive number, got {v!r}")
@@ -182,6 +201,11 @@ class SurfacesConfig:
         if not (0 <= float(self.sgm_p1) <= float(self.sgm_p2) or float(self.sgm_p2) == 0):
             raise ConfigError(
                 f"surfaces sgm penalties need 0 ≤ sgm_p1 ≤ sgm_p2, got {self.sgm_p1}, {self.sgm_p2}"
+            )
+        if not (float(self.visibility_ratio) >= 0 and float(self.splat_blend) >= 0):
+            raise ConfigError(
+                "surfaces visibility_ratio and splat_blend must be ≥ 0, got "
+                f"{self.visibility_ratio}, {self.splat_blend}"
             )
         if int(self.window) < 3 or int(self.window) % 2 == 0:
             raise ConfigError(f"surfaces window must be odd and ≥ 3, got {self.window}")
@@ -427,6 +451,10 @@ def make_backend(config: SurfacesConfig | None = None, mesh: Any = None) -> Surf
         from cropcraft_core.surfaces.tsdf import TsdfSurfaces
 
         return TsdfSurfaces(config)
+    if config.backend == "points":
+        from cropcraft_core.surfaces.points import PointSurfaces
+
+        return PointSurfaces(config)
     if config.backend == "nerfacto":
         from cropcraft_core.surfaces.nerfacto import NerfactoSurfaces
 
@@ -446,6 +474,8 @@ def load_surfaces(folder: str | os.PathLike) -> SurfaceBackend:
     name = meta.get("backend")
     if name == "tsdf":
         from cropcraft_core.surfaces.tsdf import TsdfSurfaces as cls
+    elif name == "points":
+        from cropcraft_core.surfaces.points import PointSurfaces as cls
     elif name == "nerfacto":
         from cropcraft_core.surfaces.nerfacto import NerfactoSurfaces as cls
     elif name == "truth":

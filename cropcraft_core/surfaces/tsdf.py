@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -454,6 +455,83 @@ def consistency_count(
     return count
 
 
+# --------------------------------------------------------------------------- the stereo stage
+
+
+@dataclass
+class StereoDepths:
+    """Per-view depth maps of the stereo stage (steps 1–3), shared by the tsdf and points
+    backends. cameras: the photos' cameras at ``mvs_scale`` (the maps' size); raw: stereo's
+    z-depth maps (NaN where no plane matched); filtered: after the consistency and box filters;
+    limits: each view's (near, far) z-depth."""
+
+    cameras: list[PinholeCamera]
+    raw: list[np.ndarray]
+    filtered: list[np.ndarray]
+    limits: list[tuple[float, float]]
+    stereo_s: float
+    consistency_s: float
+
+    def timings(self) -> dict[str, float]:
+        return {
+            "stereo": self.stereo_s,
+            "consistency": self.consistency_s,
+            "valid_fraction": float(np.mean([np.isfinite(d).mean() for d in self.filtered])),
+        }
+
+
+def stereo_depth_maps(
+    imgs: list[np.ndarray],
+    cams: list[PinholeCamera],
+    box: np.ndarray | None,
+    cfg: SurfacesConfig,
+    say: Progress,
+) -> StereoDepths:
+    """Steps 1–3 of the module's pipeline on checked inputs (``check_inputs``): neighbours,
+    plane-sweep stereo of every view, consistency and bounding-box filtering."""
+    t0 = time.perf_counter()
+    small = [c.scaled(cfg.mvs_scale) for c in cams]
+    prep = to_colour if cfg.colour else to_grey
+    greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
+    heights = None
+    if cfg.sweep == "horizontal" and box is not None:
+        heights = (float(box[0, 2]), float(box[1, 2]))
+    nbrs = select_neighbours(cams, int(cfg.neighbours), box)
+    limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
+
+    raw: list[np.ndarray] = []
+    for i in range(len(cams)):
+        if not nbrs[i]:
+            raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
+            continue
+        near, far = limits[i]
+        depth, score = plane_sweep(
+            greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
+            near, far, int(cfg.n_depths), int(cfg.window), float(cfg.sgm_p1),
+            float(cfg.sgm_p2), heights,
+        )  # fmt: skip
+        depth[score < cfg.min_ncc] = np.nan
+        raw.append(depth)
+        say("stereo", (i + 1) / len(cams))
+    t1 = time.perf_counter()
+
+    filtered = []
+    for i in range(len(cams)):
+        d = raw[i].copy()
+        if cfg.min_consistent > 0:
+            # the views this one was matched with and those matched with it
+            others = sorted(set(nbrs[i]) | {j for j in range(len(cams)) if i in nbrs[j]})
+            cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
+            d[cnt < cfg.min_consistent] = np.nan
+        if box is not None:
+            pts = small[i].unproject(d)
+            inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=-1)
+            d[~inside] = np.nan
+        filtered.append(d)
+    say("consistency", 1.0)
+    return StereoDepths(small, raw, filtered, limits, t1 - t0, time.perf_counter() - t1)
+
+
 # --------------------------------------------------------------------------- the backend
 
 
@@ -487,65 +565,17 @@ class TsdfSurfaces(SurfaceBackend):
     # ------------------------------------------------------------------ fit
     def fit(self, images, cameras, bbox=None, progress: Progress | None = None) -> None:
         imgs, cams, box = check_inputs(images, cameras, bbox)
-        cfg = self.config
         say = progress or (lambda stage, frac: None)
-        t0 = time.perf_counter()
-        small = [c.scaled(cfg.mvs_scale) for c in cams]
-        prep = to_colour if cfg.colour else to_grey
-        greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
-        heights = None
-        if cfg.sweep == "horizontal" and box is not None:
-            heights = (float(box[0, 2]), float(box[1, 2]))
-        nbrs = select_neighbours(cams, int(cfg.neighbours), box)
-        limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
-
-        raw: list[np.ndarray] = []
-        for i in range(len(cams)):
-            if not nbrs[i]:
-                raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
-                continue
-            near, far = limits[i]
-            depth, score = plane_sweep(
-                greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
-                near, far, int(cfg.n_depths), int(cfg.window), float(cfg.sgm_p1),
-                float(cfg.sgm_p2), heights,
-            )  # fmt: skip
-            depth[score < cfg.min_ncc] = np.nan
-            raw.append(depth)
-            say("stereo", (i + 1) / len(cams))
-        t1 = time.perf_counter()
-
-        filtered = []
-        for i in range(len(cams)):
-            d = raw[i].copy()
-            if cfg.min_consistent > 0:
-                # the views this one was matched with and those matched with it
-                others = sorted(set(nbrs[i]) | {j for j in range(len(cams)) if i in nbrs[j]})
-                cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
-                d[cnt < cfg.min_consistent] = np.nan
-            if box is not None:
-                pts = small[i].unproject(d)
-                inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=-1)
-                d[~inside] = np.nan
-            filtered.append(d)
-        say("consistency", 1.0)
-        t2 = time.perf_counter()
-
+        st = stereo_depth_maps(imgs, cams, box, self.config, say)
+        t = time.perf_counter()
         self.bbox = box
-        self._fuse(imgs, small, filtered, limits)
+        self._fuse(imgs, st.cameras, st.filtered, st.limits)
         say("fusion", 1.0)
-        t3 = time.perf_counter()
         self.cameras = cams
-        self.depth_maps = filtered
-        self.raw_depth_maps = raw
-        n_valid = [float(np.isfinite(d).mean()) for d in filtered]
-        self.timings = {
-            "stereo": t1 - t0,
-            "consistency": t2 - t1,
-            "fusion": t3 - t2,
-            "total": t3 - t0,
-            "valid_fraction": float(np.mean(n_valid)),
-        }
+        self.depth_maps = st.filtered
+        self.raw_depth_maps = st.raw
+        self.timings = {**st.timings(), "fusion": time.perf_counter() - t}
+        self.timings["total"] = sum(self.timings[k] for k in ("stereo", "consistency", "fusion"))
         if len(self.faces) == 0:
             raise SurfacesError(
                 "multi-view stereo found no consistent surface: check the poses, the bounding box "
@@ -755,9 +785,15 @@ def write_colored_ply(path: Path, v: np.ndarray, f: np.ndarray, c: np.ndarray) -
     fd = np.empty(len(f), [("n", "u1"), ("i", "<i4", (3,))])
     fd["n"] = 3
     fd["i"] = f
+    return write_atomic(path, header + vd.tobytes() + fd.tobytes())
+
+
+def write_atomic(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file beside it, so that a reader never
+    sees half a file."""
     tmp = path.with_name(path.name + ".tmp")
     try:
-        tmp.write_bytes(header + vd.tobytes() + fd.tobytes())
+        tmp.write_bytes(data)
         tmp.replace(path)
     except OSError as e:
         raise SurfacesError(f"cannot write {path}: {e}") from None
@@ -767,20 +803,8 @@ def write_colored_ply(path: Path, v: np.ndarray, f: np.ndarray, c: np.ndarray) -
 def read_colored_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read what ``write_colored_ply`` wrote: (vertices (n, 3) float64, faces (m, 3) int32,
     colours (n, 3) float64 in [0, 1])."""
-    try:
-        data = Path(path).read_bytes()
-    except OSError as e:
-        raise InputError(f"cannot read {path}: {e}") from None
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply") or end < 0:
-        raise InputError(f"{path} is not a PLY file")
-    head = data[:end].decode("ascii", "replace").splitlines()
-    try:
-        nv = int(next(x for x in head if x.startswith("element vertex")).split()[2])
-        nf = int(next(x for x in head if x.startswith("element face")).split()[2])
-    except (StopIteration, ValueError, IndexError):
-        raise InputError(f"{path}: malformed PLY header") from None
-    body = data[end + len(b"end_header\n") :]
+    head, body = read_ply(path)
+    nv, nf = ply_count(path, head, "vertex"), ply_count(path, head, "face")
     vdt = np.dtype([("p", "<f4", (3,)), ("c", "u1", (3,))])
     fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
     if len(body) != nv * vdt.itemsize + nf * fdt.itemsize:
@@ -792,3 +816,24 @@ def read_colored_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         fd["i"].astype(np.int32),
         vd["c"].astype(np.float64) / 255.0,
     )
+
+
+def read_ply(path: Path) -> tuple[list[str], bytes]:
+    """(header lines, body bytes) of a binary PLY file; ``InputError`` naming the file when it
+    cannot be read or is no PLY."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise InputError(f"cannot read {path}: {e}") from None
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputError(f"{path} is not a PLY file")
+    return data[:end].decode("ascii", "replace").splitlines(), data[end + len(b"end_header\n") :]
+
+
+def ply_count(path: Path, head: list[str], element: str) -> int:
+    """The count of ``element`` in a PLY header (``InputError`` naming the file if absent)."""
+    try:
+        return int(next(x for x in head if x.startswith(f"element {element} ")).split()[2])
+    except (StopIteration, ValueError, IndexError):
+        raise InputError(f"{path}: malformed PLY header (no {element} count)") from None
