@@ -24,10 +24,10 @@ def _surfaces_api():
 def surfaces(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
-    """Fit a surfaces backend (``config["backend"]``: tsdf on CPU, nerfacto on CUDA) to the
-    ingested images and their poses; store the fitted model under ``{scene}/surfaces/model/``
-    and a coloured point cloud (``points`` (n, 3) m, ``colors`` (n, 3) in [0, 1]) as
-    ``{scene}/surfaces/points.npz``.
+    """Fit a surfaces backend (``config["backend"]``: tsdf or points on CPU, nerfacto on
+    CUDA) to the ingested images and their poses; store the fitted model under
+    ``{scene}/surfaces/model/`` and a coloured point cloud (``points`` (n, 3) m, ``colors``
+    (n, 3) in [0, 1]) as ``{scene}/surfaces/points.npz``.
 
     config: ``SurfacesConfig`` fields, plus ``bbox`` ([[xmin, ymin, zmin], [xmax, ymax, zmax]]
     in the poses' frame, ``"auto"`` for the crop's scene box in the levelled frame, or None)
