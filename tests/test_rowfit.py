@@ -363,3 +363,33 @@ def test_camera_is_raised_over_a_tall_canopy():
     assert "render_height_raised_from" not in paper.diagnostics
     with pytest.raises(ConfigError, match="clear_canopy"):
         preset("soybean", clear_canopy="yes")
+
+
+def test_row_phase_follows_the_soil_where_leaves_pile_up_between_rows():
+    """A closed canopy of wide plants: the leaves of neighbouring rows pile up between the rows
+    (plant points weakly periodic at the inter-row), soil shows only there (strongly periodic):
+    the row goes half a spacing from the soil's phase, onto the true row (y = 0), not onto the
+    plants' pile. Where the soil is the weaker cue, the plants' phase stays the row."""
+    from cropcraft_core.rowfit.fit import Row, _snap_to_row_pattern
+
+    rng = np.random.default_rng(0)
+    p = preset("soybean", row_spacing=0.76)
+
+    def lines(n, centre, spread):  # points along x, y around centre + k·0.76
+        k = rng.integers(-1, 2, n)
+        return np.c_[rng.uniform(-0.8, 0.8, n), centre + 0.76 * k + rng.normal(0, spread, n)]
+
+    between = 0.38
+    plants = np.r_[lines(3000, between, 0.08), rng.uniform(-0.8, 0.8, (20000, 2))]
+    soil = lines(1500, between, 0.05)
+    start = Row(np.array([1.0, 0.0]), np.array([0.0, 0.3]), 0)
+    row, _, cue = _snap_to_row_pattern(plants, plants, start, p, soil_xy=soil)
+    assert cue == "soil" and abs(row.point[1]) < 0.01
+    # without the soil (or with too few soil points) the plants' pile is taken for the row
+    row, _, cue = _snap_to_row_pattern(plants, plants, start, p, soil_xy=soil[:50])
+    assert cue == "plant" and abs(abs(row.point[1]) - between) < 0.01
+    # rows of narrow plants: the plants are the stronger cue, soil everywhere is weak
+    plants = lines(20000, 0.0, 0.06)
+    soil = np.r_[lines(300, between, 0.1), rng.uniform(-0.8, 0.8, (3000, 2))]
+    row, _, cue = _snap_to_row_pattern(plants, plants, start, p, soil_xy=soil)
+    assert cue == "plant" and abs(row.point[1]) < 0.01

@@ -502,7 +502,10 @@ def fit_ground_and_rows(
     if used.refine_direction_deg is not None:
         rows[0], best_xy = _refine_row(xy, rows[0], used, direction_xy=q[:, :2])
         if used.row_spacing is not None:
-            rows[0], best_xy = _snap_to_row_pattern(q[:, :2], xy, rows[0], used)
+            soil = (pts_m[ground][g_in] - origin_m) @ rot.T
+            rows[0], best_xy, diag["row_phase_from"] = _snap_to_row_pattern(
+                q[:, :2], xy, rows[0], used, soil_xy=soil[:, :2]
+            )
 
     # 7. camera above the mean of the best row's inliers (on the pattern's line when snapped)
     center = rows[0].point if used.row_spacing is not None else best_xy.mean(axis=0)
@@ -693,23 +696,50 @@ def _refine_row(
 
 
 def _snap_to_row_pattern(
-    plant_xy: np.ndarray, xy: np.ndarray, row: Row, p: RowFitPreset
-) -> tuple[Row, np.ndarray]:
+    plant_xy: np.ndarray,
+    xy: np.ndarray,
+    row: Row,
+    p: RowFitPreset,
+    soil_xy: np.ndarray | None = None,
+) -> tuple[Row, np.ndarray, str]:
     """Move the best row onto the nearest centre line of the periodic row pattern (see
-    ``RowFitPreset.row_spacing``). The phase is the circular mean, modulo the spacing, of the
-    lateral offsets of *all* plant points (m, 2) — the upper slice alone is only weakly periodic;
-    inliers are taken from the row points ``xy`` (k, 2) as before."""
+    ``RowFitPreset.row_spacing``); inliers are taken from the row points ``xy`` (k, 2) as before.
+
+    The pattern's phase comes from the lateral offsets, modulo the spacing, of either *all*
+    plant points (m, 2) (the upper slice alone is only weakly periodic: their circular mean is
+    the row) or the ground plane's soil points ``soil_xy`` (j, 2) (soil shows between the rows:
+    their circular mean plus half a spacing is the row), whichever is the more periodic (the
+    larger mean resultant length). In a closed canopy of wide plants the leaves of neighbouring
+    rows pile up between the rows and the plant points' phase is the inter-row: on a synthetic
+    soybean canopy with long petioles (true poses) the plant phase was 0.377 m off (strength
+    0.11) and the soil's 0.008 m (0.59); on two others the soil's strength was 0.36 and 0.85
+    against the plants' 0.15 and 0.21 (cameras 1.4 → 0.4 and 3.9 → 2.3 cm off the row), on a
+    fourth 0.66 against 0.11 and the camera went from 0.4 to 3.1 cm off. Returns the row, its
+    inliers and the cue used ('plant' or 'soil')."""
     d = row.direction
     n = np.array([-d[1], d[0]])
     k = 2 * math.pi / p.row_spacing
-    u_all = (plant_xy - row.point) @ n
-    phase = math.atan2(float(np.sin(k * u_all).sum()), float(np.cos(k * u_all).sum())) / k
+
+    def circular(points: np.ndarray) -> tuple[float, float]:
+        z = np.exp(1j * k * ((points - row.point) @ n)).mean()
+        return float(np.angle(z)) / k, float(abs(z))
+
+    phase, strength = circular(plant_xy)
+    cue = "plant"
+    if soil_xy is not None and len(soil_xy) >= MIN_SOIL_PHASE_POINTS:
+        soil_phase, soil_strength = circular(soil_xy)
+        if soil_strength > strength:
+            phase, cue = soil_phase + 0.5 * p.row_spacing, "soil"
     c = phase + p.row_spacing * round(-phase / p.row_spacing)  # the line nearest the band's
     u = (xy - row.point) @ n
     inl = np.abs(u - c) < p.line_threshold
     sel = xy[inl]
     along = float(((sel - row.point) @ d).mean()) if len(sel) else 0.0
-    return Row(d, row.point + along * d + c * n, int(inl.sum())), sel
+    return Row(d, row.point + along * d + c * n, int(inl.sum())), sel, cue
+
+
+#: fewest soil points whose phase :func:`_snap_to_row_pattern` weighs against the plants'
+MIN_SOIL_PHASE_POINTS = 100
 
 
 # --------------------------------------------------------------------------- metric scale
