@@ -393,3 +393,35 @@ def test_row_phase_follows_the_soil_where_leaves_pile_up_between_rows():
     soil = np.r_[lines(300, between, 0.1), rng.uniform(-0.8, 0.8, (3000, 2))]
     row, _, cue = _snap_to_row_pattern(plants, plants, start, p, soil_xy=soil)
     assert cue == "plant" and abs(row.point[1]) < 0.01
+
+
+def test_row_direction_follows_the_soil_where_the_plants_show_no_period():
+    """The plants of a closed canopy fill the plot with no visible row period; the soil shows
+    in lines between the rows (here at 20°): the refined row runs along the soil's lines. Where
+    the plants are the stronger period, their direction is kept."""
+    from cropcraft_core.rowfit.fit import Row, _refine_row
+
+    rng = np.random.default_rng(1)
+    p = preset("soybean", row_spacing=0.76)
+    a = np.radians(20.0)
+    d, n = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+
+    def lines(count, centre, spread):
+        k = rng.integers(-1, 2, count)
+        along = rng.uniform(-0.8, 0.8, count)
+        across = centre + 0.76 * k + rng.normal(0, spread, count)
+        return along[:, None] * d + across[:, None] * n
+
+    plants = rng.uniform(-0.9, 0.9, (20000, 2))
+    soil = lines(1500, 0.38, 0.05)
+    start = Row(np.array([1.0, 0.0]), np.zeros(2), 0)
+    row, _ = _refine_row(plants, start, p, direction_xy=plants, soil_xy=soil)
+    assert abs(np.degrees(np.arctan2(row.direction[1], row.direction[0])) - 20.0) < 0.5
+    # plant rows at 20° and soil lines at 0°, weaker: the plants' direction stays
+    plants = lines(20000, 0.0, 0.06)
+    soil = np.r_[
+        np.c_[rng.uniform(-0.8, 0.8, 300), 0.38 + rng.normal(0, 0.1, 300)],
+        rng.uniform(-0.9, 0.9, (3000, 2)),
+    ]
+    row, _ = _refine_row(plants, start, p, direction_xy=plants, soil_xy=soil)
+    assert abs(np.degrees(np.arctan2(row.direction[1], row.direction[0])) - 20.0) < 0.5

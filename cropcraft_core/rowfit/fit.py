@@ -500,9 +500,11 @@ def fit_ground_and_rows(
     rows = [rows[i] for i in order]
     best_xy = inlier_sets[order[0]]
     if used.refine_direction_deg is not None:
-        rows[0], best_xy = _refine_row(xy, rows[0], used, direction_xy=q[:, :2])
+        soil = (pts_m[ground][g_in] - origin_m) @ rot.T
+        rows[0], best_xy = _refine_row(
+            xy, rows[0], used, direction_xy=q[:, :2], soil_xy=soil[:, :2]
+        )
         if used.row_spacing is not None:
-            soil = (pts_m[ground][g_in] - origin_m) @ rot.T
             rows[0], best_xy, diag["row_phase_from"] = _snap_to_row_pattern(
                 q[:, :2], xy, rows[0], used, soil_xy=soil[:, :2]
             )
@@ -636,7 +638,11 @@ def _direction_scores(
 
 
 def _refine_row(
-    xy: np.ndarray, row: Row, p: RowFitPreset, direction_xy: np.ndarray | None = None
+    xy: np.ndarray,
+    row: Row,
+    p: RowFitPreset,
+    direction_xy: np.ndarray | None = None,
+    soil_xy: np.ndarray | None = None,
 ) -> tuple[Row, np.ndarray]:
     """Refine the best row (not in the paper; ``refine_direction_deg=None`` turns it off).
 
@@ -651,6 +657,13 @@ def _refine_row(
     stems and the gaps between rows line up only along the true direction, whatever the length
     of the chord through the scene box (plain RANSAC counts favour the box diagonal when the
     canopy is nearly closed). Searched at 0.5° steps, then 0.02° steps around the best.
+    With ``soil_xy`` (j, 2), the ground plane's soil points (at least
+    ``MIN_SOIL_PHASE_POINTS``), their profile is scored too, and the direction comes from the
+    cue whose period is the stronger (normalised correlation): in a closed canopy of wide
+    plants the soil between the rows is the clearer pattern, where its own period clears
+    ``SOIL_MIN_CORRELATION`` (a synthetic soybean canopy with
+    long petioles, true poses: plants 6.5° off at 0.49, soil 0.5° off at 0.80; on four others
+    the plants were the stronger cue, 0.87–0.96).
     Offset: the paper's criterion along that direction -- the band of half-width
     ``line_threshold`` holding the most points -- then mean shift of the band to the mean of its
     points. Returns the row and its (k, 2) inliers."""
@@ -669,6 +682,13 @@ def _refine_row(
     # (normalised 0.61 at 21° off on a synthetic single row, with 5 % of the sharpest energy;
     # every multi-row cloud measured had its period's direction at the energy's maximum)
     periodic_ok = normalised[k] > p.direction_min_correlation and energy[k] >= 0.5 * energy.max()
+    if soil_xy is not None and len(soil_xy) >= MIN_SOIL_PHASE_POINTS:
+        sxy = soil_xy - soil_xy.mean(axis=0)
+        s_per, s_norm, s_en = _direction_scores(sxy, coarse, period)
+        ks = int(np.argmax(s_per))
+        soil_ok = s_norm[ks] > SOIL_MIN_CORRELATION and s_en[ks] >= 0.5 * s_en.max()
+        if soil_ok and (not periodic_ok or s_norm[ks] > normalised[k]):
+            dxy, periodic, normalised, energy, k, periodic_ok = sxy, s_per, s_norm, s_en, ks, True
     use = 0 if periodic_ok else 2
     a0 = float(coarse[k] if use == 0 else coarse[int(np.argmax(energy))])
     fine = a0 + np.radians(np.arange(-1.0, 1.0 + 1e-9, 0.02))
@@ -740,6 +760,10 @@ def _snap_to_row_pattern(
 
 #: fewest soil points whose phase :func:`_snap_to_row_pattern` weighs against the plants'
 MIN_SOIL_PHASE_POINTS = 100
+#: the soil's period sets the direction only above this normalised correlation: uniform soil
+#: (300–20,000 points, no rows) reaches up to 0.50 by chance; the soil between real rows
+#: measured 0.68–0.90 on five synthetic soybean canopies
+SOIL_MIN_CORRELATION = 0.6
 
 
 # --------------------------------------------------------------------------- metric scale
