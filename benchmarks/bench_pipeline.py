@@ -1,14 +1,17 @@
 """Photos → observation, measured against the truth of a ``cropcraft synth`` scene.
 
-    cropcraft bench pipeline [--views 50] [--resolution 640x480] [--scene-dir DIR]
-                             [--poses sfm|truth] [--sfm K=V ...] [--surfaces K=V ...]
-                             [--fit SEEDSxEVALS] [--image-scale S] [--json FILE]
+    cropcraft bench pipeline [--crop soybean|maize] [--trajectory walk|drone] [--views 50]
+                             [--resolution 640x480] [--scene-dir DIR] [--poses sfm|truth]
+                             [--sfm K=V ...] [--surfaces K=V ...] [--fit SEEDSxEVALS]
+                             [--image-scale S] [--json FILE] [--keep DIR]
 
 The same core calls, in the same order, as the scene flow's stages (ingest → poses → surfaces →
 rowfit → observe), without Prefect, each timed; scene synthesis is timed apart (not pipeline).
-Poses come from structure from motion (``--poses sfm``, the default: the issue's setting),
-levelled by ``level_poses`` (provisional scale from a 1.4 m capture height) with the metric
-scale then measured from the fitted rows against the known 0.76 m row spacing; ``--poses
+A new scene is a ``cropcraft synth`` scene of the crop (soybean walked around, maize seen from
+a drone, by default); a reused ``--scene-dir`` keeps its own crop. Poses come from structure
+from motion (``--poses sfm``, the default: the issue's setting), levelled by ``level_poses``
+(provisional scale from the crop's capture height: 1.4 m soybean, 13 m maize) with the metric
+scale then measured from the fitted rows against the known row spacing; ``--poses
 truth`` imports the scene's metric ``transforms.json`` instead (a phone's AR poses). The
 surfaces are fitted inside the crop's scene box (``--bbox auto``), as in the scene flow.
 
@@ -55,6 +58,22 @@ TARGETS = {
     "images_to_observation_s": 480.0,
     "lai_rel_err": 0.15,
 }
+
+
+#: A new scene's capture per crop: a person walks around soybean; maize is too tall, a drone flies.
+DEFAULT_TRAJECTORY = {"soybean": "walk", "maize": "drone"}
+
+
+def scene_crop(root: Path, asked: str | None) -> str:
+    """The crop of the scene at ``root``: its ``scene.json``'s where the scene exists (a
+    different ``asked`` crop is an error), else ``asked`` (default soybean)."""
+    f = root / "scene.json"
+    if f.is_file():
+        crop = json.loads(f.read_text())["crop"]
+        if asked and asked != crop:
+            raise SystemExit(f"{f}: the scene is {crop}, not {asked} (use another --scene-dir)")
+        return crop
+    return asked or "soybean"
 
 
 #: Depth shift (fraction of the render height) whose L1 the bench prints as the metric's scale.
@@ -115,12 +134,15 @@ def run(a: argparse.Namespace) -> dict:
     root = Path(a.scene_dir) if a.scene_dir else Path(tempfile.mkdtemp(prefix="bench_pipe_"))
     out: dict = {"views": a.views, "resolution": [w, h], "poses": a.poses, "seconds": {}}
     sec = out["seconds"]
+    crop = scene_crop(root, a.crop)
     if not (root / "scene.json").exists():
         t = time.perf_counter()
-        make_scene("soybean", root, views=a.views, resolution=(w, h), seed=a.seed, metrics=True)
+        trajectory = a.trajectory or DEFAULT_TRAJECTORY[crop]
+        make_scene(crop, root, views=a.views, resolution=(w, h), seed=a.seed, trajectory=trajectory)
         out["synthesis_s (not pipeline)"] = time.perf_counter() - t
     out["scene_dir"] = str(root)
-    layout = default_layout("soybean")
+    out["crop"] = crop
+    layout = default_layout(crop)
     truth_poses = import_transforms_json(root / "transforms.json")
 
     with tempfile.TemporaryDirectory(prefix="bench_pipe_work_") as tmp:
@@ -146,7 +168,7 @@ def run(a: argparse.Namespace) -> dict:
                 found, sparse = sfm.poses, sfm.points
                 out["sfm"] = {k: v for k, v in sfm.summary().items() if k != "model_dir"}
             poses, _, frame = level_poses(
-                found, sparse, prior_camera_height_m=PRIOR_CAMERA_HEIGHT_M["soybean"]
+                found, sparse, prior_camera_height_m=PRIOR_CAMERA_HEIGHT_M[crop]
             )
             out["frame"] = frame.summary()
         else:
@@ -160,7 +182,7 @@ def run(a: argparse.Namespace) -> dict:
             for n, _ in poses
         ]
         backend = make_backend(SurfacesConfig(**parse_kv(a.surfaces)))
-        backend.fit(images, poses.cameras, resolve_bbox(a.bbox, "soybean"))
+        backend.fit(images, poses.cameras, resolve_bbox(a.bbox, crop))
         points, colors = backend.point_cloud(100_000)
         sec["surfaces"] = time.perf_counter() - t
         out["surfaces_breakdown"] = {
@@ -169,13 +191,11 @@ def run(a: argparse.Namespace) -> dict:
 
         t = time.perf_counter()
         metric = a.poses == "truth"
-        pre = rowfit_preset(
-            "soybean", row_spacing=layout.row_spacing, box_center=None, box_size=None
-        )
+        pre = rowfit_preset(crop, row_spacing=layout.row_spacing, box_center=None, box_size=None)
         fit = fit_rows_with_scale(
             points,
             colors,
-            "soybean",
+            crop,
             pre,
             rng=0,
             metric_scale=1.0 if metric else None,
@@ -190,7 +210,7 @@ def run(a: argparse.Namespace) -> dict:
             backend.save(keep / "surfaces")
 
         t = time.perf_counter()
-        obs = _observe(fit, backend, a.image_scale)
+        obs = _observe(crop, fit, backend, a.image_scale)
         sec["observe"] = time.perf_counter() - t
     sec["images_to_observation"] = sum(
         sec[k] for k in ("ingest", "poses", "surfaces", "rowfit", "observe")
@@ -237,11 +257,9 @@ def run(a: argparse.Namespace) -> dict:
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
     if not metric:
-        true_fit = fit_rows_with_scale(
-            points, colors, "soybean", pre, rng=0, metric_scale=true_scale
-        )
+        true_fit = fit_rows_with_scale(points, colors, crop, pre, rng=0, metric_scale=true_scale)
         ts_obs, ts_true, _ = observation_vs_truth(
-            _observe(true_fit, backend, a.image_scale),
+            _observe(crop, true_fit, backend, a.image_scale),
             _truth_depth(truth, true_fit, scene_from_true, a.image_scale),
         )
         # what the L1 would be with a perfect scale cue: the reconstruction's own share of it
@@ -253,12 +271,12 @@ def run(a: argparse.Namespace) -> dict:
     return out
 
 
-def _observe(fit, backend, image_scale: float):
+def _observe(crop: str, fit, backend, image_scale: float):
     """The observation the scene flow's observe stage makes from this row fit."""
     from cropcraft_core.observe import Observation
 
     return Observation.from_surfaces(
-        "soybean",
+        crop,
         backend.render,
         fit.camera,
         fit.camera_in_scene(),
@@ -375,7 +393,7 @@ def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray) -> dict:
     t = time.perf_counter()
     res = fit_observation(obs, cfg)
     seconds = time.perf_counter() - t
-    canopy = generate_canopy("soybean", res.params, default_layout("soybean"), seed=0)
+    canopy = generate_canopy(obs.crop, res.params, default_layout(obs.crop), seed=0)
     est = canopy_metrics(canopy, gap_fraction=False)
     true = json.loads((root / "truth" / "metrics.json").read_text())
     true_params = json.loads((root / "truth" / "params.json").read_text())
@@ -571,6 +589,18 @@ def main(argv: list[str] | None = None) -> int:
         prog="cropcraft bench pipeline", description=__doc__.splitlines()[0]
     )
     add_scene_arguments(ap)
+    ap.add_argument(
+        "--crop",
+        choices=tuple(DEFAULT_TRAJECTORY),
+        default=None,
+        help="the scene's crop (default: a reused scene's own, else soybean)",
+    )
+    ap.add_argument(
+        "--trajectory",
+        choices=("walk", "drone"),
+        default=None,
+        help="a new scene's capture (default: walk for soybean, drone for maize)",
+    )
     ap.add_argument("--poses", choices=("sfm", "truth"), default="sfm")
     ap.add_argument("--sfm", action="append", default=[], help="run_sfm option KEY=VALUE")
     ap.add_argument(

@@ -209,3 +209,20 @@ def test_photo_benchmarks_name_a_bad_resolution_before_making_a_scene(tmp_path, 
     assert e.value.code == 2
     assert f"expected WIDTHxHEIGHT such as 640x480, got {size!r}" in capsys.readouterr().err
     assert not scene.exists()
+
+
+def test_pipeline_benchmark_keeps_a_reused_scenes_crop(tmp_path):
+    """``bench pipeline --scene-dir`` reads the crop from the scene it reuses; asking for the
+    other crop names the scene file and changes nothing in it."""
+    from benchmarks.bench_pipeline import scene_crop
+
+    assert scene_crop(tmp_path, None) == "soybean"
+    assert scene_crop(tmp_path, "maize") == "maize"
+    f = tmp_path / "scene.json"
+    f.write_text(json.dumps({"crop": "maize", "views": 3}))
+    before = f.read_bytes()
+    assert scene_crop(tmp_path, None) == "maize"
+    assert scene_crop(tmp_path, "maize") == "maize"
+    with pytest.raises(SystemExit, match=r"scene\.json: the scene is maize, not soybean"):
+        scene_crop(tmp_path, "soybean")
+    assert f.read_bytes() == before
