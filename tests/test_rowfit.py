@@ -398,8 +398,14 @@ def test_row_phase_follows_the_soil_where_leaves_pile_up_between_rows():
 def test_row_direction_follows_the_soil_where_the_plants_show_no_period():
     """The plants of a closed canopy fill the plot with no visible row period; the soil shows
     in lines between the rows (here at 20°): the refined row runs along the soil's lines. Where
-    the plants are the stronger period, their direction is kept."""
-    from cropcraft_core.rowfit.fit import Row, _refine_row
+    the plants show the period too, their direction is kept unless the soil's is clearly the
+    stronger."""
+    from cropcraft_core.rowfit.fit import (
+        SOIL_DIRECTION_MARGIN,
+        Row,
+        _direction_scores,
+        _refine_row,
+    )
 
     rng = np.random.default_rng(1)
     p = preset("soybean", row_spacing=0.76)
@@ -425,3 +431,15 @@ def test_row_direction_follows_the_soil_where_the_plants_show_no_period():
     ]
     row, _ = _refine_row(plants, start, p, direction_xy=plants, soil_xy=soil)
     assert abs(np.degrees(np.arctan2(row.direction[1], row.direction[0])) - 20.0) < 0.5
+    # both periodic, the soil's lines (at 14°) a little sharper than the plants' broad rows (at
+    # 20°), by less than SOIL_DIRECTION_MARGIN: the plants, the more precise cue, keep theirs
+    plants = lines(20000, 0.0, 0.2)
+    b = np.radians(14.0)
+    along, k = rng.uniform(-0.8, 0.8, 1500), rng.integers(-1, 2, 1500)
+    across = 0.38 + 0.76 * k + rng.normal(0, 0.1, 1500)
+    soil = along[:, None] * [np.cos(b), np.sin(b)] + across[:, None] * [-np.sin(b), np.cos(b)]
+    coarse = np.radians(np.arange(-30.0, 30.01, 0.5))
+    corr = [_direction_scores(x - x.mean(axis=0), coarse, 0.76)[1].max() for x in (plants, soil)]
+    assert 0 < corr[1] - corr[0] < SOIL_DIRECTION_MARGIN
+    row, _ = _refine_row(plants, start, p, direction_xy=plants, soil_xy=soil)
+    assert abs(np.degrees(np.arctan2(row.direction[1], row.direction[0])) - 20.0) < 1.5
