@@ -69,6 +69,8 @@ def test_pipeline_bench_says_whose_miss_an_answer_is():
     for side in ("observation", "true_mesh"):
         assert same["floor_params"][side]["answer"] == same["floor_params"][side]["truth"]
     assert same["floor_difference"]["observation"] == {"mean": 0.0, "se": 0.0}
+    # one floor: each polish ends at the other's, so neither side's flags decide the verdict
+    assert all(f["answer"] == f["truth"] for f in same["floor_left_basin"].values())
     assert same["whose"] == "loss"
 
     far = {**truth, "leaf_length": 0.5, "num_nodes": 3.0}
@@ -85,6 +87,33 @@ def test_pipeline_bench_says_whose_miss_an_answer_is():
     assert moved["floor_difference"]["observation"]["mean"] < 0
     assert moved["floor_difference"]["true_mesh"]["mean"] > 0
     assert moved["whose"] == "reconstruction"
+
+
+def test_whose_miss_trusts_a_side_only_where_each_floor_stayed_in_its_basin():
+    """A side prefers the truth's basin where the truth's floor is significantly the deeper,
+    or where the answer's polish left its basin for the truth's (a slope, no valley, there),
+    and never where the truth's polish slid into the answer's; the verdicts follow."""
+    from benchmarks.bench_pipeline import whose_miss
+
+    def diff(obs: float, mesh: float, se: float = 0.001) -> dict:
+        return {"observation": {"mean": obs, "se": se}, "true_mesh": {"mean": mesh, "se": se}}
+
+    def left(**sides: str) -> dict:
+        return {s: {"answer": "answer" in w, "truth": "truth" in w} for s, w in sides.items()}
+
+    assert whose_miss(diff(0.004, 0.02)) == "optimiser"
+    assert whose_miss(diff(-0.006, 0.02)) == "reconstruction"
+    assert whose_miss(diff(-0.006, -0.005)) == "loss"
+    assert whose_miss(diff(0.001, 0.001)) == "loss"  # within two standard errors
+    # a 1.1 m canopy: on the true mesh the answer's polish went to the truth's leaf size and
+    # ended a little below the truth's floor; on the observation the truth's slid to the answer
+    c = left(observation="truth", true_mesh="answer")
+    assert whose_miss(diff(-0.0065, -0.005), c) == "reconstruction"
+    assert whose_miss(diff(0.004, 0.02), left(observation="truth")) == "reconstruction"
+    assert whose_miss(diff(-0.006, -0.005), left(observation="answer")) == "optimiser"
+    # both or neither left: the floors' losses decide
+    assert whose_miss(diff(0.004, 0.02), left(observation="answer truth")) == "optimiser"
+    assert whose_miss(diff(-0.006, -0.005), left(true_mesh="")) == "loss"
 
 
 def test_bo_fit_recovers_maize_parameters():
