@@ -39,6 +39,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "ingest": {"max_size": None, "min_images": 3},
     "poses": {
         "matcher": "auto",
+        "sift_peak_threshold": None,  # None: run_sfm's (SIFT_PEAK_THRESHOLD)
         "seed": 0,
         "num_threads": 2,
         "imported_metric": True,

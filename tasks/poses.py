@@ -130,6 +130,11 @@ def poses(
                     matcher=config.get("matcher", "auto"),
                     num_threads=int(config.get("num_threads", 2)),
                     seed=int(config.get("seed", 0)),
+                    **(
+                        {"sift_peak_threshold": float(config["sift_peak_threshold"])}
+                        if config.get("sift_peak_threshold") is not None
+                        else {}
+                    ),
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)

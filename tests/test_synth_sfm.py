@@ -401,3 +401,6 @@ def test_sfm_errors(tmp_path):
     assert isinstance(e.value, CropCraftError)
     with pytest.raises(InputError, match="unknown matcher"):
         run_sfm(d, tmp_path / "w", matcher="vocab")
+    for bad in (0.0, -0.01, float("nan")):
+        with pytest.raises(InputError, match="sift_peak_threshold must be positive"):
+            run_sfm(d, tmp_path / "w", sift_peak_threshold=bad)

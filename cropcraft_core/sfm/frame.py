@@ -13,7 +13,10 @@ that frame (nerfstudio's data parsers do the same with their ``orientation_metho
   only planes that at least 90 % of the cameras look down on by ``min_look_down_deg`` or more
   compete (walk-around and drone captures do; a wall does not); with too few points, or no
   such plane, minus the cameras' mean optical axis;
-* **origin**: on the ground (the sparse points' low-percentile height) below the point closest
+* **origin**: on the ground (the sparse points' ``ground_percentile``-th height, 1: in a closed
+  canopy most sparse points lie on leaves; on a synthetic soybean canopy of LAI 2.3 the 5th
+  percentile lay 0.42 m above the soil, which put the soil under the surfaces' scene box and
+  the provisional scale 40 % off; the 1st lay 6 mm below it) below the point closest
   to all optical axes (walk-around captures look at the plot), or below the points' median when
   the axes do not converge (drone lawnmower); without points, at that point itself, or below
   the cameras' centroid;
@@ -174,7 +177,7 @@ def level_poses(
     ransac_iterations: int = 1000,
     seed: int = 0,
     min_points: int = 50,
-    ground_percentile: float = 5.0,
+    ground_percentile: float = 1.0,
 ) -> tuple[Poses, np.ndarray | None, GravityFrame]:
     """Move ``poses`` (and the sparse ``points`` (n, 3) of the same frame) into a levelled,
     centred, roughly metric frame; return (poses, points or None, :class:`GravityFrame`).
