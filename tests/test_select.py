@@ -192,3 +192,21 @@ def test_median_rule_ignores_a_stranded_seed():
     for k, v in med.params.items():
         assert abs(v - expect[k]) < 1e-12
         assert abs(mean.params[k] - far[k]) < abs(v - far[k])  # the mean is pulled to the corner
+
+
+def test_a_point_an_ulp_outside_the_box_is_set_on_its_bound():
+    """Arithmetic on points of the box can land an ulp outside it (the mean of seeds at a
+    bound, ``low + range * u``); such a vector still makes a valid canopy, a real excursion
+    is still a named error."""
+    from cropcraft_core.config.params import resolve_params
+
+    b = param_bounds("maize")  # leaf_length, leaf_order_shift, internode_length, num_nodes
+    x = np.array(
+        [np.nextafter(b[0, 0], -np.inf), 0.0, np.nextafter(b[2, 1], np.inf), b[3, 1] + 1e-12]
+    )
+    p = params_from_vector("maize", x)
+    assert resolve_params("maize", p) == p
+    assert [p["leaf_length"], p["internode_length"], p["num_nodes"]] == [b[0, 0], *b[2:, 1]]
+    far = b[:, 0] - 1e-6 * (b[:, 1] - b[:, 0])
+    with pytest.raises(ConfigError, match="outside its range"):
+        resolve_params("maize", params_from_vector("maize", far))
