@@ -62,7 +62,8 @@ def poses(
     With ``poses_uri``: :func:`~cropcraft_core.sfm.import_transforms_json` (a ``.json`` file) or
     :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``config["imported_metric"]``
     says they are metric and gravity-aligned (kept as they are). Without:
-    :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``).
+    :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``,
+    ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``).
     SfM and non-metric imported poses are then levelled by
     :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred, metres from
     ``config["camera_height"]`` or ``config["camera_distance"]`` ([photo A, photo B, metres]
@@ -79,11 +80,13 @@ def poses(
         "level_poses",
     )
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+    from cropcraft_core.sfm.poses import SIFT_PEAK_THRESHOLD
 
     crop = scene.split("/")[1]
     prior = config.get("prior_camera_height") or PRIOR_CAMERA_HEIGHT_M.get(crop, 1.4)
     hint = config.get("camera_height")
     distance = config.get("camera_distance")
+    peak = config.get("sift_peak_threshold")
 
     def level(found, points, summary: dict):
         """Level the poses; record how in ``summary`` (``frame``, and ``metric`` when the scale
@@ -130,11 +133,7 @@ def poses(
                     matcher=config.get("matcher", "auto"),
                     num_threads=int(config.get("num_threads", 2)),
                     seed=int(config.get("seed", 0)),
-                    **(
-                        {"sift_peak_threshold": float(config["sift_peak_threshold"])}
-                        if config.get("sift_peak_threshold") is not None
-                        else {}
-                    ),
+                    sift_peak_threshold=float(peak if peak is not None else SIFT_PEAK_THRESHOLD),
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)

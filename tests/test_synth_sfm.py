@@ -401,6 +401,10 @@ def test_sfm_errors(tmp_path):
     assert isinstance(e.value, CropCraftError)
     with pytest.raises(InputError, match="unknown matcher"):
         run_sfm(d, tmp_path / "w", matcher="vocab")
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "database.db").write_bytes(b"an earlier run's")
     for bad in (0.0, -0.01, float("nan")):
         with pytest.raises(InputError, match="sift_peak_threshold must be positive"):
-            run_sfm(d, tmp_path / "w", sift_peak_threshold=bad)
+            run_sfm(d, kept, sift_peak_threshold=bad)
+    assert (kept / "database.db").read_bytes() == b"an earlier run's"  # checked before any work

@@ -550,8 +550,9 @@ def run_sfm(
     accepts weaker evidence than COLMAP's defaults (initial pair ≥ 50 inliers, new image ≥ 15
     inliers at ratio ≥ 0.15).
 
-    Raises ``InputError`` for fewer than ``min_images`` images, ``SfmError`` when no model is
-    built or fewer than ``min_registered_fraction`` of the images are registered.
+    Raises ``InputError`` for fewer than ``min_images`` images, an unknown matcher or a
+    non-positive ``sift_peak_threshold`` (before ``work_dir`` is touched), ``SfmError`` when no
+    model is built or fewer than ``min_registered_fraction`` of the images are registered.
     """
     import pycolmap
 
@@ -562,6 +563,8 @@ def run_sfm(
             f"least {min_images}"
         )
     mode = choose_matcher(len(names), matcher)
+    if not (np.isfinite(sift_peak_threshold) and sift_peak_threshold > 0):
+        raise InputError(f"sift_peak_threshold must be positive, got {sift_peak_threshold!r}")
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     db = work / "database.db"
@@ -578,8 +581,6 @@ def run_sfm(
     ext.num_threads = int(num_threads)
     ext.use_gpu = False
     ext.sift.max_num_features = int(max_num_features)
-    if not (np.isfinite(sift_peak_threshold) and sift_peak_threshold > 0):
-        raise InputError(f"sift_peak_threshold must be positive, got {sift_peak_threshold!r}")
     ext.sift.peak_threshold = float(sift_peak_threshold)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
