@@ -280,6 +280,53 @@ def test_splat_renders_a_grid_of_points_as_a_closed_surface():
     assert np.isnan(d_off).all()
 
 
+def test_density_radii_are_the_spacing_of_the_points_in_the_view():
+    from cropcraft_core.surfaces.points import density_radii
+
+    # one point per pixel centre of a 40 × 30 image, then each twice: ρ = 1 and 2 per pixel
+    g = np.stack(np.meshgrid(np.arange(40) + 0.5, np.arange(30) + 0.5), -1).reshape(-1, 2)
+    one = density_radii(g, (30, 40), coverage=1.0, window=5)
+    np.testing.assert_allclose(one, 1 / np.sqrt(np.pi), rtol=1e-5)
+    two = density_radii(np.r_[g, g], (30, 40), coverage=1.5, window=5)
+    np.testing.assert_allclose(two, 1.5 / np.sqrt(2 * np.pi), rtol=1e-5)
+    # a point left of the image takes its row's border pixel's density
+    out = density_radii(np.r_[g, [[-3.0, 10.5]]], (30, 40), coverage=1.0, window=5)
+    assert out[-1] == pytest.approx(1 / np.sqrt(np.pi), rel=1e-5)
+
+
+def test_splat_density_keeps_a_patch_from_fattening_by_its_source_footprint():
+    """A 20 cm patch of points 4 mm apart (about one a pixel at 1 m) whose source pixels were
+    2 cm wide (a far camera): splatted at the footprint it spreads 2 cm past every edge; with
+    discs capped at the points' spacing in the view it stays within two pixels of its edges,
+    still closed inside. A lone point, far from the others, keeps its footprint."""
+    from cropcraft_core.surfaces.points import splat
+
+    s, half, foot = 0.004, 0.1, 0.02
+    g = np.arange(-half, half + 1e-9, s)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    pts = np.c_[xy, np.zeros(len(xy))]
+    cols = np.full((len(pts), 3), 100, np.uint8)
+    radii = np.full(len(pts), foot)
+    cam = PinholeCamera.look_down(height_m=1.0, size=(120, 90), vfov_deg=20.0)
+    pixel = 1.0 / cam.fx
+    inner = (np.abs(cam.unproject(np.ones((90, 120)))[..., :2]) < half - pixel).all(-1)
+
+    def extent(density):
+        d, _ = splat(pts, cols, radii, cam, 0.02, 5, density=density, window=9)
+        seen = np.isfinite(d)
+        return np.abs(cam.unproject(d)[..., :2])[seen].max(), seen[inner].all()
+
+    fat, fat_closed = extent(None)
+    thin, thin_closed = extent(1.0)
+    assert fat_closed and thin_closed
+    assert fat > half + 0.75 * foot
+    assert thin < half + 2.5 * pixel < half + 0.75 * foot
+    # alone in its 9 × 9 pixels its cap is 9 / √π ≈ 5 pixels, more than its 2.5-pixel footprint
+    r = np.array([foot / 2])
+    lone, _ = splat(np.array([[0.15, 0.0, 0.0]]), cols[:1], r, cam, 0.02, 1, 1.0, 9)
+    assert np.isfinite(lone).sum() == pytest.approx(np.pi * (r[0] * cam.fx) ** 2, rel=0.2)
+
+
 def test_faces_shared_matches_faces_by_vertex_positions():
     from cropcraft_core.surfaces.tsdf import faces_shared
 
@@ -311,6 +358,19 @@ def test_unknown_backend_is_config_error():
         make_backend("nope")
     with pytest.raises(ConfigError):
         make_backend(SurfacesConfig(backend="truth"))  # no mesh
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"splat_density": 0.0}, "splat_density must be a positive number or null"),
+        ({"splat_density": float("nan")}, "splat_density must be a positive number or null"),
+        ({"splat_density_window": 4}, "splat_density_window must be odd and ≥ 1"),
+    ],
+)
+def test_bad_splat_density_is_a_named_config_error(bad, match):
+    with pytest.raises(ConfigError, match=match):
+        SurfacesConfig(backend="points", **bad)
 
 
 def _cuda() -> bool:

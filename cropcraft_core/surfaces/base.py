@@ -154,6 +154,12 @@ class SurfacesConfig:
     splat_radius: float = 0.71
     """points: each point's disc radius in units of its pixel's side at its depth (0.71: the
     disc circumscribing the pixel's footprint)."""
+    splat_density: float | None = None
+    """points: cap each disc, in the rendered view, at this coverage / √(π ρ) pixels, ρ the
+    points per pixel around it (``splat_density_window``): discs as large as the points' own
+    spacing in that view rather than their source pixels' footprints (None: no cap)."""
+    splat_density_window: int = 9
+    """points: side (pixels) of the square in which ``splat_density`` counts the points."""
     splat_blend: float = 0.02
     """points: a rendered pixel averages the fragments within this relative depth of its
     nearest."""
@@ -201,6 +207,20 @@ class SurfacesConfig:
         if not (0 <= float(self.sgm_p1) <= float(self.sgm_p2) or float(self.sgm_p2) == 0):
             raise ConfigError(
                 f"surfaces sgm penalties need 0 ≤ sgm_p1 ≤ sgm_p2, got {self.sgm_p1}, {self.sgm_p2}"
+            )
+        if self.splat_density is not None and not (
+            isinstance(self.splat_density, int | float)
+            and np.isfinite(self.splat_density)
+            and self.splat_density > 0
+        ):
+            raise ConfigError(
+                f"surfaces splat_density must be a positive number or null, got "
+                f"{self.splat_density!r}"
+            )
+        if int(self.splat_density_window) < 1 or int(self.splat_density_window) % 2 == 0:
+            raise ConfigError(
+                f"surfaces splat_density_window must be odd and ≥ 1, got "
+                f"{self.splat_density_window}"
             )
         if not (float(self.visibility_ratio) >= 0 and float(self.splat_blend) >= 0):
             raise ConfigError(

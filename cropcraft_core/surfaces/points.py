@@ -18,7 +18,14 @@ Pipeline (``PointSurfaces.fit``):
 6. **Rendering** splats the points as discs into a z-buffer, averages the depth and colour of the
    fragments within ``splat_blend`` (relative) of each pixel's nearest, and closes empty pixels
    that have ≥ 30 % of their ``splat_close`` × ``splat_close`` neighbourhood covered (the gaps
-   between neighbouring splats; a real gap that small is a few millimetres wide).
+   between neighbouring splats; a real gap that small is a few millimetres wide). With
+   ``splat_density`` set, every disc is first capped at the points' own spacing in the rendered
+   view (``density_radii``). From a drone the source footprint is wide (1.5 cm radius from
+   13 m) and every leaf edge fattens by it over the soil beside it; the cap keeps the edge
+   where the points end. From a phone walking round the plot it hurts: the oblique views put
+   points under the leaves, the count includes them, and what lies below shows through the
+   smaller discs of the top leaves (``benchmarks/RESULTS.md``, *Maize through the photo
+   pipeline*).
 
 Why not fuse (the tsdf backend): a TSDF averages the views' signed distances per voxel, so a leaf
 edge fattened in some views closes the gap beside it wherever those views outnumber the ones
@@ -166,6 +173,21 @@ def _splat(uv, z, r, col, zmin, acc, cacc, wacc, blend):  # pragma: no cover - n
                         cacc[y, x, c] += col[i, c]
 
 
+def density_radii(uv: np.ndarray, shape: tuple[int, int], coverage: float, window: int):
+    """(n,) float64 disc radii (pixels) for points at pixel coordinates uv (n, 2) of an image of
+    ``shape`` (h, w): ``coverage`` / √(π ρ), ρ the points per pixel in the ``window`` ×
+    ``window`` pixels around each point (a point outside the image takes its nearest border
+    pixel's). Discs of that radius cover 1 − exp(−coverage²) of an area sampled at random
+    with density ρ (63 % at 1; ``_close`` fills most of the rest)."""
+    h, w = shape
+    iu = np.clip(np.floor(uv[:, 0]), 0, w - 1).astype(np.int64)
+    iv = np.clip(np.floor(uv[:, 1]), 0, h - 1).astype(np.int64)
+    inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
+    count = np.bincount(iv[inside] * w + iu[inside], minlength=h * w).reshape(h, w)
+    rho = cv2.boxFilter(count.astype(np.float32), -1, (window, window), normalize=True)
+    return coverage / np.sqrt(np.pi * np.maximum(rho[iv, iu], 1e-6).astype(np.float64))
+
+
 def splat(
     points: np.ndarray,
     colors: np.ndarray,
@@ -173,9 +195,12 @@ def splat(
     camera: PinholeCamera,
     blend: float,
     close: int,
+    density: float | None = None,
+    window: int = 9,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(depth (H, W) float32 z-depth, NaN empty; rgb (H, W, 3) uint8) of points (n, 3) with
-    colours (n, 3) uint8 and world radii (n,) seen by ``camera`` (module docstring, step 6)."""
+    colours (n, 3) uint8 and world radii (n,) seen by ``camera`` (module docstring, step 6).
+    ``density``: cap every disc at :func:`density_radii` with that coverage (None: no cap)."""
     h, w = camera.height, camera.width
     uv, z = camera.project(points)
     with np.errstate(invalid="ignore"):
@@ -183,6 +208,8 @@ def splat(
     uv, z = np.ascontiguousarray(uv[ok]), z[ok]
     # a disc larger than MAX_SPLAT_PX pixels is a point almost at the camera: cap its cost
     r = np.minimum(np.asarray(radii)[ok] * camera.fx / z, MAX_SPLAT_PX).astype(np.float64)
+    if density is not None:
+        r = np.minimum(r, density_radii(uv, (h, w), float(density), int(window)))
     col = np.asarray(colors)[ok].astype(np.float64)
     z = z.astype(np.float32)
     zmin = np.full((h, w), np.inf, np.float32)
@@ -271,7 +298,16 @@ class PointSurfaces(SurfaceBackend):
         if not isinstance(camera, PinholeCamera):
             raise InputError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
         cfg = self.config
-        return splat(self.points, self.colors, self.radii, camera, cfg.splat_blend, cfg.splat_close)
+        return splat(
+            self.points,
+            self.colors,
+            self.radii,
+            camera,
+            cfg.splat_blend,
+            cfg.splat_close,
+            cfg.splat_density,
+            cfg.splat_density_window,
+        )
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
         """The points inside the bounding box with their colours (a seeded subset)."""
