@@ -127,7 +127,7 @@ def run(a: argparse.Namespace) -> dict:
     from cropcraft_core.rowfit.truth import row_fit_errors
     from cropcraft_core.sfm import import_transforms_json, ingest_images, level_poses, run_sfm
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
-    from cropcraft_core.surfaces import SurfacesConfig, make_backend, resolve_bbox
+    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
     from cropcraft_core.synth import make_scene
 
     w, h = a.resolution
@@ -181,7 +181,7 @@ def run(a: argparse.Namespace) -> dict:
             np.asarray(Image.open(work / "images" / by_stem[Path(n).stem]).convert("RGB"))
             for n, _ in poses
         ]
-        backend = make_backend(SurfacesConfig(**parse_kv(a.surfaces)))
+        backend = make_backend(SurfacesConfig(**{**CROP_SURFACES[crop], **parse_kv(a.surfaces)}))
         backend.fit(images, poses.cameras, resolve_bbox(a.bbox, crop))
         points, colors = backend.point_cloud(100_000)
         sec["surfaces"] = time.perf_counter() - t

@@ -48,7 +48,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "camera_distance": None,  # [photo A, photo B, metres between their cameras]: exact scale
         "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
     },
-    # bbox "auto": the crop's scene box around the levelled frame's origin
+    # bbox "auto": the crop's scene box around the levelled frame's origin; the crop's own
+    # settings (cropcraft_core.surfaces.CROP_SURFACES: maize splats points) go over these
     "surfaces": {"backend": "tsdf", "bbox": "auto", "n_points": 100_000},
     # the paper's row-fit scene box is in nerfstudio's normalised frame; ours is the surfaces'
     "rowfit": {"seed": 0, "scale": None, "preset": {"box_center": None, "box_size": None}},
@@ -116,6 +117,12 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     config refuses, raise ConfigError before any work starts.
     """
     cfg = copy.deepcopy(DEFAULTS)
+    try:
+        from cropcraft_core.surfaces import CROP_SURFACES
+    except ImportError:
+        pass
+    else:  # the crop's measured surfaces settings, under the user's overrides
+        cfg["surfaces"].update(CROP_SURFACES.get(crop, {}))
     for k, v in (overrides or {}).items():
         _set_dotted(cfg, str(k), v)
     from cropcraft_core.config import default_layout

@@ -328,6 +328,28 @@ def test_the_papers_optimiser_keeps_the_seed_keys_it_had_before_the_local_search
     assert seed_config({})["local_share"] == 0.2
 
 
+def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
+    """Maize (drone photos) splats points capped at their spacing; soybean keeps the fused
+    surface; a user's setting wins over the crop's, and the crops' surfaces stages hash apart."""
+    from flows.scene import resolve_config, stage_configs
+
+    maize = resolve_config("maize")["surfaces"]
+    assert maize["backend"] == "points" and maize["splat_density"] == 1.0
+    soy = resolve_config("soybean")["surfaces"]
+    assert soy["backend"] == "tsdf" and "splat_density" not in soy
+    assert resolve_config("maize", {"surfaces.backend": "tsdf"})["surfaces"]["backend"] == "tsdf"
+    assert (
+        resolve_config("maize", {"surfaces.splat_density": None})["surfaces"]["splat_density"]
+        is None
+    )
+    with pytest.raises(ConfigError, match="splat_density must be a positive number"):
+        resolve_config("maize", {"surfaces.splat_density": -1})
+    assert (
+        stage_configs(resolve_config("maize"))["surfaces"]
+        != stage_configs(resolve_config("soybean"))["surfaces"]
+    )
+
+
 def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, scene_dir):
     """Artefacts live at one key per scene and stage: a run with other settings writes over
     them. Rerunning the first settings must not serve their cached records over the other

@@ -7,6 +7,7 @@ saved backend back. See ``cropcraft_core.surfaces.base``.
 
 from cropcraft_core.surfaces.base import (
     BACKENDS,
+    CROP_SURFACES,
     SurfaceBackend,
     SurfacesConfig,
     SurfacesError,
@@ -17,6 +18,7 @@ from cropcraft_core.surfaces.base import (
 
 __all__ = [
     "BACKENDS",
+    "CROP_SURFACES",
     "SurfaceBackend",
     "SurfacesConfig",
     "SurfacesError",
