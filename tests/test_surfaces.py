@@ -4,6 +4,7 @@ save/load, config errors, nerfacto availability."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -228,6 +229,22 @@ def test_points_render_new_downward_view_and_round_trip(scene, fitted_points, tm
     ply.write_bytes(ply.read_bytes()[:-7])
     with pytest.raises(InputError, match="points.ply.*truncated"):
         load_surfaces(tmp_path / "p")
+
+
+def test_points_render_with_the_density_cap_and_load_it_back(fitted_points, tmp_path):
+    """``splat_density`` reaches the renderer and is saved with the surfaces: a small cap (a
+    fifth of the coverage) leaves more of the view empty than none, and the loaded surfaces
+    render the same."""
+    import dataclasses
+
+    cam = PinholeCamera.look_down(height_m=1.2, size=(200, 150))
+    capped = copy.copy(fitted_points)
+    capped.config = dataclasses.replace(fitted_points.config, splat_density=0.2)
+    d_capped, _ = capped.render(cam)
+    d_free, _ = fitted_points.render(cam)
+    assert np.isfinite(d_capped).mean() < np.isfinite(d_free).mean() - 0.05
+    capped.save(tmp_path / "c")
+    np.testing.assert_array_equal(load_surfaces(tmp_path / "c").render(cam)[0], d_capped)
 
 
 def _three_down(size=(40, 30)) -> list[PinholeCamera]:
