@@ -335,6 +335,7 @@ def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
 
     maize = resolve_config("maize")["surfaces"]
     assert maize["backend"] == "points" and maize["splat_density"] == 1.0
+    assert maize["visibility_ratio"] == 0.1
     soy = resolve_config("soybean")["surfaces"]
     assert soy["backend"] == "tsdf" and "splat_density" not in soy
     assert resolve_config("maize", {"surfaces.backend": "tsdf"})["surfaces"]["backend"] == "tsdf"
