@@ -140,6 +140,8 @@ def run(a: argparse.Namespace) -> dict:
         trajectory = a.trajectory or DEFAULT_TRAJECTORY[crop]
         make_scene(crop, root, views=a.views, resolution=(w, h), seed=a.seed, trajectory=trajectory)
         out["synthesis_s (not pipeline)"] = time.perf_counter() - t
+    made = json.loads((root / "scene.json").read_text())  # a reused scene's own, not the flags
+    out["views"], out["resolution"] = len(made["images"]), list(made["resolution"])
     out["scene_dir"] = str(root)
     out["crop"] = crop
     layout = default_layout(crop)
