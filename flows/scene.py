@@ -118,9 +118,9 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     """
     cfg = copy.deepcopy(DEFAULTS)
     try:
-        from cropcraft_core.surfaces import CROP_SURFACES
-    except ImportError:
-        pass
+        from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, resolve_bbox
+    except ImportError:  # the surfaces package is optional in a partial checkout
+        SurfacesConfig = None
     else:  # the crop's measured surfaces settings, under the user's overrides
         cfg["surfaces"].update(CROP_SURFACES.get(crop, {}))
     for k, v in (overrides or {}).items():
@@ -137,13 +137,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     FitConfig(**cfg["fit"]).validate()
     rowfit_preset(crop, **cfg["rowfit"]["preset"])
     observe_preset(crop, **cfg["observe"]["preset"])
-    try:
-        from cropcraft_core.surfaces import SurfacesConfig
-    except ImportError:
-        pass
-    else:
-        from cropcraft_core.surfaces import resolve_bbox
-
+    if SurfacesConfig is not None:
         s = {k: v for k, v in cfg["surfaces"].items() if k not in ("bbox", "n_points")}
         SurfacesConfig.from_dict(s)
         resolve_bbox(cfg["surfaces"]["bbox"], crop)

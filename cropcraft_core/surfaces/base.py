@@ -209,11 +209,15 @@ class SurfacesConfig:
             )
         for name in (
             "voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel", "visibility_rel",
-            "splat_radius",
+            "splat_radius", "splat_density",
         ):  # fmt: skip
             v = getattr(self, name)
+            optional = name == "splat_density"
+            if optional and v is None:
+                continue
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
-                raise ConfigError(f"surfaces {name} must be a positive number, got {v!r}")
+                null = " or null" if optional else ""
+                raise ConfigError(f"surfaces {name} must be a positive number{null}, got {v!r}")
         if not 2 <= int(self.neighbours) <= 8:
             raise ConfigError(f"surfaces neighbours must be in [2, 8], got {self.neighbours}")
         if int(self.n_depths) < 8:
@@ -226,27 +230,15 @@ class SurfacesConfig:
             raise ConfigError(
                 f"surfaces sgm penalties need 0 ≤ sgm_p1 ≤ sgm_p2, got {self.sgm_p1}, {self.sgm_p2}"
             )
-        if self.splat_density is not None and not (
-            isinstance(self.splat_density, int | float)
-            and np.isfinite(self.splat_density)
-            and self.splat_density > 0
-        ):
-            raise ConfigError(
-                f"surfaces splat_density must be a positive number or null, got "
-                f"{self.splat_density!r}"
-            )
-        if int(self.splat_density_window) < 1 or int(self.splat_density_window) % 2 == 0:
-            raise ConfigError(
-                f"surfaces splat_density_window must be odd and ≥ 1, got "
-                f"{self.splat_density_window}"
-            )
         if not (float(self.visibility_ratio) >= 0 and float(self.splat_blend) >= 0):
             raise ConfigError(
                 "surfaces visibility_ratio and splat_blend must be ≥ 0, got "
                 f"{self.visibility_ratio}, {self.splat_blend}"
             )
-        if int(self.window) < 3 or int(self.window) % 2 == 0:
-            raise ConfigError(f"surfaces window must be odd and ≥ 3, got {self.window}")
+        for name, least in (("window", 3), ("splat_density_window", 1)):
+            v = int(getattr(self, name))
+            if v < least or v % 2 == 0:
+                raise ConfigError(f"surfaces {name} must be odd and ≥ {least}, got {v}")
         if not -1.0 <= self.min_ncc < 1.0:
             raise ConfigError(f"surfaces min_ncc must be in [-1, 1), got {self.min_ncc}")
         if int(self.min_consistent) < 0:
