@@ -40,6 +40,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "poses": {
         "matcher": "auto",
         "sift_peak_threshold": None,  # None: run_sfm's (SIFT_PEAK_THRESHOLD)
+        "guided_matching": False,  # epipolar re-matching: slower and less accurate on canopies
         "seed": 0,
         "num_threads": 2,
         "imported_metric": True,

@@ -63,7 +63,7 @@ def poses(
     :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``config["imported_metric"]``
     says they are metric and gravity-aligned (kept as they are). Without:
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``,
-    ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``).
+    ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``, ``guided_matching``).
     SfM and non-metric imported poses are then levelled by
     :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred, metres from
     ``config["camera_height"]`` or ``config["camera_distance"]`` ([photo A, photo B, metres]
@@ -134,6 +134,7 @@ def poses(
                     num_threads=int(config.get("num_threads", 2)),
                     seed=int(config.get("seed", 0)),
                     sift_peak_threshold=float(peak if peak is not None else SIFT_PEAK_THRESHOLD),
+                    guided_matching=bool(config.get("guided_matching", False)),
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)

@@ -351,6 +351,17 @@ def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
     )
 
 
+def test_guided_matching_is_off_by_default_and_in_the_poses_stage_hash():
+    """Epipolar re-matching is slower and less accurate on canopies (run_sfm's docstring): off
+    unless asked for, and asking for it re-runs SfM (its stage hashes apart)."""
+    from flows.scene import resolve_config, stage_configs
+
+    assert resolve_config(CROP)["poses"]["guided_matching"] is False
+    on = resolve_config(CROP, {"poses.guided_matching": True})
+    assert on["poses"]["guided_matching"] is True
+    assert stage_configs(on)["poses"] != stage_configs(resolve_config(CROP))["poses"]
+
+
 def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, scene_dir):
     """Artefacts live at one key per scene and stage: a run with other settings writes over
     them. Rerunning the first settings must not serve their cached records over the other

@@ -525,7 +525,7 @@ def run_sfm(
     max_num_features: int = 8192,
     sift_peak_threshold: float = SIFT_PEAK_THRESHOLD,
     sequential_overlap: int = 10,
-    guided_matching: bool = True,
+    guided_matching: bool = False,
     complete_below: float = 0.95,
     focal_length_px: float | None = None,
     min_images: int = 3,
@@ -546,7 +546,12 @@ def run_sfm(
     ``focal_length_px``: prior focal length (e.g. from a calibration or EXIF), still refined by
     bundle adjustment; without it COLMAP starts at 1.2 × the longer side, which a short capture
     may not recover from. ``guided_matching``: re-match each verified pair under its epipolar
-    geometry (more matches on hard canopy views; roughly doubles matching time). The mapper
+    geometry. Off by default: on canopies an epipolar line crosses many look-alike leaf
+    features, and the extra matches cost both time and accuracy (measured November 24; pose
+    error = RMS of the camera centres against the truth after a similarity): 60 drone photos of
+    maize at 960 × 720, matching 747 → 31 s, SfM 953 → 86 s, 0.86 → 0.34 px, 60/60 registered
+    either way; three 50-photo soybean walks, pose error 0.76 → 0.12, 0.50 → 0.48 and
+    1.53 → 0.48 cm, SfM 70 → 56, 59 → 20 and 49 → 19 s, 50/50 registered each time. The mapper
     accepts weaker evidence than COLMAP's defaults (initial pair ≥ 50 inliers, new image ≥ 15
     inliers at ratio ≥ 0.15).
 
