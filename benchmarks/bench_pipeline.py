@@ -258,6 +258,7 @@ def run(a: argparse.Namespace) -> dict:
         }
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
+        obs.save(Path(a.keep) / "observation.npz")
     if not metric:
         true_fit = fit_rows_with_scale(points, colors, crop, pre, rng=0, metric_scale=true_scale)
         ts_obs, ts_true, _ = observation_vs_truth(
@@ -648,7 +649,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
     ap.add_argument("--json", default=None)
-    ap.add_argument("--keep", default=None, help="save points, row fit and surfaces here")
+    ap.add_argument(
+        "--keep",
+        default=None,
+        help="save points, row fit, surfaces, depths and the observation here",
+    )
     a = ap.parse_args(argv)
     out = run(a)
     out.pop("_observation")
