@@ -19,13 +19,17 @@ def rowfit(
     ``layout`` (planting; its row spacing is the known one). The scale source is
     ``metric_poses`` when the poses stage imported metric poses, ``camera_height`` or
     ``camera_distance`` when it levelled SfM poses with the user's camera height or measured
-    distance between two photos, ``user_hint`` when ``scale``
+    distance between two photos (with a camera height, the scale is measured again as the
+    hint over the cameras' median height above the fitted ground plane: the poses stage's
+    ground, the sparse points' lowest, lies on the leaves when SfM saw no soil), ``user_hint``
+    when ``scale``
     is given, else ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
     ``assumed_metric`` when it cannot be measured). The known row spacing also snaps the best
     row onto the periodic row pattern (``RowFitPreset.row_spacing``).
     """
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
+    from cropcraft_core.sfm.poses import Poses
     from tasks.fit_seed import layout_of
 
     store = open_store(store_root)
@@ -38,6 +42,10 @@ def rowfit(
         hinted = ("camera_height", "camera_distance")
         metric_source = frame_source if frame_source in hinted else "metric_poses"
         scale = config.get("scale")
+        camera_height = None
+        if frame_source == "camera_height" and not scale:
+            poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
+            camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
         fit = fit_rows_with_scale(
@@ -48,6 +56,7 @@ def rowfit(
             rng=int(config.get("seed", 0)),
             metric_scale=1.0 if metric and not scale else None,
             metric_source=metric_source,
+            camera_height=camera_height,
             scale_hint=float(scale) if scale else None,
             known_row_spacing=spacing,
         )

@@ -587,6 +587,36 @@ def test_a_measured_distance_between_two_photos_sets_the_scale(base_run, scene_d
         _run("plotD", base_run["store"], scene_dir, {**hint, "poses.camera_height": 1.4})
 
 
+def test_a_measured_camera_height_sets_the_scale_above_the_fitted_ground(base_run, scene_dir):
+    """Imported poses read as non-metric, levelled with the user's camera height: levelling
+    puts the ground where the optical axes meet (on the canopy top here, not the soil), so its
+    scale is a quarter off; the row fit measures the cameras' height above its fitted ground
+    plane again and its scale is the true one."""
+    transforms = json.loads((scene_dir / "transforms.json").read_text())
+    centres = np.array([f["transform_matrix"] for f in transforms["frames"]])[:, :3, 3]
+    height = float(np.median(centres[:, 2]))  # truth frame: ground z = 0
+    hint = {"poses.imported_metric": False, "poses.camera_height": height}
+    out = _run("plotH", base_run["store"], scene_dir, {**OVERRIDES, **hint})
+    assert set(out["states"].values()) == {"Completed"}
+    s = SceneStore(str(base_run["store"]))
+    poses = s.get_json(f"plotH/{CROP}/{DATE}/poses/poses.json")
+    levelled = np.median([v["camera"]["cam_to_world"][2][3] for v in poses["views"]])
+    assert levelled == pytest.approx(height, rel=1e-6)  # the hint, above levelling's ground
+    rowfit = s.get_json(f"plotH/{CROP}/{DATE}/rowfit/rowfit.json")
+    assert rowfit["scale_source"] == "camera_height"
+    true_scale = 1.0 / _levelled_scale(poses, centres)  # metres per levelled unit
+    assert abs(true_scale - 1.0) > 0.1  # levelling's own scale (1) is well off ...
+    assert rowfit["scale"] == pytest.approx(true_scale, rel=0.01)  # ... the row fit's is not
+
+
+def _levelled_scale(poses: dict, true_centres: np.ndarray) -> float:
+    """Scene units per metre of the levelled poses: their cameras' spread over the true ones'."""
+    a = np.array([v["camera"]["cam_to_world"] for v in poses["views"]])[:, :3, 3]
+    b = true_centres
+    spread = lambda x: np.sqrt(((x - x.mean(0)) ** 2).sum(1).mean())  # noqa: E731
+    return float(spread(a) / spread(b))
+
+
 def test_report_builder_is_self_contained():
     from cropcraft_core.report import scene_report_html, season_csv, season_rows
 

@@ -231,6 +231,43 @@ def test_scale_from_row_spacing(crop, params, kw):
     assert hinted.scale_source == "user_hint" and hinted.scale == true_scale
 
 
+def test_camera_height_scale_is_measured_above_the_fitted_ground():
+    """A drone over a closed maize canopy: SfM saw no soil, so the levelled frame's ground lies
+    on the leaves (here 1.5 m up) and the hinted 13 m camera height scaled it 13 / 11.5 too
+    large. The scale from the cameras' height above the fitted ground plane is the true one."""
+    pts, col, lay = make_cloud(
+        "maize", None, 20.0, seed=8, half=2.5, density=1000, region=MAIZE_REGION
+    )
+    xy = np.stack(np.meshgrid(np.linspace(-4, 4, 5), np.linspace(-4, 4, 4)), -1).reshape(-1, 2)
+    centres = np.column_stack([xy, np.full(len(xy), 13.0)])
+    h0, hint = 1.5, 13.0
+    k = hint / (13.0 - h0)  # scene units per metre in the mislevelled frame
+    shift = np.array([0.0, 0.0, h0])
+    scene, cams = (pts - shift) * k, (centres - shift) * k
+    p = preset("maize", box_size=None)
+    fit = fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams, hint))
+    assert fit.scale_source == "camera_height"
+    assert fit.scale == pytest.approx(1 / k, rel=0.005)
+    assert len(fit.diagnostics["scale_factors"]) >= 2
+    d, lat, hrel, _ = errors(fit, np.diag([k, k, k, 1.0]) @ _translate(-shift), lay)
+    assert d < 1.0 and lat < 0.03 and hrel < 0.01
+    # without it the hint's scale stands, 13 % off
+    kept = fit_rows_with_scale(scene, col, "maize", p, rng=8, metric_scale=1.0)
+    assert kept.scale == 1.0
+    with pytest.raises(CropCraftError, match="not above the fitted ground"):
+        fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(-cams, hint))
+    with pytest.raises(CropCraftError, match="camera centres"):
+        fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams[:, :2], hint))
+    with pytest.raises(CropCraftError, match="positive number of metres"):
+        fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams, -1.0))
+
+
+def _translate(t):
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
 def test_scale_fallback_with_a_single_row():
     lay = default_layout("soybean", plot_width=0.8)
     rng = np.random.default_rng(9)

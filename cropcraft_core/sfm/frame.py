@@ -183,7 +183,10 @@ def level_poses(
     centred, roughly metric frame; return (poses, points or None, :class:`GravityFrame`).
 
     metric: the input is already in metres (only rotate and move). camera_height_m: the user's
-    measured median camera height above the ground (sets the scale exactly). camera_distance:
+    measured median camera height above the ground (sets the scale; above this function's
+    ground, which lies on the leaves when the sparse points miss the soil, so
+    :func:`cropcraft_core.rowfit.fit_rows_with_scale` measures it again above the dense points'
+    fitted ground plane). camera_distance:
     (photo A, photo B, metres) the measured distance between two photos' camera centres (names
     as in ``poses``, or their stems; sets the scale exactly). prior_camera_height_m: the assumed
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``). Raises ``InputError`` for fewer than 3
