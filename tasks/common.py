@@ -67,7 +67,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
     # 3: ... and the camera clears the colour band too (soybean 0.25 m), in which the
     # observation's mask drops green leaves while a prediction keeps them
-    # 4: a user's camera height is taken above the fitted ground plane, not levelling's ground
+    # 4: a user's camera height is taken above the fitted ground plane, not levelling's ground;
+    # maize's row-spacing scale from plant points within 3 m (was the rows' 2 m ROI)
     "rowfit": 4,
     # 2: predictions are cut by the observation's box (height >= 0.1 m, |y| limit) like the
     # observation itself; before, the low leaves it drops counted on the predicted side only

@@ -231,6 +231,25 @@ def test_scale_from_row_spacing(crop, params, kw):
     assert hinted.scale_source == "user_hint" and hinted.scale == true_scale
 
 
+def test_the_scale_profile_reaches_past_the_row_roi():
+    """Maize's rows are fitted within 2 m of the centre, its row-spacing profile takes plant
+    points within 3 m (five rows' scattered centres measured the scale up to 4 % off)."""
+    pts, col, lay = make_cloud(
+        "maize", None, 20.0, seed=8, half=3.4, density=1000, region=MAIZE_REGION
+    )
+    wide = fit_ground_and_rows(pts, col, "maize", preset("maize", box_size=None), rng=8)
+    r = np.hypot(*wide.plant_xy.T)
+    assert 2.9 < r.max() <= 3.0 and r.max() > np.hypot(*wide.row_points.T).max() + 0.5
+    narrow = fit_ground_and_rows(
+        pts, col, "maize", preset("maize", box_size=None, scale_radius=2.0), rng=8
+    )
+    assert np.hypot(*narrow.plant_xy.T).max() <= 2.0
+    est = estimate_scale_from_rows(wide, lay.row_spacing)
+    assert est.method == "profile_autocorrelation" and abs(est.factor - 1) < 0.01
+    with pytest.raises(ConfigError, match="scale_radius"):
+        preset("maize", scale_radius=-1.0)
+
+
 def test_camera_height_scale_is_measured_above_the_fitted_ground():
     """A drone over a closed maize canopy: SfM saw no soil, so the levelled frame's ground lies
     on the leaves (here 1.5 m up) and the hinted 13 m camera height scaled it 13 / 11.5 too

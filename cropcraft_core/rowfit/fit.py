@@ -124,7 +124,8 @@ class RowFit:
     row_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """(n, 2) world xy of the plant points rows were fitted to (ROI, above the height cut)."""
     plant_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    """(n, 2) world xy of every plant point in the ROI (any height)."""
+    """(n, 2) world xy of every plant point within the preset's ``scale_radius`` (any height):
+    the row-spacing profile's points."""
     diagnostics: dict = field(default_factory=dict)
     """Point counts per stage and class, plant fraction, why row fitting stopped."""
 
@@ -468,8 +469,11 @@ def fit_ground_and_rows(
 
     # 6. rows
     q = (pts_m[plant] - origin_m) @ rot.T
+    radius = np.hypot(q[:, 0], q[:, 1])
+    scale_radius = used.roi_radius if used.scale_radius is None else used.scale_radius
+    plant_xy = q[:, :2] if scale_radius is None else q[radius <= scale_radius, :2]
     if used.roi_radius is not None:
-        q = q[np.hypot(q[:, 0], q[:, 1]) <= used.roi_radius]
+        q = q[radius <= used.roi_radius]
     diag["n_plant_roi"] = int(len(q))
     if len(q) == 0:
         raise RowFitError(
@@ -530,7 +534,7 @@ def fit_ground_and_rows(
         camera=camera,
         dense=bool(dense),
         row_points=xy,
-        plant_xy=q[:, :2],
+        plant_xy=plant_xy,
         diagnostics=diag,
     )
 
@@ -820,10 +824,10 @@ def estimate_scale_from_rows(
     """Scale correction from the fitted rows against the known planting row spacing (metres).
 
     Primary (``"profile_autocorrelation"``): the lateral profile across the best row (1 cm
-    histogram of the offsets along its normal) of every plant point in the ROI is periodic with
-    the row spacing; it is high-passed (its moving average over one known spacing removed, then
-    a 2-bin Gaussian) and autocorrelated
-    (per overlapping bin), and the spacing is the lag of the strongest *peak* (local maximum)
+    histogram of the offsets along its normal) of every plant point within the preset's
+    ``scale_radius`` is periodic with the row spacing; it is high-passed (its moving average
+    over one known spacing removed, then a 2-bin Gaussian) and autocorrelated (per overlapping
+    bin), and the spacing is the lag of the strongest *peak* (local maximum)
     within ``search`` × ``known_row_spacing`` (parabolic sub-bin refinement), accepted when the
     normalised autocorrelation there exceeds ``min_correlation``. This uses every point, not
     only the few fitted lines, and is immune to the biases of individual RANSAC bands.

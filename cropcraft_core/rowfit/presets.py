@@ -131,6 +131,14 @@ class RowFitPreset:
     roi_radius: float | None = None
     """Row fitting only uses plant points within this distance of a vertical axis through the
     frame origin (the scene-box centre projected onto the ground); maize 2.0, soybean ``None``."""
+    scale_radius: float | None = None
+    """The row-spacing profile that measures the metric scale
+    (:func:`~cropcraft_core.rowfit.fit.estimate_scale_from_rows`) uses plant points within this
+    distance of the same axis (``None``: ``roi_radius``); maize 3.0. Within 2 m a maize profile
+    holds five rows, whose lateral centres scatter by several cm (a few large leaves each, at
+    random azimuths): on seven maize reconstructions (60 drone photos, SfM or true poses, and
+    perfect points) the scale from 2 m was −4.3 to +1.7 % off (RMS 2.9 %), from 3 m −2.0 to
+    +0.1 % (RMS 1.2 %)."""
     min_points: int = 100
     """Fewer points than this after cropping and downsampling is an error ("too few points")."""
     min_ground_points: int = 50
@@ -191,8 +199,9 @@ class RowFitPreset:
             )
         if not isinstance(self.clear_canopy, bool):
             raise ConfigError(f"clear_canopy must be true or false, got {self.clear_canopy!r}")
-        if self.roi_radius is not None:
-            _positive("roi_radius", self.roi_radius)
+        for name in ("roi_radius", "scale_radius"):
+            if getattr(self, name) is not None:
+                _positive(name, getattr(self, name))
         if self.refine_direction_deg is not None:
             _positive("refine_direction_deg", self.refine_direction_deg)
         if self.row_spacing is not None:
@@ -251,6 +260,7 @@ _BASE: dict[str, dict[str, Any]] = {
         plant_a_below=0.0,
         dense_plant_fraction=None,
         roi_radius=2.0,
+        scale_radius=3.0,
     ),
 }
 
