@@ -138,3 +138,38 @@ def test_a_measured_distance_between_two_photos_sets_the_scale_exactly():
         level_poses(poses, spts, camera_distance=("v003", "v017", 0.0))
     with pytest.raises(InputError, match="not both"):
         level_poses(poses, spts, camera_height_m=1.4, camera_distance=("v003", "v017", d))
+
+
+@pytest.mark.parametrize(
+    "top,lowest",
+    [
+        (2.2, 0.93),  # measured: a 2.2 m maize canopy, SfM's lowest sparse point 0.93 m up
+        (3.2, 2.56),  # the tallest maize in the parameter box, sparse points on its top fifth
+        (3.2, 0.0),  # soil among the sparse points, the canopy's top under the box's
+    ],
+)
+def test_maize_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(top, lowest):
+    """From a drone over a closed maize canopy SfM may find no soil at all: levelling's ground
+    (the sparse points' lowest) then lies on the leaves and the provisional scale from the 13 m
+    prior is too large. The crop's scene box must still hold the soil and the canopy's top,
+    or the surfaces stage cuts the soil out (measured: height 21.9 % off, LAI −68 %)."""
+    from cropcraft_core.surfaces import resolve_bbox
+    from cropcraft_core.surfaces.base import SCENE_BOX
+
+    rng = np.random.default_rng(5)
+    lay = default_layout("maize")
+    drone = drone_trajectory(lay, 60, rng, canopy_top=top)
+    m = 2000
+    canopy = np.column_stack([rng.uniform(-2.5, 2.5, (m, 2)), rng.uniform(lowest, top, m)])
+    if lowest == 0.0:
+        canopy[: m // 5, 2] = rng.normal(0, 0.005, m // 5)
+    poses, spts = _scrambled(drone, np.vstack([canopy, rng.normal(0, 20, (40, 3))]), 4, 0.1)
+    _, _, frame = level_poses(poses, spts, prior_camera_height_m=13.0)
+    r = Rotation.random(random_state=4).as_matrix()  # _scrambled's similarity, seed 4
+    t = np.random.default_rng(4).normal(0, 3, 3)
+    w = frame.world_from_input
+    a = np.radians(np.arange(0, 360, 45))  # the plot within 2 m of its centre, soil and top
+    ring = [np.column_stack([2 * np.cos(a), 2 * np.sin(a), np.full(8, z)]) for z in (0.0, top)]
+    levelled = (np.vstack(ring) @ (0.1 * r).T + t) @ w[:3, :3].T + w[:3, 3]
+    lo, hi = resolve_bbox("auto", "maize")
+    assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX["maize"])
