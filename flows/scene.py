@@ -176,7 +176,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     crop's defaults are written out -- the answer rule (``DEFAULT_COMBINE``), the canopies
     averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
     (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
-    cached seeds instead of serving the old default's answer."""
+    cached seeds instead of serving the old default's answer; likewise the surfaces' ``"auto"``
+    scene box is written out as the crop's box (``SCENE_BOX``)."""
     from cropcraft_core.fit.fitting import FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
@@ -195,10 +196,18 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             fit.pop("local_share")
     seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
     agg = {**fit, **agg_only}
+    surfaces = dict(cfg["surfaces"])
+    if crop is not None and surfaces.get("bbox") == "auto":
+        try:
+            from cropcraft_core.surfaces import resolve_bbox
+        except ImportError:  # a partial checkout: the surfaces stage will say so itself
+            pass
+        else:
+            surfaces["bbox"] = resolve_bbox("auto", crop).tolist()
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),
-        "surfaces": dict(cfg["surfaces"]),
+        "surfaces": surfaces,
         "rowfit": {**cfg["rowfit"], **layout},
         "observe": dict(cfg["observe"]),
         "fit_seed": {**seed_fit, **layout},

@@ -351,6 +351,23 @@ def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
     )
 
 
+def test_the_surfaces_stage_hashes_the_crops_scene_box_it_resolves(monkeypatch):
+    """``bbox: auto`` is keyed as the crop's box itself, so a release that changes the box
+    (maize's reached 3.5 m down in November) recomputes the surfaces instead of serving ones
+    whose box cut the soil out; an explicit box is keyed as given."""
+    from cropcraft_core.surfaces import base
+    from flows.scene import resolve_config, stage_configs
+
+    cfg = resolve_config("maize")
+    assert cfg["surfaces"]["bbox"] == "auto"
+    keyed = stage_configs(cfg, "maize")["surfaces"]["bbox"]
+    assert keyed == [list(c) for c in base.SCENE_BOX["maize"]]
+    monkeypatch.setitem(base.SCENE_BOX, "maize", ((-3.0, -3.0, -0.3), (3.0, 3.0, 3.5)))
+    assert stage_configs(cfg, "maize")["surfaces"]["bbox"] != keyed
+    mine = resolve_config("maize", {"surfaces.bbox": [[-1, -1, -1], [1, 1, 1]]})
+    assert stage_configs(mine, "maize")["surfaces"]["bbox"] == [[-1, -1, -1], [1, 1, 1]]
+
+
 def test_guided_matching_is_off_by_default_and_in_the_poses_stage_hash():
     """Epipolar re-matching is slower and less accurate on canopies (run_sfm's docstring): off
     unless asked for, and asking for it re-runs SfM (its stage hashes apart)."""
