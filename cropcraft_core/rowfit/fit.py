@@ -960,15 +960,7 @@ def fit_rows_with_scale(
             diag = {**fit.diagnostics, "scale_fallback": "row spacing could not be measured"}
             return replace(fit, diagnostics=diag)
         scale *= est.factor
-        fit = fit_ground_and_rows(
-            points,
-            colors,
-            crop,
-            preset,
-            np.random.default_rng(seed),
-            scale=scale,
-            scale_source="row_spacing",
-        )
+        fit = _seeded_fit(points, colors, crop, preset, seed, scale, "row_spacing")
         if abs(est.factor - 1.0) <= tolerance:
             break
     diag = {**fit.diagnostics, "scale_factors": history}
@@ -995,15 +987,7 @@ def _fit_with_camera_height(
     seed = int(rng.integers(2**63 - 1))
     scale, history = 1.0, []
     for _ in range(max_passes):
-        fit = fit_ground_and_rows(
-            points,
-            colors,
-            crop,
-            preset,
-            np.random.default_rng(seed),
-            scale=scale,
-            scale_source="camera_height",
-        )
+        fit = _seeded_fit(points, colors, crop, preset, seed, scale, "camera_height")
         above = float(np.median(c @ fit.ground_normal + fit.ground_offset))
         if not above > 0:
             raise RowFitError(
@@ -1017,3 +1001,24 @@ def _fit_with_camera_height(
         scale *= factor
     diag = {**fit.diagnostics, "scale_factors": history}
     return replace(fit, diagnostics=diag)
+
+
+def _seeded_fit(
+    points: np.ndarray,
+    colors: np.ndarray,
+    crop: str,
+    preset: RowFitPreset | None,
+    seed: int,
+    scale: float,
+    scale_source: str,
+) -> RowFit:
+    """One pass of the scale loops: the same seed every pass, so passes differ by scale only."""
+    return fit_ground_and_rows(
+        points,
+        colors,
+        crop,
+        preset,
+        np.random.default_rng(seed),
+        scale=scale,
+        scale_source=scale_source,
+    )
