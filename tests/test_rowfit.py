@@ -17,7 +17,7 @@ from cropcraft_core.rowfit import (
     preset,
     srgb_to_lab,
 )
-from cropcraft_core.rowfit.truth import row_fit_errors
+from cropcraft_core.rowfit.truth import register_to_truth, row_fit_errors
 
 GREEN = np.array([0.20, 0.42, 0.12])  # L* 41, a* -30: leaf
 BROWN = np.array([0.45, 0.34, 0.24])  # L* 39, a* +6, b* +16: soil
@@ -499,3 +499,34 @@ def test_row_direction_follows_the_soil_where_the_plants_show_no_period():
     assert 0 < corr[1] - corr[0] < SOIL_DIRECTION_MARGIN
     row, _ = _refine_row(plants, start, p, direction_xy=plants, soil_xy=soil)
     assert abs(np.degrees(np.arctan2(row.direction[1], row.direction[0])) - 20.0) < 1.5
+
+
+def test_registration_finds_how_far_a_model_sits_off_its_cameras():
+    """A reconstruction whose surfaces sit 4 cm aside and 3 cm low of where the camera-centre
+    similarity puts them (an SfM model's tilt): ICP onto the truth recovers that shift, and the
+    row camera's lateral error is then measured against the reconstructed plants."""
+    crop = "maize"
+    truth, _, lay = make_cloud(crop, seed=3, half=2.0, density=1500)
+    recon, colors, _ = make_cloud(crop, seed=3, half=2.0, density=400)  # other samples, same canopy
+    rng = np.random.default_rng(1)
+    recon = recon + rng.normal(0, 0.005, recon.shape)
+    offset = np.array([0.0, -0.04, -0.03])
+    s, r = 1.7, Rotation.from_euler("zyx", [40, 3, -2], degrees=True).as_matrix()
+    scene_from_true = np.eye(4)
+    scene_from_true[:3, :3], scene_from_true[:3, 3] = s * r, [0.3, -1.2, 5.0]
+    points = (recon + offset) @ scene_from_true[:3, :3].T + scene_from_true[:3, 3]
+    refined, reg = register_to_truth(points, scene_from_true, truth, (0.3, 0.1, 0.05))
+    np.testing.assert_allclose(reg.shift_m, -offset, atol=0.005)
+    assert reg.rotation_deg < 0.2 and reg.fitness > 0.9
+    assert np.cbrt(np.linalg.det(refined[:3, :3])) == pytest.approx(s, rel=1e-9)
+    # a row fit on the moved model: 4 cm off by the cameras, on the row by its own plants
+    fit = fit_rows_with_scale(
+        points,
+        colors,
+        crop,
+        preset(crop, row_spacing=lay.row_spacing, box_center=None, box_size=None),
+        rng=0,
+        metric_scale=1 / s,
+    )
+    assert row_fit_errors(fit, scene_from_true, lay).lateral_m > 0.03
+    assert row_fit_errors(fit, refined, lay).lateral_m < 0.01

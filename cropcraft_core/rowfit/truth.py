@@ -70,3 +70,69 @@ def row_fit_errors(fit: RowFit, scene_from_true: np.ndarray, layout: CanopyLayou
         height_rel=float(abs(c[2] - fit.render_height) / fit.render_height),
         ground_normal_deg=math.degrees(math.acos(min(1.0, float(n[2]) / np.linalg.norm(n)))),
     )
+
+
+@dataclass(frozen=True)
+class ContentRegistration:
+    """How far a reconstruction's surfaces sit from where its cameras put them (truth frame)."""
+
+    shift_m: tuple[float, float, float]
+    """Translation (x, y, z) that moves the reconstructed points onto the true surfaces: x, y
+    across the ground, + z = the reconstruction lies too low."""
+    rotation_deg: float
+    """Angle of the rigid correction's rotation."""
+    fitness: float
+    """Fraction of the reconstructed points within the last distance of a true surface."""
+    rmse_m: float
+    """RMS distance of those points from it."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def register_to_truth(
+    points: np.ndarray,
+    scene_from_true: np.ndarray,
+    true_points: np.ndarray,
+    distances: tuple[float, ...] = (0.3, 0.1, 0.05),
+) -> tuple[np.ndarray, ContentRegistration]:
+    """Refine ``scene_from_true`` so that the reconstruction's own surfaces, not its cameras,
+    land on the truth: rigid point-to-point ICP (Open3D) of ``points`` (n, 3, scene frame, mapped
+    into the truth frame by the similarity) onto ``true_points`` (m, 3, truth frame: samples of
+    the true mesh and of the ground), run at each of the decreasing matching ``distances`` (m)
+    from the previous one's answer. The similarity's scale is kept.
+
+    Why: the camera centres fix the similarity, but a structure-from-motion model's points can
+    sit centimetres off its cameras (nearly parallel drone views leave a tilt of the whole model
+    weakly constrained). The row camera is placed among the reconstructed plants, so its error
+    against the rows is measured in this frame; the camera-centre frame adds the model's own
+    shift. Returns the refined (4, 4) ``scene_from_true`` and the correction."""
+    import open3d as o3d
+
+    s = np.asarray(scene_from_true, float)
+    true_from_scene = np.linalg.inv(s)
+    pt = np.asarray(points, float) @ true_from_scene[:3, :3].T + true_from_scene[:3, 3]
+    if len(pt) < 3 or len(true_points) < 3:
+        raise ValueError("register_to_truth needs at least 3 reconstructed and 3 true points")
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pt))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(true_points, float)))
+    t = np.eye(4)
+    result = None
+    for d in distances:
+        result = o3d.pipelines.registration.registration_icp(
+            src,
+            tgt,
+            float(d),
+            t,
+            o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60),
+        )
+        t = np.asarray(result.transformation)
+    refined = s @ np.linalg.inv(t)
+    cos = float(np.clip((np.trace(t[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    return refined, ContentRegistration(
+        shift_m=tuple(float(x) for x in t[:3, 3]),
+        rotation_deg=math.degrees(math.acos(cos)),
+        fitness=float(result.fitness),
+        rmse_m=float(result.inlier_rmse),
+    )
