@@ -173,3 +173,39 @@ def test_maize_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(top, lowest
     levelled = (np.vstack(ring) @ (0.1 * r).T + t) @ w[:3, :3].T + w[:3, 3]
     lo, hi = resolve_bbox("auto", "maize")
     assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX["maize"])
+
+
+@pytest.mark.parametrize(
+    "top,lowest",
+    [
+        (1.1, 0.55),  # measured: a 1.1 m soybean canopy (LAI 3.7), SfM's lowest point 0.55 m up
+        (1.2, 0.7),  # taller, sparse points on its top 40 %
+        (0.9, 0.0),  # soil among the sparse points
+    ],
+)
+def test_soybean_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(top, lowest):
+    """Walking round a closed soybean canopy SfM may find no soil either (the maize case
+    above): the soybean box must reach down to the soil from levelling's ground on the leaves
+    (measured on a 1.1 m canopy: the box from −0.15 left 23 ground-coloured points and the row
+    fit failed, *no ground found*)."""
+    from cropcraft_core.surfaces import resolve_bbox
+    from cropcraft_core.surfaces.base import SCENE_BOX
+
+    rng = np.random.default_rng(6)
+    lay = default_layout("soybean")
+    walk = walk_trajectory(lay, 50, rng, canopy_top=top)
+    m = 1500
+    canopy = np.column_stack([rng.uniform(-0.9, 0.9, (m, 2)), rng.uniform(lowest, top, m)])
+    if lowest == 0.0:
+        canopy[: m // 5, 2] = rng.normal(0, 0.003, m // 5)
+    poses, spts = _scrambled(walk, canopy, 4, 0.7)
+    _, _, frame = level_poses(poses, spts, prior_camera_height_m=1.4)
+    r = Rotation.random(random_state=4).as_matrix()  # _scrambled's similarity, seed 4
+    t = np.random.default_rng(4).normal(0, 3, 3)
+    w = frame.world_from_input
+    # the row camera's footprint (0.6 m from its centre along the row at 1 m), soil and top
+    a = np.radians(np.arange(0, 360, 45))
+    ring = [np.column_stack([0.6 * np.cos(a), 0.6 * np.sin(a), np.full(8, z)]) for z in (0, top)]
+    levelled = (np.vstack(ring) @ (0.7 * r).T + t) @ w[:3, :3].T + w[:3, 3]
+    lo, hi = resolve_bbox("auto", "soybean")
+    assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX["soybean"])
