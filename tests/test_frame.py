@@ -140,72 +140,51 @@ def test_a_measured_distance_between_two_photos_sets_the_scale_exactly():
         level_poses(poses, spts, camera_height_m=1.4, camera_distance=("v003", "v017", d))
 
 
+#: per crop: trajectory, number of views, sparse points' half-width (m), SfM frame units per
+#: metre, prior camera height (m), radius (m) round the plot centre that the box must hold
+_CAPTURE = {
+    "maize": (drone_trajectory, 60, 2.5, 0.1, 13.0, 2.0),  # the row fit's 2 m cylinder
+    "soybean": (walk_trajectory, 50, 0.9, 0.7, 1.4, 0.6),  # the row camera's footprint at 1 m
+}
+
+
 @pytest.mark.parametrize(
-    "top,lowest",
+    "crop,top,lowest",
     [
-        (2.2, 0.93),  # measured: a 2.2 m maize canopy, SfM's lowest sparse point 0.93 m up
-        (3.2, 2.56),  # the tallest maize in the parameter box, sparse points on its top fifth
-        (3.2, 0.0),  # soil among the sparse points, the canopy's top under the box's
+        ("maize", 2.2, 0.93),  # measured: a 2.2 m canopy, SfM's lowest sparse point 0.93 m up
+        ("maize", 3.2, 2.56),  # the tallest maize in the parameter box, points on its top fifth
+        ("maize", 3.2, 0.0),  # soil among the sparse points, the canopy's top under the box's
+        ("soybean", 1.1, 0.55),  # measured: a 1.1 m canopy (LAI 3.7), lowest point 0.55 m up
+        ("soybean", 1.2, 0.7),  # taller, sparse points on its top 40 %
+        ("soybean", 0.9, 0.0),  # soil among the sparse points
     ],
 )
-def test_maize_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(top, lowest):
-    """From a drone over a closed maize canopy SfM may find no soil at all: levelling's ground
-    (the sparse points' lowest) then lies on the leaves and the provisional scale from the 13 m
-    prior is too large. The crop's scene box must still hold the soil and the canopy's top,
-    or the surfaces stage cuts the soil out (measured: height 21.9 % off, LAI −68 %)."""
+def test_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(crop, top, lowest):
+    """From a drone over a closed maize canopy, or walking round a closed soybean one, SfM may
+    find no soil at all: levelling's ground (the sparse points' lowest) then lies on the leaves
+    and the provisional scale from the camera-height prior is too large. The crop's scene box
+    must still hold the soil and the canopy's top, or the surfaces stage cuts the soil out
+    (measured: maize height 21.9 % off and LAI −68 %; soybean 23 ground-coloured points left,
+    the row fit failed with *no ground found*)."""
     from cropcraft_core.surfaces import resolve_bbox
     from cropcraft_core.surfaces.base import SCENE_BOX
 
+    trajectory, views, half, units, prior, radius = _CAPTURE[crop]
     rng = np.random.default_rng(5)
-    lay = default_layout("maize")
-    drone = drone_trajectory(lay, 60, rng, canopy_top=top)
+    cams = trajectory(default_layout(crop), views, rng, canopy_top=top)
     m = 2000
-    canopy = np.column_stack([rng.uniform(-2.5, 2.5, (m, 2)), rng.uniform(lowest, top, m)])
-    if lowest == 0.0:
-        canopy[: m // 5, 2] = rng.normal(0, 0.005, m // 5)
-    poses, spts = _scrambled(drone, np.vstack([canopy, rng.normal(0, 20, (40, 3))]), 4, 0.1)
-    _, _, frame = level_poses(poses, spts, prior_camera_height_m=13.0)
-    r = Rotation.random(random_state=4).as_matrix()  # _scrambled's similarity, seed 4
-    t = np.random.default_rng(4).normal(0, 3, 3)
-    w = frame.world_from_input
-    a = np.radians(np.arange(0, 360, 45))  # the plot within 2 m of its centre, soil and top
-    ring = [np.column_stack([2 * np.cos(a), 2 * np.sin(a), np.full(8, z)]) for z in (0.0, top)]
-    levelled = (np.vstack(ring) @ (0.1 * r).T + t) @ w[:3, :3].T + w[:3, 3]
-    lo, hi = resolve_bbox("auto", "maize")
-    assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX["maize"])
-
-
-@pytest.mark.parametrize(
-    "top,lowest",
-    [
-        (1.1, 0.55),  # measured: a 1.1 m soybean canopy (LAI 3.7), SfM's lowest point 0.55 m up
-        (1.2, 0.7),  # taller, sparse points on its top 40 %
-        (0.9, 0.0),  # soil among the sparse points
-    ],
-)
-def test_soybean_scene_box_holds_soil_and_canopy_when_sfm_sees_no_soil(top, lowest):
-    """Walking round a closed soybean canopy SfM may find no soil either (the maize case
-    above): the soybean box must reach down to the soil from levelling's ground on the leaves
-    (measured on a 1.1 m canopy: the box from −0.15 left 23 ground-coloured points and the row
-    fit failed, *no ground found*)."""
-    from cropcraft_core.surfaces import resolve_bbox
-    from cropcraft_core.surfaces.base import SCENE_BOX
-
-    rng = np.random.default_rng(6)
-    lay = default_layout("soybean")
-    walk = walk_trajectory(lay, 50, rng, canopy_top=top)
-    m = 1500
-    canopy = np.column_stack([rng.uniform(-0.9, 0.9, (m, 2)), rng.uniform(lowest, top, m)])
+    canopy = np.column_stack([rng.uniform(-half, half, (m, 2)), rng.uniform(lowest, top, m)])
     if lowest == 0.0:
         canopy[: m // 5, 2] = rng.normal(0, 0.003, m // 5)
-    poses, spts = _scrambled(walk, canopy, 4, 0.7)
-    _, _, frame = level_poses(poses, spts, prior_camera_height_m=1.4)
+    poses, spts = _scrambled(cams, np.vstack([canopy, rng.normal(0, 20, (40, 3))]), 4, units)
+    _, _, frame = level_poses(poses, spts, prior_camera_height_m=prior)
     r = Rotation.random(random_state=4).as_matrix()  # _scrambled's similarity, seed 4
     t = np.random.default_rng(4).normal(0, 3, 3)
     w = frame.world_from_input
-    # the row camera's footprint (0.6 m from its centre along the row at 1 m), soil and top
-    a = np.radians(np.arange(0, 360, 45))
-    ring = [np.column_stack([0.6 * np.cos(a), 0.6 * np.sin(a), np.full(8, z)]) for z in (0, top)]
-    levelled = (np.vstack(ring) @ (0.7 * r).T + t) @ w[:3, :3].T + w[:3, 3]
-    lo, hi = resolve_bbox("auto", "soybean")
-    assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX["soybean"])
+    a = np.radians(np.arange(0, 360, 45))  # soil and top round the plot centre
+    ring = [
+        np.column_stack([radius * np.cos(a), radius * np.sin(a), np.full(8, z)]) for z in (0.0, top)
+    ]
+    levelled = (np.vstack(ring) @ (units * r).T + t) @ w[:3, :3].T + w[:3, 3]
+    lo, hi = resolve_bbox("auto", crop)
+    assert np.all(levelled >= lo) and np.all(levelled <= hi), (levelled, SCENE_BOX[crop])
