@@ -471,3 +471,25 @@ def test_hole_breakdown_names_the_stage_that_lost_each_hole():
     assert hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)[
         "no_stereo"
     ] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("n_max", [50, 1000])
+def test_point_cloud_subset_does_not_depend_on_the_vertex_order(n_max):
+    """Open3D's TSDF returns the same vertices in a different order on each run: the subset the
+    row fit gets (and its seeded RANSAC over it) must not change with that order."""
+    from cropcraft_core.surfaces.base import subsample
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(400, 3))
+    pts[10] = pts[11]  # a repeated position with another colour
+    cols = rng.uniform(size=(400, 3))
+    perm = rng.permutation(400)
+    a = subsample(pts, cols, n_max, seed=0)
+    b = subsample(pts[perm], cols[perm], n_max, seed=0)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert len(a[0]) == min(n_max, 400)
+    rows = {tuple(r) for r in np.c_[pts, cols]}
+    assert all(tuple(r) in rows for r in np.c_[a[0], a[1]])  # rows kept whole
+    with pytest.raises(ConfigError, match="n_max"):
+        subsample(pts, cols, -1, seed=0)

@@ -532,14 +532,21 @@ def load_surfaces(folder: str | os.PathLike) -> SurfaceBackend:
 def subsample(
     points: np.ndarray, colors: np.ndarray, n_max: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A seeded random subset of at most ``n_max`` rows of points (n, 3) and colors (n, 3)."""
+    """A seeded random subset of at most ``n_max`` rows of points (n, 3) and colors (n, 3), in
+    a canonical order (sorted by x, y, z, then colour): the same for any order of the same rows.
+
+    Open3D's TSDF hands its marching-cubes vertices back in its hash map's order, which changes
+    from run to run: two fits of the same photos gave the same 487,145 vertices in different
+    orders, so a subset by index (and the row fit's seeded RANSAC over it) differed between
+    reruns (the rows' scale −0.75 % on one, −1.42 % on the next)."""
     if n_max < 0:
         raise ConfigError(f"n_max must be ≥ 0, got {n_max}")
-    if len(points) <= n_max:
-        return points, colors
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(len(points), size=n_max, replace=False))
-    return points[idx], colors[idx]
+    points, colors = np.asarray(points), np.asarray(colors)
+    order = np.lexsort((*colors.T[::-1], *points.T[::-1]))  # last key first: x, y, z, colour
+    if len(points) > n_max:
+        rng = np.random.default_rng(seed)
+        order = order[np.sort(rng.choice(len(points), size=n_max, replace=False))]
+    return points[order], colors[order]
 
 
 def in_bbox(points: np.ndarray, bbox: np.ndarray | None) -> np.ndarray:
