@@ -239,10 +239,10 @@ def run(a: argparse.Namespace) -> dict:
     h_obs, h_true, area = observation_vs_truth(obs, d_true)
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     if not metric:
-        content = _content_frame(points, fit, scene_from_true, true_mesh, crop)
-        out["registration"] = content[1].to_dict()
-        out["rowfit_content"] = row_fit_errors(fit, content[0], layout).to_dict()
-        _, h_c, _ = observation_vs_truth(obs, _truth_depth(truth, fit, content[0], a.image_scale))
+        by_surfaces, registration = _content_frame(points, fit, scene_from_true, true_mesh, crop)
+        out["registration"] = registration.to_dict()
+        out["rowfit_content"] = row_fit_errors(fit, by_surfaces, layout).to_dict()
+        _, h_c, _ = observation_vs_truth(obs, _truth_depth(truth, fit, by_surfaces, a.image_scale))
         out["hist_l1_content"] = float(np.abs(h_obs - h_c).sum())
     # the metric's own tightness: the true depth against itself moved down by a sliver of the
     # render height (a sixth of the height target) -- what a perfect reconstruction seen from a

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from cropcraft_core.config.layout import CanopyLayout
+from cropcraft_core.errors import InputError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.rowfit.fit import RowFit
 
@@ -113,11 +114,12 @@ def register_to_truth(
     true_from_scene = np.linalg.inv(s)
     pt = np.asarray(points, float) @ true_from_scene[:3, :3].T + true_from_scene[:3, 3]
     if len(pt) < 3 or len(true_points) < 3:
-        raise ValueError("register_to_truth needs at least 3 reconstructed and 3 true points")
+        raise InputError("register_to_truth needs at least 3 reconstructed and 3 true points")
+    if not distances:
+        raise InputError("register_to_truth needs at least one matching distance")
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pt))
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(true_points, float)))
     t = np.eye(4)
-    result = None
     for d in distances:
         result = o3d.pipelines.registration.registration_icp(
             src,
