@@ -14,7 +14,9 @@ with checkpoints of its own. BO's row uses the crop's
 default rule for its answer (soybean: the per-parameter median of the seeds' best points;
 maize: candidates re-scored on fresh canopies and the best polished, ``fit/select.py``);
 ``bo-mean``, ``bo-median``, ``bo-reevaluate`` are the other rules on the same seeds, and
-``...-unpolished`` the re-scoring without its polish.
+``...-unpolished`` the re-scoring without its polish. ``--known NAME`` (repeatable) gives every
+fit the scene's true value of that parameter (``FitConfig.box``), as a user who counted it in
+the field would: what knowing it buys.
 
 Every (scene, optimiser seed) pair is one job, and so is each scene's combining of its seeds
 once they are in (the re-scoring rows are the costly part): ``--workers N`` runs them in N
@@ -36,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.workers import SHARED, pool
-from cropcraft_core.config import default_layout, param_space
+from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import COMBINE_RULES, combine
 from cropcraft_core.fit.select import unpolished
@@ -169,10 +171,12 @@ def run(
     workers: int = 1,
     checkpoint_dir: str | Path | None = None,
     preset_overrides: dict | None = None,
+    known: tuple[str, ...] = (),
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
     seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
-    ``preset_overrides``: observation preset changes (loss weights, bins) for every scene."""
+    ``preset_overrides``: observation preset changes (loss weights, bins) for every scene;
+    ``known``: parameters every fit is given at the scene's true value."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
@@ -189,18 +193,32 @@ def run(
         "methods": {},
         "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
         "preset_overrides": dict(preset_overrides or {}),
+        "known": list(known),
     }
+    boxes = [{n: t["params"][n] for n in known} for t in truths]
     ex = pool(workers, {"observations": observations})
     try:
         for label, method, crn in runs:
             b = budget(quick, scenes, method, crn, overrides, scale)
             if method == "mlp":
                 params, seconds = _predict_mlp(observations, quick)
+                params = [
+                    ParamBox.of(crop, bx).clip(p) for p, bx in zip(params, boxes, strict=True)
+                ]
                 out["methods"][label] = score(crop, params, truths, seconds, log=log)
                 continue
             rows = rules(crop, label, b.fit)
             answers = _fit_and_combine(
-                observations, b, label, rows, ex, workers, checkpoint_dir, preset_overrides, log
+                observations,
+                b,
+                label,
+                rows,
+                ex,
+                workers,
+                checkpoint_dir,
+                preset_overrides,
+                log,
+                boxes,
             )
             for row, _ in rows:
                 params = [answers[i][row][0] for i in range(len(observations))]
@@ -243,10 +261,13 @@ def _seed_job(args) -> tuple[int, object, float]:
     return i, r, seed_seconds(r)
 
 
-def _seed_jobs(observations, b: Budget, label: str, checkpoint_dir, preset_overrides=None):
-    """The (scene, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``, in
-    scene order."""
+def _seed_jobs(
+    observations, b: Budget, label: str, checkpoint_dir, preset_overrides=None, boxes=None
+):
+    """The (scene, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``
+    (given ``boxes[scene]``, the parameters known in that scene), in scene order."""
     cfg = b.fit
+    boxes = boxes or [{}] * len(observations)
     ck = Path(checkpoint_dir) if checkpoint_dir else None
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
@@ -256,6 +277,8 @@ def _seed_jobs(observations, b: Budget, label: str, checkpoint_dir, preset_overr
         tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
     if preset_overrides:  # another loss or other statistics: another fit, its own checkpoints
         tag += "-p" + config_hash(preset_overrides)[:8]
+    if any(boxes):  # parameters given: another fit, its own checkpoints
+        tag += "-known-" + "-".join(sorted(boxes[0]))
     default_h = preset(crop).render_height
 
     def name(i: int, obs, s: int) -> str:
@@ -265,7 +288,7 @@ def _seed_jobs(observations, b: Budget, label: str, checkpoint_dir, preset_overr
         return f"{obs.crop}-{tag}-scene{i}{raised}-seed{s}.json"
 
     return [
-        (i, s, cfg, ck / name(i, obs, s) if ck is not None else None)
+        (i, s, replace(cfg, box=boxes[i]), ck / name(i, obs, s) if ck is not None else None)
         for i, obs in enumerate(observations)
         for s in range(cfg.n_seeds)
     ]
@@ -278,7 +301,16 @@ def _combine_job(args) -> tuple[int, dict]:
 
 
 def _fit_and_combine(
-    observations, b: Budget, label, rows, ex, workers, checkpoint_dir, preset_overrides, log
+    observations,
+    b: Budget,
+    label,
+    rows,
+    ex,
+    workers,
+    checkpoint_dir,
+    preset_overrides,
+    log,
+    boxes=None,
 ) -> dict[int, dict]:
     """Every scene's seeds fitted, then its answers under every row (:func:`combine_scene`):
     ``{scene: {row: (params, seconds)}}``. In ``ex``'s processes a scene is combined as soon
@@ -287,6 +319,7 @@ def _fit_and_combine(
     end (for maize, about 1.5 min per scene on one core)."""
     crop = observations[0].crop
     n_seeds = b.fit.n_seeds
+    boxes = boxes or [{}] * len(observations)
     per_scene: dict[int, list] = {i: [] for i in range(len(observations))}
     seconds = dict.fromkeys(per_scene, 0.0)
     answers: dict[int, dict] = {}
@@ -297,9 +330,10 @@ def _fit_and_combine(
         if len(per_scene[i]) < n_seeds:
             return None
         log(f"  {label} scene {i}: {n_seeds} seeds in {seconds[i]:.0f} s")
-        return (i, crop, rows, per_scene[i], seconds[i])
+        scene_rows = [(row, replace(c, box=boxes[i])) for row, c in rows]
+        return (i, crop, scene_rows, per_scene[i], seconds[i])
 
-    jobs = _seed_jobs(observations, b, label, checkpoint_dir, preset_overrides)
+    jobs = _seed_jobs(observations, b, label, checkpoint_dir, preset_overrides, boxes)
     if ex is None:
         for job in jobs:
             ready = seed_in(*_seed_job(job))
@@ -441,6 +475,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--store", help="scene store for the flow's result (default ./cropcraft-data)")
     ap.add_argument(
+        "--known",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="give every fit the scene's true value of this parameter, as a user who counted "
+        "it would (repeatable; such fits keep their own checkpoints)",
+    )
+    ap.add_argument(
         "--preset",
         action="append",
         default=[],
@@ -450,6 +492,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     a = ap.parse_args(argv)
     preset_overrides = _parse_preset(a.crop, a.preset)
+    names = {p.name for p in param_space(a.crop)}
+    for n in a.known:
+        if n not in names:
+            raise SystemExit(f"bench accuracy: --known {n}: not a {a.crop} parameter")
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     overrides = {
         "n_seeds": a.seeds,
@@ -460,8 +506,8 @@ def main(argv: list[str] | None = None) -> int:
         "local_share": a.local_share,
     }
     if a.runner:
-        if preset_overrides:
-            raise SystemExit("bench accuracy: --preset is not available with --runner")
+        if preset_overrides or a.known:
+            raise SystemExit("bench accuracy: --preset and --known are not available with --runner")
         res = _run_flow(a, methods, overrides)
         print_table(res)
         print(f"stored: {res['url']}")
@@ -477,6 +523,7 @@ def main(argv: list[str] | None = None) -> int:
         workers=a.workers,
         checkpoint_dir=a.checkpoint_dir,
         preset_overrides=preset_overrides,
+        known=tuple(a.known),
     )
     print_table(res)
     if a.json:

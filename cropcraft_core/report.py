@@ -207,15 +207,21 @@ def scene_report_html(
         std = fit.get("params_std") or {}
         seeds = fit.get("seed_params") or []
         losses = fit.get("seed_losses") or []
+        box = (fit.get("config") or {}).get("box") or {}
         parts.append(
             f"<h2>Fitted parameters ({html.escape(str(fit.get('method', '')))}, "
-            f"{len(seeds)} seeds)</h2><table><tr><th>parameter</th><th>mean</th>"
+            f"{len(seeds)} seeds)</h2><table><tr><th>parameter</th><th>answer</th>"
             "<th>SD over seeds</th><th>min</th><th>max</th></tr>"
         )
         for name, value in params.items():
             col = [float(s[name]) for s in seeds if name in s]
             lo = min(col) if col else None
             hi = max(col) if col else None
+            given = box.get(name)
+            if isinstance(given, list | tuple):
+                name = f"{name} (searched {_fmt(given[0])} to {_fmt(given[1])})"
+            elif given is not None:
+                name = f"{name} (given, not fitted)"
             parts.append(
                 f"<tr><td>{html.escape(name)}</td><td class='num'>{_fmt(value)}</td>"
                 f"<td class='num'>{_fmt(std.get(name))}</td><td class='num'>{_fmt(lo)}</td>"

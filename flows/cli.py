@@ -158,8 +158,10 @@ def _print_summary(out: str, metrics: dict) -> None:
 
 def _fit_config(args: argparse.Namespace):
     from cropcraft_core.fit import FitConfig
+    from flows.service_cli import parse_params
 
     cfg = FitConfig(
+        box=parse_params(args.param),
         method=args.method,
         n_seeds=args.seeds,
         n_evals=args.evals,
@@ -167,7 +169,12 @@ def _fit_config(args: argparse.Namespace):
         combine=args.combine,
         polish_evals=args.polish_evals,
     )
-    return cfg if args.method == "poisson" else cfg.validate()
+    if args.method == "poisson":
+        if cfg.box:
+            raise ConfigError("--param: the poisson baseline fits no model parameters")
+        return cfg
+    cfg.validate().param_box(args.crop)
+    return cfg
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -275,6 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="reevaluate: Nelder-Mead evaluations refining the best re-scored candidate "
         "(60; 0: none)",
     )
+    from flows.service_cli import add_param_option
+
+    add_param_option(f)
     f.add_argument("--seed", type=int, default=0, help="seed of the final canopy and sampling")
     f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")
     f.add_argument("--row-spacing", type=float, metavar="M", help="known planting row spacing")

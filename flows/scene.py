@@ -60,6 +60,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "n_seeds": 10,
         "n_evals": 500,
         "n_initial": 200,
+        # known parameters: name -> value (fixed) or [low, high] (``FitConfig.box``)
+        "box": {},
         "common_random_numbers": True,
         "refit_every": 10,
         "gp_output": "none",  # what BO's GP models: the loss ("none") or its logarithm ("log")
@@ -79,7 +81,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 
 #: Sections whose keys are free-form (checked by the core function that uses them).
 _OPEN_SECTIONS = {"layout", "surfaces"}
-_OPEN_KEYS = {"preset"}
+_OPEN_KEYS = {"preset", "box"}
 
 
 def _set_dotted(cfg: dict, dotted: str, value: Any) -> None:
@@ -135,7 +137,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         default_layout(crop, **cfg["layout"])
     except TypeError as exc:
         raise ConfigError(f"invalid layout override {cfg['layout']}: {exc}") from None
-    FitConfig(**cfg["fit"]).validate()
+    FitConfig(**cfg["fit"]).validate().param_box(crop)
     rowfit_preset(crop, **cfg["rowfit"]["preset"])
     observe_preset(crop, **cfg["observe"]["preset"])
     if SurfacesConfig is not None:
@@ -182,6 +184,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
 
     layout = {"layout": dict(cfg["layout"])}
     fit = dict(cfg["fit"])
+    if not fit.get("box"):  # the whole box hashes as before the setting existed
+        fit.pop("box", None)
     agg_only: dict[str, Any] = {}
     if crop is not None:
         resolved = FitConfig(**fit).resolved(crop)

@@ -46,6 +46,7 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             help="config override, e.g. fit.n_evals=200 or observe.image_scale=0.5 (repeatable; "
             "VALUE is JSON, else a string)",
         )
+        add_param_option(p)
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
         p.add_argument(
             "--camera-height",
@@ -64,9 +65,45 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
         )
 
 
+def add_param_option(p: argparse.ArgumentParser) -> None:
+    """``--param NAME=VALUE|LOW:HIGH``: what the user knows of a model parameter (``fit.box``)."""
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE|LOW:HIGH",
+        help="what you know of a model parameter: a value is fixed, not fitted (e.g. "
+        "num_nodes=9 counted in the field), LOW:HIGH narrows its search (repeatable; "
+        "= --set fit.box.NAME=...)",
+    )
+
+
+def parse_params(items: list[str] | None) -> dict[str, float | list[float]]:
+    """``["num_nodes=9", "leaf_length=0.8:1.1"]`` → ``{"num_nodes": 9.0, "leaf_length":
+    [0.8, 1.1]}`` (names and ranges are checked against the crop by ``ParamBox``)."""
+    out: dict[str, float | list[float]] = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ConfigError(f"--param expects NAME=VALUE or NAME=LOW:HIGH, got {item!r}")
+        parts = value.split(":")
+        try:
+            numbers = [float(v) for v in parts]
+        except ValueError:
+            raise ConfigError(
+                f"--param {name.strip()}: {value!r} is not a number or LOW:HIGH"
+            ) from None
+        if len(numbers) > 2:
+            raise ConfigError(f"--param {name.strip()}: {value!r} has more than two numbers")
+        out[name.strip()] = numbers[0] if len(numbers) == 1 else numbers
+    return out
+
+
 def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
     """The config overrides of a ``run``/``season`` command line (``--set`` and the shortcuts)."""
     out = parse_sets(args.set)
+    for name, value in parse_params(getattr(args, "param", None)).items():
+        out[f"fit.box.{name}"] = value
     if getattr(args, "camera_height", None) is not None:
         out["poses.camera_height"] = float(args.camera_height)
     if getattr(args, "camera_distance", None) is not None:

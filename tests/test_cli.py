@@ -169,6 +169,27 @@ def test_camera_distance_is_a_scale_shortcut():
         overrides_of(bad)
 
 
+def test_param_is_a_parameter_box_shortcut_checked_against_the_crop():
+    from cropcraft_core.errors import ConfigError
+    from flows.cli import build_parser
+    from flows.scene import resolve_config, stage_configs
+    from flows.service_cli import overrides_of
+
+    argv = ["run", "s/soybean/2024-07-01", "--param", "num_nodes=9", "--param", "leaf_length=1:1.3"]
+    overrides = overrides_of(build_parser().parse_args(argv))
+    assert overrides == {"fit.box.num_nodes": 9.0, "fit.box.leaf_length": [1.0, 1.3]}
+    cfg = resolve_config("soybean", overrides)
+    assert cfg["fit"]["box"] == {"num_nodes": 9.0, "leaf_length": [1.0, 1.3]}
+    seeds = stage_configs(cfg, "soybean")["fit_seed"]
+    assert seeds["box"] == cfg["fit"]["box"]
+    # the whole box is hashed as before the setting existed: stored seeds stay served
+    assert "box" not in stage_configs(resolve_config("soybean"), "soybean")["fit_seed"]
+    with pytest.raises(ConfigError, match="unknown maize parameter 'petiole_angle'"):
+        resolve_config("maize", {"fit.box.petiole_angle": 2.0})
+    with pytest.raises(ConfigError, match="NAME=VALUE or NAME=LOW:HIGH"):
+        overrides_of(build_parser().parse_args(["run", "s/soybean/d", "--param", "num_nodes"]))
+
+
 def test_cli_gives_prefects_temporary_server_time_to_start(tmp_path):
     """Prefect waits 20 s for its temporary server; a fresh machine's first start (creating its
     database) took 19.7 s here, so `cropcraft demo` timed out. The CLI raises the wait unless

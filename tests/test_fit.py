@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 
 from cropcraft_core.config import default_layout
-from cropcraft_core.config.params import bounds
+from cropcraft_core.config.params import ParamBox, bounds, param_space
 from cropcraft_core.errors import ConfigError
-from cropcraft_core.fit import FitConfig, ForwardModel, fit_observation, fit_seed, observe_canopy
+from cropcraft_core.fit import (
+    FitConfig,
+    ForwardModel,
+    combine,
+    fit_observation,
+    fit_seed,
+    observe_canopy,
+)
 from cropcraft_core.fit.mlp import MLPConfig, predict_params
 from cropcraft_core.metrics import canopy_metrics
 from cropcraft_core.observe import preset
@@ -271,6 +278,29 @@ def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_
         _parse_preset("maize", ["lambda_lateral"])
 
 
+def test_accuracy_bench_gives_known_parameters_their_true_value_in_checkpoints_of_their_own(
+    tmp_path,
+):
+    """``bench accuracy --known num_nodes``: every row's answer carries the scene's true node
+    count and the seeds search the other parameters, apart from the plain run's checkpoints."""
+    import json
+
+    from benchmarks.bench_accuracy import run
+
+    budget = {"n_seeds": 1, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
+    kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
+    plain = run("maize", ["bo"], True, 1, **kw)
+    known = run("maize", ["bo"], True, 1, known=("num_nodes",), **kw)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert len(names) == 2 and sum("-known-num_nodes-" in n for n in names) == 1
+    true_nodes = known["truths"][0]["params"]["num_nodes"]
+    for row, r in known["methods"].items():
+        assert r["predictions"][0]["params"]["num_nodes"] == true_nodes, row
+    assert plain["truths"] == known["truths"] and known["known"] == ["num_nodes"]
+    ck = json.loads((tmp_path / next(n for n in names if "-known-" in n)).read_text())
+    assert np.asarray(ck["X"]).shape == (6, 3)
+
+
 def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_process(tmp_path):
     """With ``--workers`` each scene's answers (re-scoring and polish included) are combined in
     the worker processes as soon as its seeds are in; the answers are the ones the in-process
@@ -292,3 +322,60 @@ def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_p
     # the plain re-scoring's answer): its time is the seeds' plus the re-scoring, not the polish
     sec = {row: pooled["methods"][row]["seconds_per_scene"] for row in rows}
     assert sec["bo-median"] < sec["bo-unpolished"] < sec["bo"]
+
+
+def test_known_parameters_are_fixed_and_the_rest_searched_inside_their_box():
+    """``FitConfig.box``: a known value is not fitted (every evaluation and the answer carry
+    it, its spread is 0); a narrowed range bounds every evaluation; the re-scored answer
+    (maize's default) and its polish stay in the box."""
+    truth = {"leaf_length": 1.1, "leaf_order_shift": 1.0, "internode_length": 0.9, "num_nodes": 12}
+    obs, _ = observation("maize", truth)
+    box = {"num_nodes": 12, "leaf_length": [1.0, 1.15]}
+    cfg = FitConfig(n_seeds=2, n_evals=24, n_initial=10, box=box, reevaluate_canopies=2)
+    cfg = FitConfig(**{**cfg.to_dict(), "polish_evals": 8})
+    seed = fit_seed(obs, 0, cfg)
+    assert seed.X.shape == (24, 3)  # leaf_length, leaf_order_shift, internode_length
+    assert np.all((seed.X[:, 0] >= 1.0) & (seed.X[:, 0] <= 1.15))
+    res = fit_observation(obs, cfg)
+    assert res.params["num_nodes"] == 12.0 and res.params_std["num_nodes"] == 0.0
+    assert all(p["num_nodes"] == 12.0 for p in res.seed_params)
+    assert 1.0 <= res.params["leaf_length"] <= 1.15
+    cands = res.extra["selection"]["candidates"]
+    assert any(k.startswith("polished-") for k in cands)
+    assert all(c["params"]["num_nodes"] == 12.0 for c in cands.values())
+    # seeds fitted under another box are not combined with this one's
+    whole = fit_seed(obs, 1, FitConfig(n_evals=12, n_initial=6))
+    with pytest.raises(ConfigError, match="another parameter box"):
+        combine("maize", [seed, whole], cfg, 0.0, obs)
+
+
+@pytest.mark.parametrize("method", ["random", "trust-region"])
+def test_baselines_keep_known_parameters(method):
+    obs, _ = observation("soybean", SOY_TRUTH)
+    cfg = FitConfig(method=method, n_seeds=1, n_evals=8, n_initial=4, box={"num_nodes": 8})
+    res = fit_observation(obs, cfg)
+    assert res.params["num_nodes"] == 8.0 and len(res.params) == 5
+
+
+def test_bad_parameter_box_is_named():
+    with pytest.raises(ConfigError, match="unknown soybean parameter 'nodes'"):
+        FitConfig(box={"nodes": 9}).param_box("soybean")
+    with pytest.raises(ConfigError, match=r"outside the model's range \[1, 14\]"):
+        FitConfig(box={"num_nodes": 20}).param_box("soybean")
+    with pytest.raises(ConfigError, match="low 1.2 is above high 0.9"):
+        ParamBox.of("maize", {"leaf_length": [1.2, 0.9]})
+    with pytest.raises(ConfigError, match="not a number"):
+        ParamBox.of("maize", {"leaf_length": "long"})
+    with pytest.raises(ConfigError, match="not a finite number"):
+        ParamBox.of("maize", {"leaf_length": True})
+    with pytest.raises(ConfigError, match="nothing is left to fit"):
+        ParamBox.of(
+            "maize",
+            {n: 1.0 for n in ("leaf_length", "internode_length")}
+            | {"leaf_order_shift": 0.0, "num_nodes": 9},
+        )
+    with pytest.raises(ConfigError, match="box must map"):
+        FitConfig(box=[("num_nodes", 9)]).validate()
+    whole = ParamBox.of("soybean")
+    assert whole.is_full and whole.names == tuple(s.name for s in param_space("soybean"))
+    assert not ParamBox.of("soybean", {"num_nodes": [2, 14]}).is_full

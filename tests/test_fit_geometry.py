@@ -135,6 +135,10 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
             "10",
             "--initial",
             "6",
+            "--param",
+            "num_nodes=7",
+            "--param",
+            "leaf_length=0.8:1.2",
         ]
     )
     assert rc == 0
@@ -142,6 +146,9 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
         assert (out / name).exists(), name
     fit = json.loads((out / "fit.json").read_text())
     assert fit["fit"]["method"] == "bo" and len(fit["fit"]["seed_losses"]) == 1
+    assert fit["fit"]["params"]["num_nodes"] == 7.0  # known: not fitted
+    assert 0.8 <= fit["fit"]["params"]["leaf_length"] <= 1.2
+    assert fit["fit"]["config"]["box"] == {"num_nodes": 7.0, "leaf_length": [0.8, 1.2]}
 
 
 def test_cli_poisson_baseline(canopy_ply, tmp_path):
@@ -194,3 +201,10 @@ def test_cli_fit_bad_inputs(tmp_path, capsys):
     assert main(["fit", "soybean", "--geometry", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "bad.ply" in capsys.readouterr().err
     assert not (tmp_path / "o" / "metrics.json").exists()
+    args = ["fit", "maize", "--geometry", str(bad), "--out", str(tmp_path / "o")]
+    assert main([*args, "--param", "num_nodes=30"]) == 2
+    assert "num_nodes: [30, 30] reaches outside the model's range [1, 18]" in (
+        capsys.readouterr().err
+    )
+    assert main([*args, "--param", "num_nodes=4:6:8"]) == 2
+    assert "more than two numbers" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from cropcraft_core.config.layout import CanopyLayout, default_layout
 from cropcraft_core.config.params import (
     CROPS,
+    ParamBox,
     ParamSpec,
     param_space,
     params_from_vector,
@@ -13,6 +14,7 @@ from cropcraft_core.config.params import (
 __all__ = [
     "CROPS",
     "CanopyLayout",
+    "ParamBox",
     "ParamSpec",
     "default_layout",
     "param_space",

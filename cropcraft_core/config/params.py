@@ -111,3 +111,129 @@ def params_from_vector(crop: str, x: np.ndarray) -> dict[str, float]:
 def bounds(crop: str) -> np.ndarray:
     """(d, 2) lower/upper bounds in parameter order."""
     return np.array([[s.low, s.high] for s in param_space(crop)], dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class ParamBox:
+    """The box a fit searches: the crop's :func:`bounds`, narrowed by what the user already
+    knows. ``limits`` maps a parameter to a known value (fixed, not fitted: e.g. the main-stem
+    nodes counted in the field) or to ``[low, high]`` inside the model's range. The optimisers
+    see only the free parameters (``bounds``, in :func:`param_space` order); :meth:`vector`
+    and :meth:`params` put the fixed values back."""
+
+    crop: str
+    low: np.ndarray
+    high: np.ndarray
+
+    @classmethod
+    def of(cls, crop: str, limits: Mapping[str, object] | None = None) -> ParamBox:
+        """The crop's box with ``limits`` applied; unknown names, values that are not numbers,
+        ``low > high``, limits outside the model's range and a box with nothing left to fit
+        are named errors."""
+        specs = param_space(crop)
+        full = bounds(crop)
+        low, high = full[:, 0].copy(), full[:, 1].copy()
+        index = {s.name: i for i, s in enumerate(specs)}
+        if limits is not None and not isinstance(limits, Mapping):
+            raise ConfigError(
+                f"the parameter box must map names to a value or [low, high], got {limits!r}"
+            )
+        for name, given in (limits or {}).items():
+            if name not in index:
+                raise ConfigError(
+                    f"unknown {crop} parameter {name!r} in the parameter box: choose from "
+                    f"{', '.join(index)}"
+                )
+            lo, hi = _limit_pair(crop, name, given)
+            s = specs[index[name]]
+            if lo > hi:
+                raise ConfigError(f"{crop} parameter {name}: low {lo:g} is above high {hi:g}")
+            if lo < s.low or hi > s.high:
+                raise ConfigError(
+                    f"{crop} parameter {name}: [{lo:g}, {hi:g}] reaches outside the model's "
+                    f"range [{s.low:g}, {s.high:g}]"
+                )
+            low[index[name]], high[index[name]] = lo, hi
+        if not np.any(low < high):
+            raise ConfigError(f"every {crop} parameter is fixed: nothing is left to fit")
+        return cls(crop, low, high)
+
+    @property
+    def free(self) -> np.ndarray:
+        """(d,) bool: the parameters the optimiser varies."""
+        return self.low < self.high
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The free parameters' names."""
+        return tuple(s.name for s, f in zip(param_space(self.crop), self.free, strict=True) if f)
+
+    @property
+    def fixed(self) -> dict[str, float]:
+        """The known (fixed) parameters and their values."""
+        return {
+            s.name: float(lo)
+            for s, lo, f in zip(param_space(self.crop), self.low, self.free, strict=True)
+            if not f
+        }
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(k, 2) the free parameters' bounds: what the optimisers search."""
+        f = self.free
+        return np.column_stack([self.low[f], self.high[f]])
+
+    @property
+    def is_full(self) -> bool:
+        """Whether this is the crop's whole box (nothing narrowed or fixed)."""
+        return bool(np.array_equal(np.column_stack([self.low, self.high]), bounds(self.crop)))
+
+    def vector(self, x: np.ndarray) -> np.ndarray:
+        """(d,) every parameter from the free ones' (k,) values; free values are clipped onto
+        the box."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (int(self.free.sum()),):
+            raise ConfigError(
+                f"{self.crop} box has {int(self.free.sum())} free parameters, got a vector of "
+                f"shape {x.shape}"
+            )
+        out = self.low.copy()
+        out[self.free] = np.clip(x, self.low[self.free], self.high[self.free])
+        return out
+
+    def params(self, x: np.ndarray) -> dict[str, float]:
+        """Every parameter by name from the free ones' values."""
+        return params_from_vector(self.crop, self.vector(x))
+
+    def spread(self, s: np.ndarray) -> dict[str, float]:
+        """A per-free-parameter spread (k,) by name; 0 for the fixed parameters."""
+        out = np.zeros(len(self.low))
+        out[self.free] = np.asarray(s, dtype=np.float64)
+        return {spec.name: float(v) for spec, v in zip(param_space(self.crop), out, strict=True)}
+
+    def clip(self, params: Mapping[str, float]) -> dict[str, float]:
+        """``params`` moved into the box (fixed parameters set to their values)."""
+        x = np.clip(params_to_vector(self.crop, params), self.low, self.high)
+        return params_from_vector(self.crop, x)
+
+
+def _limit_pair(crop: str, name: str, given: object) -> tuple[float, float]:
+    if isinstance(given, list | tuple) and len(given) == 2:
+        pair = given
+    elif isinstance(given, list | tuple):
+        raise ConfigError(
+            f"{crop} parameter {name}: give a value or [low, high], got {len(given)} numbers"
+        )
+    else:
+        pair = (given, given)
+    try:
+        lo, hi = (float(v) for v in pair)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{crop} parameter {name}={given!r} is not a number") from None
+    if (
+        isinstance(pair[0], bool)
+        or isinstance(pair[1], bool)
+        or not (math.isfinite(lo) and math.isfinite(hi))
+    ):
+        raise ConfigError(f"{crop} parameter {name}={given!r} is not a finite number")
+    return lo, hi

@@ -21,8 +21,7 @@ from typing import Any
 import numpy as np
 
 from cropcraft_core.config import CanopyLayout
-from cropcraft_core.config.params import bounds as param_bounds
-from cropcraft_core.config.params import params_from_vector
+from cropcraft_core.config.params import ParamBox
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.observe import Observation
@@ -75,6 +74,10 @@ class FitConfig:
     """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
     n_initial: int = 200
     """Random initial evaluations of a BO seed."""
+    box: dict[str, Any] = field(default_factory=dict, hash=False)
+    """What is already known of the parameters: name → a value (fixed, not fitted; e.g. the
+    main-stem nodes counted in the field) or ``[low, high]`` inside the model's range. The
+    optimisers search the remaining box (``ParamBox``); empty: the crop's whole box."""
     common_random_numbers: bool = True
     """Same canopy seed for every evaluation of an optimiser seed (see module docstring)."""
     refit_every: int = 10
@@ -115,7 +118,15 @@ class FitConfig:
         """Whether :func:`combine` re-scores candidates (and so needs the observation)."""
         return self.method == "bo" and self.combine_rule(crop) == "reevaluate"
 
+    def param_box(self, crop: str) -> ParamBox:
+        """The box the optimisers search for ``crop`` (checked: ``ParamBox.of``)."""
+        return ParamBox.of(crop, self.box)
+
     def validate(self) -> FitConfig:
+        if not isinstance(self.box, dict):
+            raise ConfigError(
+                f"box must map parameter names to a value or [low, high], got {self.box!r}"
+            )
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
         if self.canopies_per_eval is not None and self.canopies_per_eval < 1:
@@ -179,12 +190,17 @@ def canopy_seed(optimiser_seed: int, eval_index: int, crn: bool) -> int:
 
 
 def make_objective(
-    forward: ForwardModel, optimiser_seed: int, crn: bool, canopies: int = 1
+    forward: ForwardModel,
+    optimiser_seed: int,
+    crn: bool,
+    canopies: int = 1,
+    box: ParamBox | None = None,
 ) -> Callable[[np.ndarray, int], float]:
-    crop = forward.crop
+    """The loss of the free parameters ``x`` (``box``: the crop's whole box by default)."""
+    box = box or ParamBox.of(forward.crop)
 
     def objective(x: np.ndarray, eval_index: int) -> float:
-        params = params_from_vector(crop, np.clip(x, *param_bounds(crop).T))
+        params = box.params(x)
         base = canopy_seed(optimiser_seed, eval_index, crn)
         seeds = [base + 104_729 * k for k in range(canopies)]
         return forward.loss(params, seeds)
@@ -205,10 +221,11 @@ def fit_seed(
     if cfg.method == "mlp":
         raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
     forward = ForwardModel(observation, layout)
+    box = cfg.param_box(observation.crop)
     objective = make_objective(
-        forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop)
+        forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop), box
     )
-    b = param_bounds(observation.crop)
+    b = box.bounds
     if cfg.method == "bo":
         res = run_seed(
             objective,
@@ -273,7 +290,15 @@ def combine(
     config = config.validate()
     if observation is not None and observation.crop != crop:
         raise ConfigError(f"observation is of {observation.crop}, the seeds of {crop}")
-    per_seed = [params_from_vector(crop, r.reported_x) for r in results]
+    box = config.param_box(crop)
+    k = len(box.names)
+    for r in results:
+        if len(r.reported_x) != k:
+            raise ConfigError(
+                f"seed {r.seed} searched {len(r.reported_x)} parameters, the box "
+                f"({', '.join(box.names)}) has {k}: it was fitted under another parameter box"
+            )
+    per_seed = [box.params(r.reported_x) for r in results]
     losses = [float(r.best_y) for r in results]
     agg = aggregate(results)
     extra: dict[str, Any] = {}
@@ -295,9 +320,10 @@ def combine(
             config.reevaluate_canopies,
             config.polish_starts,
             config.polish_evals,
+            box=box,
         )
         final, std = sel.x, agg.std_x
-        extra["selection"] = sel.to_dict(crop)
+        extra["selection"] = sel.to_dict(box)
         seconds += sel.seconds
     elif config.method == "bo" and config.combine_rule(crop) == "median":
         final, std = np.median(agg.per_seed, axis=0), agg.std_x
@@ -306,8 +332,8 @@ def combine(
     return FitResult(
         crop=crop,
         method=config.method,
-        params=params_from_vector(crop, final),
-        params_std=params_from_vector(crop, std),
+        params=box.params(final),
+        params_std=box.spread(std),
         seed_params=per_seed,
         seed_losses=losses,
         seconds=seconds,
@@ -329,7 +355,8 @@ def fit_observation(
     if cfg.method == "mlp":
         from cropcraft_core.fit.mlp import predict_params
 
-        params = predict_params(observation, layout=layout)
+        # the network predicts every parameter; what the user knows replaces its guess
+        params = cfg.param_box(observation.crop).clip(predict_params(observation, layout=layout))
         zero = {k: 0.0 for k in params}
         return FitResult(
             observation.crop,

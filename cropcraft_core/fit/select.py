@@ -71,8 +71,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from cropcraft_core.config.params import bounds as param_bounds
-from cropcraft_core.config.params import params_from_vector
+from cropcraft_core.config.params import ParamBox
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.optimize import SeedResult, aggregate
@@ -100,7 +99,9 @@ class Selection:
     #: the part of ``seconds`` spent re-scoring, before any polish
     rescore_seconds: float
 
-    def to_dict(self, crop: str) -> dict:
+    def to_dict(self, box: ParamBox | str) -> dict:
+        """JSON-ready; ``box``: the box the candidates live in (a crop name: its whole box)."""
+        box = ParamBox.of(box) if isinstance(box, str) else box
         return {
             "rule": "reevaluate",
             "chosen": self.chosen,
@@ -108,7 +109,7 @@ class Selection:
             "seconds": self.seconds,
             "rescore_seconds": self.rescore_seconds,
             "candidates": {
-                k: {"params": params_from_vector(crop, v), "loss": self.losses[k]}
+                k: {"params": box.params(v), "loss": self.losses[k]}
                 for k, v in self.candidates.items()
             },
         }
@@ -194,7 +195,11 @@ def candidates(results: Sequence[SeedResult]) -> dict[str, np.ndarray]:
 
 
 def polish(
-    forward: ForwardModel, x0: np.ndarray, canopy_seeds: Sequence[int], max_evals: int
+    forward: ForwardModel,
+    x0: np.ndarray,
+    canopy_seeds: Sequence[int],
+    max_evals: int,
+    box: ParamBox | None = None,
 ) -> tuple[np.ndarray, float, int]:
     """Nelder-Mead from ``x0`` on the loss averaged over ``canopy_seeds`` (the re-scoring
     canopies), in the unit cube of the crop's box (points outside are clipped onto it); first
@@ -202,13 +207,13 @@ def polish(
     Returns (point, its loss, evaluations). The loss is deterministic in the point (the same
     canopies every time) and ``x0`` is a vertex of the first simplex, so the result never
     scores worse than ``x0``."""
-    b = param_bounds(forward.crop)
+    box = box or ParamBox.of(forward.crop)
+    b = box.bounds
     lo, span = b[:, 0], b[:, 1] - b[:, 0]
     u0 = np.clip((np.asarray(x0, dtype=np.float64) - lo) / span, 0.0, 1.0)
-    crop = forward.crop
 
     def f(u: np.ndarray) -> float:
-        v = forward.loss(params_from_vector(crop, lo + span * np.clip(u, 0.0, 1.0)), canopy_seeds)
+        v = forward.loss(box.params(lo + span * np.clip(u, 0.0, 1.0)), canopy_seeds)
         return float(v) if np.isfinite(v) else float("inf")
 
     simplex = first_simplex(u0, POLISH_STEP, turn_above=0.9)
@@ -227,24 +232,25 @@ def select(
     canopies: int = 16,
     polish_starts: int = 0,
     polish_evals: int = 0,
+    box: ParamBox | None = None,
 ) -> Selection:
     """Re-score :func:`candidates` on ``canopies`` fresh canopies (the same for all), then
     :func:`polish` the ``polish_starts`` lowest (``polished-NAME``, ``polish_evals``
     evaluations each; 0: none) and keep the lowest loss; ties go to the first candidate (seed
-    order, then mean, averaged, the polished points)."""
+    order, then mean, averaged, the polished points). ``box``: the parameter box the seeds
+    searched (the crop's whole box by default)."""
+    box = box or ParamBox.of(forward.crop)
     t = time.perf_counter()
     seeds = reevaluation_seeds(canopies)
     cands = candidates(results)
-    losses = {
-        k: float(forward.loss(params_from_vector(forward.crop, x), seeds)) for k, x in cands.items()
-    }
+    losses = {k: float(forward.loss(box.params(x), seeds)) for k, x in cands.items()}
     finite = {k: v for k, v in losses.items() if np.isfinite(v)}
     if not finite:
         raise ConfigError("every candidate's re-scored loss is non-finite")
     rescore_seconds = time.perf_counter() - t
     if polish_evals > 0:
         for k in sorted(finite, key=finite.__getitem__)[:polish_starts]:
-            x, v, _ = polish(forward, cands[k], seeds, polish_evals)
+            x, v, _ = polish(forward, cands[k], seeds, polish_evals, box)
             cands[f"polished-{k}"], losses[f"polished-{k}"] = x, v
             if np.isfinite(v):
                 finite[f"polished-{k}"] = v
