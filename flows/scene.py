@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -254,6 +255,47 @@ def default_poses_uri(store: SceneStore, scene: SceneKey) -> str | None:
     return store.url(key) if store.isfile(key) else None
 
 
+#: Field notes beside a date's photos: the model parameters measured in the field that day
+#: (e.g. ``{"num_nodes": 9}``, the main-stem nodes counted at a V-stage scouting; a value, or
+#: ``[low, high]``), the fit's known parameters for that date (``fit.box``). Settings given to
+#: the run (``--param``, ``--set fit.box...``) go over them.
+KNOWN_FILE = "known.json"
+
+
+def read_known(images_uri: str, crop: str) -> dict[str, Any]:
+    """The :data:`KNOWN_FILE` in the photos' folder (local or fsspec URL), checked against
+    ``crop``'s parameters; {} when there is none. A file that is not a JSON object of valid
+    parameters is an InputError naming it."""
+    from fsspec.core import url_to_fs
+
+    from cropcraft_core.config import ParamBox
+
+    uri = str(images_uri).rstrip("/") + "/" + KNOWN_FILE
+    try:
+        fs, path = url_to_fs(uri)
+        if not fs.isfile(path):
+            return {}
+        raw = fs.cat_file(path)
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read {uri}: {exc}") from exc
+    try:
+        known = json.loads(raw)
+    except ValueError as exc:
+        raise InputError(f"{uri}: not valid JSON ({exc})") from None
+    if not isinstance(known, dict):
+        raise InputError(
+            f"{uri}: must be a JSON object of {crop} parameters (a value or [low, high] each), "
+            f"got {type(known).__name__}"
+        )
+    try:
+        ParamBox.of(crop, known)
+    except ConfigError as exc:
+        raise InputError(f"{uri}: {exc}") from None
+    return known
+
+
 def prepare(
     site: str,
     crop: str,
@@ -269,14 +311,19 @@ def prepare(
 
     Raises ConfigError (bad site/crop/date characters, unknown settings), StoreError (the store
     cannot be reached or written, within ``timeout_s``) or InputError (no photos at ``images``,
-    nothing at ``poses``). ``images`` defaults to the scene's inbox in the store, ``poses`` to
-    ``images/transforms.json`` there if present.
+    nothing at ``poses``, a bad :data:`KNOWN_FILE`). ``images`` defaults to the scene's inbox
+    in the store, ``poses`` to ``images/transforms.json`` there if present; the parameters in
+    the photos' :data:`KNOWN_FILE` are the fit's known ones, under ``overrides``.
     """
     scene = SceneKey(site, crop, str(date))
     cfg = resolve_config(crop, overrides)
     st = SceneStore.connect(store, timeout_s=timeout_s)
     uri = images or default_images_uri(st, scene)
     inputs = {"images": fingerprint(str(uri), what="images")}
+    known = read_known(str(uri), crop)
+    if known:
+        notes = {f"fit.box.{k}": v for k, v in known.items()}
+        cfg = resolve_config(crop, {**notes, **dict(overrides or {})})
     poses_uri = poses if poses is not None else (None if images else default_poses_uri(st, scene))
     if poses_uri:
         inputs["poses"] = fingerprint(str(poses_uri), what="poses")
@@ -600,8 +647,9 @@ def reconstruct_scene(
     images: folder or fsspec URL of the photos (default: the scene's inbox in the store,
     ``{site}/{crop}/{date}/images/``). poses: nerfstudio ``transforms.json`` or a COLMAP model
     folder to import instead of running SfM (default: ``images/transforms.json`` in the inbox
-    if present). overrides: config overrides (see :func:`resolve_config`). store: scene store
-    root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``).
+    if present); a ``known.json`` beside the photos holds parameters measured in the field
+    (:data:`KNOWN_FILE`). overrides: config overrides (see :func:`resolve_config`). store:
+    scene store root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``).
 
     Returns :func:`summarize`'s record, with ``states`` telling which stages ran and which
     were ``Cached``.

@@ -715,3 +715,40 @@ def test_benchmark_flow_names_a_method_it_cannot_map(prefect_harness, tmp_path):
 
     with pytest.raises(ConfigError, match="mlp"):
         run_benchmark("threads", crop="maize", methods=["bo", "mlp"], store=str(tmp_path))
+
+
+def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, scene_dir, tmp_path):
+    """``known.json`` beside a date's photos (the nodes counted in the field that day) fixes
+    those parameters for that date's fit: the seeds are refitted with it, the answer carries
+    it, the stages before the fit stay cached; a run's own ``--param`` goes over the notes;
+    a bad notes file is named before any work. (Last in the module: it writes plotA's fit.)"""
+    from flows.scene import prepare, run_scene
+
+    photos = tmp_path / "images"
+    shutil.copytree(scene_dir / "images", photos)  # the same files and times: the same inputs
+    (photos / "known.json").write_text(json.dumps({"num_nodes": 6}))
+    store = base_run["store"]
+    out = run_scene(
+        "plotA",
+        CROP,
+        DATE,
+        images=str(photos),
+        poses=str(scene_dir / "transforms.json"),
+        overrides=OVERRIDES,
+        store=str(store),
+    )
+    executed = _executed(out["states"])
+    assert any(k.startswith("fit_seed") for k in executed) and "ingest" not in executed
+    fit = SceneStore(str(store)).get_json(f"plotA/{CROP}/{DATE}/fit/fit.json")
+    assert fit["params"]["num_nodes"] == 6.0 == out["params"]["num_nodes"]
+    assert fit["config"]["box"] == {"num_nodes": 6} and fit["params_std"]["num_nodes"] == 0.0
+    mine = prepare("plotA", CROP, DATE, str(photos), None, {"fit.box.num_nodes": 7}, str(store))
+    assert mine.config["fit"]["box"] == {"num_nodes": 7}
+    for text, message in (
+        ("[6]", "known.json: must be a JSON object of soybean parameters"),
+        ('{"nodes": 6}', "known.json: unknown soybean parameter 'nodes'"),
+        ('{"num_nodes": 6', "known.json: not valid JSON"),
+    ):
+        (photos / "known.json").write_text(text)
+        with pytest.raises(InputError, match=message):
+            prepare("plotA", CROP, DATE, str(photos), None, OVERRIDES, str(store))
