@@ -44,6 +44,9 @@ SEASON_COLUMNS = (
     ("plant_height_m", "plant_height_m"),
     ("node_count", "node_count"),
     ("internode_mean_m", "internode_mean_m"),
+    # not a trait: the parameters the date's fit was given (field notes, ``--param``), e.g.
+    # ``num_nodes=9``; empty when it searched the whole box
+    ("parameters_given", "parameters_given"),
     # not a trait: the share of the row camera's view the reconstruction left empty (a flag on
     # the date's LAI; ``observe.coverage_warning``)
     ("no_surface_fraction", "row_view_no_surface_fraction"),
@@ -250,6 +253,16 @@ def scene_report_html(
 # --------------------------------------------------------------------------- season summary
 
 
+def given_text(box: Mapping[str, Any] | None) -> str:
+    """A fit's given parameters (``FitConfig.box``) as one cell: ``num_nodes=9 leaf_length=
+    0.8:1.2``; empty for the whole box."""
+    parts = []
+    for name, v in (box or {}).items():
+        value = ":".join(f"{float(x):g}" for x in v) if isinstance(v, list | tuple) else f"{v:g}"
+        parts.append(f"{name}={value}")
+    return " ".join(parts)
+
+
 def season_rows(per_date: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
     """``{date: metrics}`` → rows sorted by date, one column per :data:`SEASON_COLUMNS`."""
     rows = []
@@ -268,7 +281,7 @@ def season_csv(rows: Sequence[Mapping[str, Any]]) -> str:
         cells = []
         for _, col in SEASON_COLUMNS:
             v = r.get(col)
-            cells.append("" if v is None else f"{float(v):.6g}")
+            cells.append("" if v is None else v if isinstance(v, str) else f"{float(v):.6g}")
         writer.writerow([r["date"], *cells])
     return buf.getvalue()
 

@@ -35,15 +35,19 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
     and ``summary.png``, with each date's share of the row view without a reconstructed
-    surface beside its traits. Returns the keys and the rows."""
-    from cropcraft_core.report import season_csv, season_plot_png, season_rows
+    surface and the parameters its fit was given beside its traits. Returns the keys and the
+    rows."""
+    from cropcraft_core.report import given_text, season_csv, season_plot_png, season_rows
 
     per_date = {}
     for d in store.discover(site, crop, with_runs=True):  # ad hoc runs' dates too
         key = f"{d.scene.prefix}/metrics/metrics.json"
         if d.stages.get("metrics") == "done" and store.isfile(key):
+            fit_key = f"{d.scene.prefix}/fit/fit.json"
+            fit = store.get_json(fit_key) if store.isfile(fit_key) else {}
             per_date[d.scene.date] = {
                 **store.get_json(key),
+                "parameters_given": given_text((fit.get("config") or {}).get("box")),
                 "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
             }
     rows = season_rows(per_date)

@@ -176,6 +176,7 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
         out["observation"]["no_surface_fraction"]
     )
     assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
+    assert row["parameters_given"] == ""  # the whole box was searched
     head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
     assert head.split(",")[-1] == "row_view_no_surface_fraction"
     assert line.startswith(DATE)
@@ -645,10 +646,16 @@ def test_report_builder_is_self_contained():
         observed_depth=depth,
         predicted_depth=depth + 0.1,
         metrics={"lai": 2.0, "definitions": {"lai": {"unit": "m2 m-2", "method": "x"}}},
-        fit={"params": {"a": 1.0}, "params_std": {"a": 0.1}, "seed_params": [{"a": 1.0}]},
+        fit={
+            "params": {"a": 1.0, "b": 9.0, "c": 0.9},
+            "params_std": {"a": 0.1, "b": 0.0, "c": 0.01},
+            "seed_params": [{"a": 1.0, "b": 9.0, "c": 0.9}],
+            "config": {"box": {"b": 9, "c": [0.8, 1.0]}},
+        },
         timings={"ingest": 1.0},
     )
     assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
+    assert "b (given, not fitted)" in page and "c (searched 0.8 to 1)" in page
     assert "src='http" not in page
     csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
     assert csv.splitlines()[1].startswith("2024-06-01,1")
@@ -723,6 +730,7 @@ def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, s
     it, the stages before the fit stay cached; a run's own ``--param`` goes over the notes;
     a bad notes file is named before any work. (Last in the module: it writes plotA's fit.)"""
     from flows.scene import prepare, run_scene
+    from flows.season import write_summary
 
     photos = tmp_path / "images"
     shutil.copytree(scene_dir / "images", photos)  # the same files and times: the same inputs
@@ -742,6 +750,8 @@ def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, s
     fit = SceneStore(str(store)).get_json(f"plotA/{CROP}/{DATE}/fit/fit.json")
     assert fit["params"]["num_nodes"] == 6.0 == out["params"]["num_nodes"]
     assert fit["config"]["box"] == {"num_nodes": 6} and fit["params_std"]["num_nodes"] == 0.0
+    season = write_summary(SceneStore(str(store)), "plotA", CROP)
+    assert season["rows"][0]["parameters_given"] == "num_nodes=6"
     mine = prepare("plotA", CROP, DATE, str(photos), None, {"fit.box.num_nodes": 7}, str(store))
     assert mine.config["fit"]["box"] == {"num_nodes": 7}
     for text, message in (
