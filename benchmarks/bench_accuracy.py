@@ -261,13 +261,10 @@ def _seed_job(args) -> tuple[int, object, float]:
     return i, r, seed_seconds(r)
 
 
-def _seed_jobs(
-    observations, b: Budget, label: str, checkpoint_dir, preset_overrides=None, boxes=None
-):
+def _seed_jobs(observations, b: Budget, label: str, checkpoint_dir, preset_overrides, boxes):
     """The (scene, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``
     (given ``boxes[scene]``, the parameters known in that scene), in scene order."""
     cfg = b.fit
-    boxes = boxes or [{}] * len(observations)
     ck = Path(checkpoint_dir) if checkpoint_dir else None
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
@@ -310,7 +307,7 @@ def _fit_and_combine(
     checkpoint_dir,
     preset_overrides,
     log,
-    boxes=None,
+    boxes,
 ) -> dict[int, dict]:
     """Every scene's seeds fitted, then its answers under every row (:func:`combine_scene`):
     ``{scene: {row: (params, seconds)}}``. In ``ex``'s processes a scene is combined as soon
@@ -319,7 +316,6 @@ def _fit_and_combine(
     end (for maize, about 1.5 min per scene on one core)."""
     crop = observations[0].crop
     n_seeds = b.fit.n_seeds
-    boxes = boxes or [{}] * len(observations)
     per_scene: dict[int, list] = {i: [] for i in range(len(observations))}
     seconds = dict.fromkeys(per_scene, 0.0)
     answers: dict[int, dict] = {}

@@ -169,15 +169,6 @@ class ParamBox:
         return tuple(s.name for s, f in zip(param_space(self.crop), self.free, strict=True) if f)
 
     @property
-    def fixed(self) -> dict[str, float]:
-        """The known (fixed) parameters and their values."""
-        return {
-            s.name: float(lo)
-            for s, lo, f in zip(param_space(self.crop), self.low, self.free, strict=True)
-            if not f
-        }
-
-    @property
     def bounds(self) -> np.ndarray:
         """(k, 2) the free parameters' bounds: what the optimisers search."""
         f = self.free

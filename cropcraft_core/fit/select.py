@@ -99,9 +99,8 @@ class Selection:
     #: the part of ``seconds`` spent re-scoring, before any polish
     rescore_seconds: float
 
-    def to_dict(self, box: ParamBox | str) -> dict:
-        """JSON-ready; ``box``: the box the candidates live in (a crop name: its whole box)."""
-        box = ParamBox.of(box) if isinstance(box, str) else box
+    def to_dict(self, box: ParamBox) -> dict:
+        """JSON-ready; ``box``: the parameter box the candidates live in."""
         return {
             "rule": "reevaluate",
             "chosen": self.chosen,
