@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -119,6 +120,45 @@ def test_sweep_plane_homography_maps_plane_points(scene, heights):
         a = np.c_[px - 0.5, np.ones(3)] @ hom.T  # OpenCV index coordinates
         ok = np.isfinite(d)
         np.testing.assert_allclose((a[:, :2] / a[:, 2:] + 0.5)[ok], uv[ok], rtol=0, atol=1e-3)
+
+
+def test_sweep_spans_the_heights_the_scene_occupies_not_the_box(scene, monkeypatch):
+    """A box reaching 1.2 m below the ground (as soybean's does, for SfM that saw no soil): the
+    coarse pass finds the soil and the canopy top, and the main pass's planes span about that,
+    not the box; without a soil layer the range starts at the box's bottom."""
+    from cropcraft_core.surfaces import tsdf
+    from cropcraft_core.surfaces.tsdf import occupied_heights, select_neighbours, stereo_depth_maps
+
+    mesh, cams, imgs, bbox = scene
+    box = bbox.copy()
+    box[0, 2] = -1.2
+    cfg = SurfacesConfig(n_depths=64, mvs_scale=0.5, sweep_heights="auto")
+    nbrs = select_neighbours(cams, cfg.neighbours, box)
+    limits = [tsdf.depth_limits(c, box, None) for c in cams]
+    lo, hi = occupied_heights(imgs, cams, nbrs, limits, box, cfg, lambda *_: None)
+    top = float(mesh.vertices[:, 2].max())
+    # 32 planes over 2.4 m in the pass: a margin of three spacings (0.23 m) below the soil
+    assert -0.3 < lo < -0.1 and top < hi <= box[1, 2], (lo, hi, top)
+    st = stereo_depth_maps(imgs, cams, box, cfg, lambda *_: None)
+    assert st.heights == (lo, hi) and st.timings()["sweep_range"] > 0
+    boxed = stereo_depth_maps(imgs, cams, box, replace(cfg, sweep_heights="box"), lambda *_: None)
+    assert boxed.heights == (-1.2, box[1, 2])
+    # the planes over the scene keep more consistent depths (measured: 0.46 against 0.40)
+    assert st.timings()["valid_fraction"] > boxed.timings()["valid_fraction"]
+    monkeypatch.setattr(tsdf, "SOIL_MIN_POINTS", 10**9)
+    lo2, hi2 = occupied_heights(imgs, cams, nbrs, limits, box, cfg, lambda *_: None)
+    assert lo2 == -1.2 and hi2 == hi
+
+
+def test_soil_height_is_the_layer_where_soil_points_pile_up_or_none():
+    from cropcraft_core.surfaces.tsdf import soil_height
+
+    rng = np.random.default_rng(0)
+    tail = rng.uniform(-1.2, 1.0, 3000)  # wrong matches and brownish stems at every height
+    ground = rng.normal(-0.40, 0.01, 600)  # a soil layer (levelling's ground on the leaves)
+    assert soil_height(np.r_[tail, ground], -1.2, 1.2) == pytest.approx(-0.40, abs=0.02)
+    assert soil_height(tail, -1.2, 1.2) is None  # no layer stands out
+    assert soil_height(ground[:50], -1.2, 1.2) is None  # too few points
 
 
 def test_point_cloud_coloured(fitted):

@@ -279,8 +279,8 @@ class PointSurfaces(SurfaceBackend):
         self.depth_maps = kept
         self.raw_depth_maps = st.raw
         self.timings = {**st.timings(), "visibility": time.perf_counter() - t}
-        stages = ("stereo", "consistency", "visibility")
-        self.timings["total"] = sum(self.timings[k] for k in stages)
+        stages = ("sweep_range", "stereo", "consistency", "visibility")
+        self.timings["total"] = sum(self.timings.get(k, 0.0) for k in stages)
         if not len(self.points):
             raise SurfacesError(
                 "multi-view stereo found no consistent, visible surface: check the poses, the "

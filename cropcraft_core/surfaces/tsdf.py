@@ -7,9 +7,10 @@ Pipeline (``TsdfSurfaces.fit``):
    ``config.neighbours`` of them.
 2. **Plane-sweep stereo** per reference view at ``config.mvs_scale`` of the photo size:
    ``config.n_depths`` plane hypotheses, by default horizontal world planes z = h uniform in height
-   over the bounding box (``config.sweep='horizontal'``: ground and near-horizontal leaves seen
-   obliquely match on their own plane, the smoothing favours flat surfaces, no hypothesis is
-   wasted outside the box's heights), else fronto-parallel planes uniform in inverse depth; each
+   (``config.sweep='horizontal'``: ground and near-horizontal leaves seen obliquely match on their
+   own plane, the smoothing favours flat surfaces) over the heights the scene occupies, found by a
+   coarse first pass over the bounding box's heights (``config.sweep_heights='auto'``,
+   ``occupied_heights``), else fronto-parallel planes uniform in inverse depth; each
    source image is warped onto each plane by the plane-induced homography and compared with the
    reference by windowed normalised cross-correlation (box filters), on RGB (the mean of the
    channels' NCC; ``config.colour``) or grey. The per-source scores are aggregated by the mean of
@@ -40,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -51,6 +52,7 @@ from numba import njit, prange
 from cropcraft_core.errors import InputError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.render.raycast import build_scene
+from cropcraft_core.rowfit.lab import srgb_to_lab
 from cropcraft_core.surfaces.base import (
     Progress,
     SurfaceBackend,
@@ -463,7 +465,8 @@ class StereoDepths:
     """Per-view depth maps of the stereo stage (steps 1–3), shared by the tsdf and points
     backends. cameras: the photos' cameras at ``mvs_scale`` (the maps' size); raw: stereo's
     z-depth maps (NaN where no plane matched); filtered: after the consistency and box filters;
-    limits: each view's (near, far) z-depth."""
+    limits: each view's (near, far) z-depth; heights: the (low, high) world heights the
+    horizontal planes spanned (None: fronto-parallel planes)."""
 
     cameras: list[PinholeCamera]
     raw: list[np.ndarray]
@@ -471,13 +474,161 @@ class StereoDepths:
     limits: list[tuple[float, float]]
     stereo_s: float
     consistency_s: float
+    heights: tuple[float, float] | None = None
+    range_s: float = 0.0
 
     def timings(self) -> dict[str, float]:
-        return {
+        out = {
             "stereo": self.stereo_s,
             "consistency": self.consistency_s,
             "valid_fraction": float(np.mean([np.isfinite(d).mean() for d in self.filtered])),
         }
+        if self.heights is not None:
+            out.update(sweep_low=float(self.heights[0]), sweep_high=float(self.heights[1]))
+        if self.range_s:
+            out["sweep_range"] = self.range_s
+        return out
+
+
+#: The height-range pass (``occupied_heights``) matches at this share of ``mvs_scale`` with
+#: this share of ``n_depths`` planes: ~1/8 of the main pass's work.
+RANGE_PASS_SCALE = 0.5
+RANGE_PASS_PLANES = 0.5
+#: The soil: the pass's consistent points with a* at least ``SurfacesConfig.soil_a_min``,
+#: binned by height; the lowest layer of them that stands out is the ground (``soil_height``).
+SOIL_BIN_M = 0.02
+SOIL_MIN_POINTS = 100
+SOIL_PEAK_RATIO = 3.0
+SOIL_LAYER_M = 0.1
+SOIL_BELOW_M = 0.3
+#: The range reaches this far below the ground and above the ``RANGE_TOP_PERCENTILE`` of all
+#: the pass's points: ``RANGE_MARGIN_PLANES`` of the pass's plane spacings, at least
+#: ``RANGE_MARGIN_M``.
+RANGE_TOP_PERCENTILE = 99.9
+RANGE_MARGIN_PLANES = 3.0
+RANGE_MARGIN_M = 0.1
+
+
+def _match_views(
+    greys: list[np.ndarray],
+    small: list[PinholeCamera],
+    nbrs: list[list[int]],
+    limits: list[tuple[float, float]],
+    heights: tuple[float, float] | None,
+    box: np.ndarray | None,
+    cfg: SurfacesConfig,
+    n_depths: int,
+    say: Progress,
+    stage: str,
+) -> tuple[list[np.ndarray], list[np.ndarray], float]:
+    """Plane-sweep stereo of every view, then the consistency and box filters: (raw maps,
+    filtered maps, seconds of stereo)."""
+    t0 = time.perf_counter()
+    raw: list[np.ndarray] = []
+    for i in range(len(small)):
+        if not nbrs[i]:
+            raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
+            continue
+        near, far = limits[i]
+        depth, score = plane_sweep(
+            greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
+            near, far, int(n_depths), int(cfg.window), float(cfg.sgm_p1),
+            float(cfg.sgm_p2), heights,
+        )  # fmt: skip
+        depth[score < cfg.min_ncc] = np.nan
+        raw.append(depth)
+        say(stage, (i + 1) / len(small))
+    stereo_s = time.perf_counter() - t0
+    filtered = []
+    for i in range(len(small)):
+        d = raw[i].copy()
+        if cfg.min_consistent > 0:
+            # the views this one was matched with and those matched with it
+            others = sorted(set(nbrs[i]) | {j for j in range(len(small)) if i in nbrs[j]})
+            cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
+            d[cnt < cfg.min_consistent] = np.nan
+        if box is not None:
+            pts = small[i].unproject(d)
+            inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=-1)
+            d[~inside] = np.nan
+        filtered.append(d)
+    return raw, filtered, stereo_s
+
+
+def occupied_heights(
+    imgs: list[np.ndarray],
+    cams: list[PinholeCamera],
+    nbrs: list[list[int]],
+    limits: list[tuple[float, float]],
+    box: np.ndarray,
+    cfg: SurfacesConfig,
+    say: Progress,
+) -> tuple[float, float]:
+    """The world heights the scene occupies, from a coarse stereo pass over the box's heights
+    (``RANGE_PASS_SCALE`` of the photos' stereo size, ``RANGE_PASS_PLANES`` of the planes):
+    from just below the soil (the height where soil-coloured points pile up, ``SOIL_*``) to just
+    above the top of all its points, inside the box. Where no soil layer stands out, the range
+    starts at the box's bottom.
+
+    Why: the box's heights are generous because levelling's ground can sit on the leaves when
+    SfM saw no soil (soybean's box reaches 1.2 m below it, maize's 3.5 m). Planes under the soil
+    are not only wasted: in a dense canopy, views looking into the foliage find wrong matches on
+    them that other views confirm. Walking round a 1.1 m soybean canopy (true poses), the sweep
+    from 1.2 m below the ground left a third of the row view without a surface; from 0.15 m
+    below, an eighth (``benchmarks/RESULTS.md``, *The sweep's height range*). The bottom comes
+    from the soil, not from a low percentile of all the points, because those wrong matches
+    fill the heights below the soil about as densely as the few soil points seen through a
+    closed canopy."""
+    lo, hi = float(box[0, 2]), float(box[1, 2])
+    scale = float(cfg.mvs_scale) * RANGE_PASS_SCALE
+    small = [c.scaled(scale) for c in cams]
+    greys = [to_colour(im, c, scale) for im, c in zip(imgs, cams, strict=True)]
+    n = max(16, int(round(int(cfg.n_depths) * RANGE_PASS_PLANES)))
+    pass_cfg = cfg if cfg.colour else replace(cfg, colour=True)
+    _, filtered, _ = _match_views(
+        greys, small, nbrs, limits, (lo, hi), box, pass_cfg, n, say, "stereo range"
+    )
+    ok = [np.isfinite(d) for d in filtered]
+    z = np.concatenate(
+        [c.unproject(d)[m][:, 2] for c, d, m in zip(small, filtered, ok, strict=True)]
+    )
+    if not len(z):
+        return lo, hi
+    rgb = np.concatenate([g[m] for g, m in zip(greys, ok, strict=True)])
+    top = min(hi, max(float(c.center[2]) for c in cams))
+    margin = max(RANGE_MARGIN_M, RANGE_MARGIN_PLANES * (top - lo) / (n - 1))
+    high = min(hi, float(np.percentile(z, RANGE_TOP_PERCENTILE)) + margin)
+    ground = soil_height(z[srgb_to_lab(rgb, 1.0)[:, 1] >= cfg.soil_a_min], lo, hi)
+    low = lo if ground is None else max(lo, ground - margin)
+    return (low, high) if high > low else (lo, hi)
+
+
+def soil_height(z: np.ndarray, lo: float, hi: float) -> float | None:
+    """The lowest layer where the soil-coloured points ``z`` pile up: in ``SOIL_BIN_M`` bins
+    between ``lo`` and ``hi`` (smoothed over three), the first bin holding ``SOIL_MIN_POINTS``
+    and ``SOIL_PEAK_RATIO`` times the mean of the bins ``SOIL_BELOW_M`` under it (the wrong
+    matches below the soil are spread thin, the soil is a layer), moved to the fullest bin
+    within ``SOIL_LAYER_M`` above it; its centre, or None where no bin qualifies. The lowest,
+    not the fullest: leaf edges mixed with the soil behind them in the photos' pixels can
+    outnumber the soil seen through a canopy, at the leaves' heights."""
+    edges = np.arange(lo, hi + SOIL_BIN_M, SOIL_BIN_M)
+    if len(z) < SOIL_MIN_POINTS or len(edges) < 4:
+        return None
+    h, _ = np.histogram(z, bins=edges)
+    sm = np.convolve(h, np.ones(3), mode="same")
+    below = int(round(SOIL_BELOW_M / SOIL_BIN_M))
+    # each bin against the mean of the bins up to SOIL_BELOW_M under it (the adjacent one left
+    # out: the smoothing spreads a layer into it)
+    csum = np.r_[0.0, np.cumsum(sm)]
+    idx = np.arange(len(sm))
+    a, b = np.maximum(idx - below, 0), np.maximum(idx - 1, 0)
+    ref = np.where(b > a, (csum[b] - csum[a]) / np.maximum(b - a, 1), 0.0)
+    (strong,) = np.nonzero((sm >= SOIL_MIN_POINTS) & (sm >= SOIL_PEAK_RATIO * ref))
+    if not len(strong):
+        return None
+    k0 = int(strong[0])
+    k = k0 + int(np.argmax(sm[k0 : k0 + int(round(SOIL_LAYER_M / SOIL_BIN_M)) + 1]))
+    return float(0.5 * (edges[k] + edges[k + 1]))
 
 
 def stereo_depth_maps(
@@ -488,48 +639,38 @@ def stereo_depth_maps(
     say: Progress,
 ) -> StereoDepths:
     """Steps 1–3 of the module's pipeline on checked inputs (``check_inputs``): neighbours,
-    plane-sweep stereo of every view, consistency and bounding-box filtering."""
-    t0 = time.perf_counter()
+    plane-sweep stereo of every view, consistency and bounding-box filtering. With
+    ``config.sweep_heights = 'auto'`` the box's heights are first cut to those
+    ``occupied_heights`` finds."""
     small = [c.scaled(cfg.mvs_scale) for c in cams]
-    prep = to_colour if cfg.colour else to_grey
-    greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
-    heights = None
-    if cfg.sweep == "horizontal" and box is not None:
-        heights = (float(box[0, 2]), float(box[1, 2]))
     nbrs = select_neighbours(cams, int(cfg.neighbours), box)
     limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
-
-    raw: list[np.ndarray] = []
-    for i in range(len(cams)):
-        if not nbrs[i]:
-            raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
-            continue
-        near, far = limits[i]
-        depth, score = plane_sweep(
-            greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
-            near, far, int(cfg.n_depths), int(cfg.window), float(cfg.sgm_p1),
-            float(cfg.sgm_p2), heights,
-        )  # fmt: skip
-        depth[score < cfg.min_ncc] = np.nan
-        raw.append(depth)
-        say("stereo", (i + 1) / len(cams))
+    heights = None
+    range_s = 0.0
+    if cfg.sweep == "horizontal" and box is not None:
+        heights = (float(box[0, 2]), float(box[1, 2]))
+        if cfg.sweep_heights == "auto":
+            t = time.perf_counter()
+            heights = occupied_heights(imgs, cams, nbrs, limits, box, cfg, say)
+            range_s = time.perf_counter() - t
+            # the box down to those heights for everything after: the neighbours are chosen by
+            # their triangulation angle at the middle of its height (the canopy's, not a point
+            # in the soil), the filters and the fusion's depth limits follow it
+            box = box.copy()
+            box[:, 2] = heights
+            nbrs = select_neighbours(cams, int(cfg.neighbours), box)
+            limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
+    prep = to_colour if cfg.colour else to_grey
+    greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
     t1 = time.perf_counter()
-
-    filtered = []
-    for i in range(len(cams)):
-        d = raw[i].copy()
-        if cfg.min_consistent > 0:
-            # the views this one was matched with and those matched with it
-            others = sorted(set(nbrs[i]) | {j for j in range(len(cams)) if i in nbrs[j]})
-            cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
-            d[cnt < cfg.min_consistent] = np.nan
-        if box is not None:
-            pts = small[i].unproject(d)
-            inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=-1)
-            d[~inside] = np.nan
-        filtered.append(d)
+    raw, filtered, stereo_s = _match_views(
+        greys, small, nbrs, limits, heights, box, cfg, int(cfg.n_depths), say, "stereo"
+    )
     say("consistency", 1.0)
-    return StereoDepths(small, raw, filtered, limits, t1 - t0, time.perf_counter() - t1)
+    return StereoDepths(
+        small, raw, filtered, limits, stereo_s, time.perf_counter() - t1 - stereo_s,
+        heights, range_s,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- the backend
@@ -575,7 +716,8 @@ class TsdfSurfaces(SurfaceBackend):
         self.depth_maps = st.filtered
         self.raw_depth_maps = st.raw
         self.timings = {**st.timings(), "fusion": time.perf_counter() - t}
-        self.timings["total"] = sum(self.timings[k] for k in ("stereo", "consistency", "fusion"))
+        stages = ("sweep_range", "stereo", "consistency", "fusion")
+        self.timings["total"] = sum(self.timings.get(k, 0.0) for k in stages)
         if len(self.faces) == 0:
             raise SurfacesError(
                 "multi-view stereo found no consistent surface: check the poses, the bounding box "
