@@ -252,6 +252,16 @@ def test_resolved_writes_out_the_crop_defaults_and_keeps_what_was_given():
     assert FitConfig().resolved("soybean").resolved("soybean") == FitConfig().resolved("soybean")
 
 
+def test_soybean_with_its_node_count_given_takes_the_mean_of_the_seeds():
+    """A counted node number (a value, not a range) switches soybean's default answer rule to
+    the mean; a range, maize, or a rule the user set do not."""
+    assert FitConfig(box={"num_nodes": 9}).combine_rule("soybean") == "mean"
+    assert FitConfig(box={"num_nodes": [6, 9]}).combine_rule("soybean") == "median"
+    assert FitConfig(box={"leaf_length": 1.0}).combine_rule("soybean") == "median"
+    assert FitConfig(box={"num_nodes": 12}).combine_rule("maize") == "reevaluate"
+    assert FitConfig(box={"num_nodes": 9}, combine="median").combine_rule("soybean") == "median"
+
+
 def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_path):
     """``bench accuracy --preset lambda_lateral=...`` fits observations with those weights,
     records them, and keeps its seeds apart from the default weights' checkpoints."""
