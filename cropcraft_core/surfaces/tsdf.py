@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -584,9 +584,9 @@ def occupied_heights(
     small = [c.scaled(scale) for c in cams]
     greys = [to_colour(im, c, scale) for im, c in zip(imgs, cams, strict=True)]
     n = max(16, int(round(int(cfg.n_depths) * RANGE_PASS_PLANES)))
-    pass_cfg = cfg if cfg.colour else replace(cfg, colour=True)
+    # matched on colour whatever ``cfg.colour`` says: the soil is found by its colour
     _, filtered, _ = _match_views(
-        greys, small, nbrs, limits, (lo, hi), box, pass_cfg, n, say, "stereo range"
+        greys, small, nbrs, limits, (lo, hi), box, cfg, n, say, "stereo range"
     )
     ok = [np.isfinite(d) for d in filtered]
     z = np.concatenate(
