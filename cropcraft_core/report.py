@@ -221,12 +221,13 @@ def scene_report_html(
             lo = min(col) if col else None
             hi = max(col) if col else None
             given = box.get(name)
+            label = name
             if isinstance(given, list | tuple):
-                name = f"{name} (searched {_fmt(given[0])} to {_fmt(given[1])})"
+                label = f"{name} (searched {_fmt(given[0])} to {_fmt(given[1])})"
             elif given is not None:
-                name = f"{name} (given, not fitted)"
+                label = f"{name} (given, not fitted)"
             parts.append(
-                f"<tr><td>{html.escape(name)}</td><td class='num'>{_fmt(value)}</td>"
+                f"<tr><td>{html.escape(label)}</td><td class='num'>{_fmt(value)}</td>"
                 f"<td class='num'>{_fmt(std.get(name))}</td><td class='num'>{_fmt(lo)}</td>"
                 f"<td class='num'>{_fmt(hi)}</td></tr>"
             )

@@ -656,6 +656,8 @@ def test_report_builder_is_self_contained():
     )
     assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
     assert "b (given, not fitted)" in page and "c (searched 0.8 to 1)" in page
+    # the narrowed parameter keeps its spread over the seeds beside its label
+    assert "c (searched 0.8 to 1)</td><td class='num'>0.9</td><td class='num'>0.01<" in page
     assert "src='http" not in page
     csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
     assert csv.splitlines()[1].startswith("2024-06-01,1")
