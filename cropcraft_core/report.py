@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from cropcraft_core.config.params import is_range
 from cropcraft_core.errors import InputError
 
 #: Traits shown in the report's metric table and the season summary, in this order.
@@ -222,7 +223,7 @@ def scene_report_html(
             hi = max(col) if col else None
             given = box.get(name)
             label = name
-            if isinstance(given, list | tuple):
+            if is_range(given):
                 label = f"{name} (searched {_fmt(given[0])} to {_fmt(given[1])})"
             elif given is not None:
                 label = f"{name} (given, not fitted)"
@@ -259,7 +260,7 @@ def given_text(box: Mapping[str, Any] | None) -> str:
     0.8:1.2``; empty for the whole box."""
     parts = []
     for name, v in (box or {}).items():
-        value = ":".join(f"{float(x):g}" for x in v) if isinstance(v, list | tuple) else f"{v:g}"
+        value = ":".join(f"{float(x):g}" for x in v) if is_range(v) else f"{v:g}"
         parts.append(f"{name}={value}")
     return " ".join(parts)
 

@@ -208,10 +208,16 @@ class ParamBox:
         return params_from_vector(self.crop, x)
 
 
+def is_range(given: object) -> bool:
+    """Whether a parameter box entry (``ParamBox.of``'s ``limits`` value, as stored in a
+    fit's config) is a searched ``[low, high]`` rather than a given value."""
+    return isinstance(given, list | tuple)
+
+
 def _limit_pair(crop: str, name: str, given: object) -> tuple[float, float]:
-    if isinstance(given, list | tuple) and len(given) == 2:
+    if is_range(given) and len(given) == 2:
         pair = given
-    elif isinstance(given, list | tuple):
+    elif is_range(given):
         raise ConfigError(
             f"{crop} parameter {name}: give a value or [low, high], got {len(given)} numbers"
         )

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from cropcraft_core.config import CanopyLayout
-from cropcraft_core.config.params import ParamBox
+from cropcraft_core.config.params import ParamBox, is_range
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.observe import Observation
@@ -53,7 +53,7 @@ def default_combine(crop: str, box: dict[str, Any] | None = None) -> str:
     """The answer rule of ``crop``'s BO fits when none is set: ``DEFAULT_COMBINE``, or
     ``DEFAULT_COMBINE_GIVEN``'s where ``box`` fixes its parameter to a value."""
     given = DEFAULT_COMBINE_GIVEN.get(crop)
-    if given and box and given[0] in box and not isinstance(box[given[0]], list | tuple):
+    if given and box and given[0] in box and not is_range(box[given[0]]):
         return given[1]
     return DEFAULT_COMBINE[crop]
 
