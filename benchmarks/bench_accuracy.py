@@ -195,7 +195,13 @@ def run(
         "preset_overrides": dict(preset_overrides or {}),
         "known": list(known),
     }
-    boxes = [{n: t["params"][n] for n in known} for t in truths]
+    scene_set = _Scenes(
+        observations,
+        boxes=[{n: t["params"][n] for n in known} for t in truths],
+        checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
+        preset_overrides=preset_overrides,
+    )
+    boxes = scene_set.boxes
     ex = pool(workers, {"observations": observations})
     try:
         for label, method, crn in runs:
@@ -208,18 +214,7 @@ def run(
                 out["methods"][label] = score(crop, params, truths, seconds, log=log)
                 continue
             rows = rules(crop, label, b.fit)
-            answers = _fit_and_combine(
-                observations,
-                b,
-                label,
-                rows,
-                ex,
-                workers,
-                checkpoint_dir,
-                preset_overrides,
-                log,
-                boxes,
-            )
+            answers = _fit_and_combine(scene_set, b, label, rows, ex, workers, log)
             for row, _ in rows:
                 params = [answers[i][row][0] for i in range(len(observations))]
                 seconds = [answers[i][row][1] for i in range(len(observations))]
@@ -261,19 +256,32 @@ def _seed_job(args) -> tuple[int, object, float]:
     return i, r, seed_seconds(r)
 
 
-def _seed_jobs(observations, b: Budget, label: str, checkpoint_dir, preset_overrides, boxes):
+@dataclass(frozen=True)
+class _Scenes:
+    """What every method's fits in one benchmark run share: the scenes' observations, the
+    parameters given in each (``boxes[scene]``, ``{}`` where none), the observation preset's
+    changes (part of a checkpoint's name) and where the seeds checkpoint (``None``: nowhere)."""
+
+    observations: list
+    boxes: list[dict]
+    checkpoint_dir: Path | None = None
+    preset_overrides: dict | None = None
+
+
+def _seed_jobs(scenes: _Scenes, b: Budget, label: str):
     """The (scene, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``
-    (given ``boxes[scene]``, the parameters known in that scene), in scene order."""
+    (given the parameters known in that scene), in scene order."""
     cfg = b.fit
-    ck = Path(checkpoint_dir) if checkpoint_dir else None
+    observations, boxes, ck = scenes.observations, scenes.boxes, scenes.checkpoint_dir
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
     tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
     crop = observations[0].crop
     if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
         tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
-    if preset_overrides:  # another loss or other statistics: another fit, its own checkpoints
-        tag += "-p" + config_hash(preset_overrides)[:8]
+    # another loss or other statistics: another fit, its own checkpoints
+    if scenes.preset_overrides:
+        tag += "-p" + config_hash(scenes.preset_overrides)[:8]
     if any(boxes):  # parameters given: another fit, its own checkpoints
         tag += "-known-" + "-".join(sorted(boxes[0]))
     default_h = preset(crop).render_height
@@ -298,25 +306,16 @@ def _combine_job(args) -> tuple[int, dict]:
 
 
 def _fit_and_combine(
-    observations,
-    b: Budget,
-    label,
-    rows,
-    ex,
-    workers,
-    checkpoint_dir,
-    preset_overrides,
-    log,
-    boxes,
+    scenes: _Scenes, b: Budget, label: str, rows, ex, workers: int, log
 ) -> dict[int, dict]:
     """Every scene's seeds fitted, then its answers under every row (:func:`combine_scene`):
     ``{scene: {row: (params, seconds)}}``. In ``ex``'s processes a scene is combined as soon
     as its last seed is in, ahead of the seeds still queued, so the re-scoring of one scene
     runs beside the fitting of the next instead of all of it, one scene after another, at the
     end (for maize, about 1.5 min per scene on one core)."""
-    crop = observations[0].crop
+    crop = scenes.observations[0].crop
     n_seeds = b.fit.n_seeds
-    per_scene: dict[int, list] = {i: [] for i in range(len(observations))}
+    per_scene: dict[int, list] = {i: [] for i in range(len(scenes.observations))}
     seconds = dict.fromkeys(per_scene, 0.0)
     answers: dict[int, dict] = {}
 
@@ -326,10 +325,10 @@ def _fit_and_combine(
         if len(per_scene[i]) < n_seeds:
             return None
         log(f"  {label} scene {i}: {n_seeds} seeds in {seconds[i]:.0f} s")
-        scene_rows = [(row, replace(c, box=boxes[i])) for row, c in rows]
+        scene_rows = [(row, replace(c, box=scenes.boxes[i])) for row, c in rows]
         return (i, crop, scene_rows, per_scene[i], seconds[i])
 
-    jobs = _seed_jobs(observations, b, label, checkpoint_dir, preset_overrides, boxes)
+    jobs = _seed_jobs(scenes, b, label)
     if ex is None:
         for job in jobs:
             ready = seed_in(*_seed_job(job))
