@@ -510,7 +510,7 @@ RANGE_MARGIN_M = 0.1
 
 
 def _match_views(
-    greys: list[np.ndarray],
+    views: list[np.ndarray],
     small: list[PinholeCamera],
     nbrs: list[list[int]],
     limits: list[tuple[float, float]],
@@ -522,16 +522,17 @@ def _match_views(
     stage: str,
 ) -> tuple[list[np.ndarray], list[np.ndarray], float]:
     """Plane-sweep stereo of every view, then the consistency and box filters: (raw maps,
-    filtered maps, seconds of stereo)."""
+    filtered maps, seconds of stereo). ``views``: the images at ``small``'s size, grey or
+    colour as the caller prepared them (``cfg.colour`` is not read here)."""
     t0 = time.perf_counter()
     raw: list[np.ndarray] = []
     for i in range(len(small)):
         if not nbrs[i]:
-            raw.append(np.full(greys[i].shape[:2], np.nan, np.float32))
+            raw.append(np.full(views[i].shape[:2], np.nan, np.float32))
             continue
         near, far = limits[i]
         depth, score = plane_sweep(
-            greys[i], small[i], [greys[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
+            views[i], small[i], [views[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
             near, far, int(n_depths), int(cfg.window), float(cfg.sgm_p1),
             float(cfg.sgm_p2), heights,
         )  # fmt: skip
@@ -582,11 +583,11 @@ def occupied_heights(
     lo, hi = float(box[0, 2]), float(box[1, 2])
     scale = float(cfg.mvs_scale) * RANGE_PASS_SCALE
     small = [c.scaled(scale) for c in cams]
-    greys = [to_colour(im, c, scale) for im, c in zip(imgs, cams, strict=True)]
+    colours = [to_colour(im, c, scale) for im, c in zip(imgs, cams, strict=True)]
     n = max(16, int(round(int(cfg.n_depths) * RANGE_PASS_PLANES)))
     # matched on colour whatever ``cfg.colour`` says: the soil is found by its colour
     _, filtered, _ = _match_views(
-        greys, small, nbrs, limits, (lo, hi), box, cfg, n, say, "stereo range"
+        colours, small, nbrs, limits, (lo, hi), box, cfg, n, say, "stereo range"
     )
     ok = [np.isfinite(d) for d in filtered]
     z = np.concatenate(
@@ -594,7 +595,7 @@ def occupied_heights(
     )
     if not len(z):
         return lo, hi
-    rgb = np.concatenate([g[m] for g, m in zip(greys, ok, strict=True)])
+    rgb = np.concatenate([g[m] for g, m in zip(colours, ok, strict=True)])
     top = min(hi, max(float(c.center[2]) for c in cams))
     margin = max(RANGE_MARGIN_M, RANGE_MARGIN_PLANES * (top - lo) / (n - 1))
     high = min(hi, float(np.percentile(z, RANGE_TOP_PERCENTILE)) + margin)
@@ -661,10 +662,10 @@ def stereo_depth_maps(
             nbrs = select_neighbours(cams, int(cfg.neighbours), box)
             limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
     prep = to_colour if cfg.colour else to_grey
-    greys = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
+    views = [prep(im, c, cfg.mvs_scale) for im, c in zip(imgs, cams, strict=True)]
     t1 = time.perf_counter()
     raw, filtered, stereo_s = _match_views(
-        greys, small, nbrs, limits, heights, box, cfg, int(cfg.n_depths), say, "stereo"
+        views, small, nbrs, limits, heights, box, cfg, int(cfg.n_depths), say, "stereo"
     )
     say("consistency", 1.0)
     return StereoDepths(
