@@ -338,6 +338,8 @@ def _observe(crop: str, fit, backend, image_scale: float):
 
 #: Where the row camera's holes were lost, in pipeline order (``hole_breakdown``).
 HOLE_CAUSES = ("unseen", "no_stereo", "inconsistent", "fusion")
+#: What the stereo found on a ``no_stereo`` hole's pixels (``hole_breakdown``).
+NO_STEREO_SPLIT = ("no_stereo_empty", "no_stereo_front", "no_stereo_behind")
 
 
 def hole_breakdown(
@@ -359,6 +361,13 @@ def hole_breakdown(
     * ``inconsistent``: some stereo map has it, but the consistency filter dropped it in all;
     * ``fusion``: a filtered depth map has it, and the fused surface still lost it.
 
+    The ``no_stereo`` points are split further by what the stereo put on their pixels in the
+    photos that see them (``NO_STEREO_SPLIT``, also fractions of the holes, summing to
+    ``no_stereo``): ``no_stereo_empty``, no depth in any of them (no plane scored
+    ``min_ncc``, the winner was the sweep's first or last plane, or no source saw the pixel);
+    ``no_stereo_front`` / ``no_stereo_behind``, a depth, but the one closest to the point's lies
+    in front of it (a nearer surface won, as leaf edges fattened into gaps do) / behind it.
+
     points: (n, 3) true surface points (truth frame) behind the holes; true_cams/true_depths:
     the photos' true cameras and z-depth maps; stereo_cams: the backend's cameras at its depth
     maps' size (scene frame, same order); ``scene_from_true``: the 4×4 similarity to it."""
@@ -366,10 +375,11 @@ def hole_breakdown(
 
     n = len(points)
     if n == 0:
-        return {"holes": 0, **{k: 0.0 for k in HOLE_CAUSES}}
+        return {"holes": 0, **{k: 0.0 for k in HOLE_CAUSES + NO_STEREO_SPLIT}}
     seen = np.zeros(n, np.int64)
     raw_ok = np.zeros(n, bool)
     fused_ok = np.zeros(n, bool)
+    nearest = np.full(n, np.inf)  # the raw depth closest to the point's, relative, signed
     p_scene = points @ scene_from_true[:3, :3].T + scene_from_true[:3, 3]
     for tc, td, sc, rm, fm in zip(
         true_cams, true_depths, stereo_cams, raw_maps, fused_maps, strict=True
@@ -382,8 +392,21 @@ def hole_breakdown(
             ds, zs = sample_depth(m, sc, p_scene)
             with np.errstate(invalid="ignore"):
                 arr |= vis & (np.abs(ds - zs) < rel * zs)
+            if m is rm:
+                with np.errstate(invalid="ignore"):
+                    e = np.where(vis, (ds - zs) / zs, np.nan)
+                closer = np.isfinite(e) & (np.abs(e) < np.abs(nearest))
+                nearest[closer] = e[closer]
     cause = np.select([seen < 2, ~raw_ok, ~fused_ok], list(HOLE_CAUSES[:3]), default=HOLE_CAUSES[3])
-    return {"holes": n, **{k: float(np.mean(cause == k)) for k in HOLE_CAUSES}}
+    no_stereo = cause == "no_stereo"
+    split = np.select(
+        [~np.isfinite(nearest), nearest < 0], list(NO_STEREO_SPLIT[:2]), default=NO_STEREO_SPLIT[2]
+    )
+    return {
+        "holes": n,
+        **{k: float(np.mean(cause == k)) for k in HOLE_CAUSES},
+        **{k: float(np.mean(no_stereo & (split == k))) for k in NO_STEREO_SPLIT},
+    }
 
 
 def _holes(
@@ -650,6 +673,12 @@ def _print(out: dict) -> None:
             f"the truth has one ({100 * h['unsupported']:.1f} % without a fully supported one, "
             "before a fill); lost as: " + ", ".join(f"{k} {100 * h[k]:.0f} %" for k in HOLE_CAUSES)
         )
+        if NO_STEREO_SPLIT[0] in h:
+            print(
+                "  no stereo: "
+                + ", ".join(f"{k[10:]} {100 * h[k]:.0f} %" for k in NO_STEREO_SPLIT)
+                + " (no depth on the point's pixels / the closest depth in front of / behind it)"
+            )
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")

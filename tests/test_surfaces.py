@@ -505,12 +505,19 @@ def test_hole_breakdown_names_the_stage_that_lost_each_hole():
         "no_stereo": 0.25,
         "inconsistent": 0.25,
         "fusion": 0.25,
+        "no_stereo_empty": 0.25,
+        "no_stereo_front": 0.0,
+        "no_stereo_behind": 0.0,
     }
-    # a wrong depth is no find: 5 % too far in every map leaves the second point unmatched
+    # a wrong depth is no find: 5 % too far in every map leaves the second point unmatched,
+    # and the split says where the stereo put it
     raw[0] *= 1.05
-    assert hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)[
-        "no_stereo"
-    ] == pytest.approx(0.5)
+    out = hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)
+    assert out["no_stereo"] == pytest.approx(0.5)
+    assert (out["no_stereo_empty"], out["no_stereo_behind"]) == pytest.approx((0.25, 0.25))
+    raw[0] *= 0.9  # now 5.5 % too near
+    out = hole_breakdown(pts, true_cams, true_depths, stereo_cams, raw, fused, shift)
+    assert (out["no_stereo_front"], out["no_stereo_behind"]) == pytest.approx((0.25, 0.0))
 
 
 @pytest.mark.parametrize("n_max", [50, 1000])
