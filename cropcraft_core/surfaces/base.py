@@ -137,6 +137,10 @@ class SurfacesConfig:
     box's corners (or (0.2, 8.0) without a box)."""
     neighbours: int = 4
     """tsdf: source views matched against each reference view (2–6)."""
+    best_sources: int = 0
+    """tsdf: a plane's matching score at a pixel is the mean NCC of this many best-scoring
+    sources (fewer is more robust to a source that cannot see the pixel, noisier where all
+    can); 0: half of the sources, rounded up."""
     mvs_scale: float = 0.75
     """tsdf: image scale for stereo (0.75: 640×480 photos are matched at 480×360). Measured on
     two dense synthetic soybean scenes (true poses; ``bench pipeline --poses truth``): the
@@ -271,6 +275,8 @@ class SurfacesConfig:
                 raise ConfigError(f"surfaces {name} must be odd and ≥ {least}, got {v}")
         if not -1.0 <= self.min_ncc < 1.0:
             raise ConfigError(f"surfaces min_ncc must be in [-1, 1), got {self.min_ncc}")
+        if int(self.best_sources) < 0:
+            raise ConfigError(f"surfaces best_sources must be ≥ 0, got {self.best_sources}")
         if int(self.min_consistent) < 0:
             raise ConfigError(f"surfaces min_consistent must be ≥ 0, got {self.min_consistent}")
         if self.depth_range is not None:

@@ -14,9 +14,10 @@ Pipeline (``TsdfSurfaces.fit``):
    source image is warped onto each plane by the plane-induced homography and compared with the
    reference by windowed normalised cross-correlation (box filters), on RGB (the mean of the
    channels' NCC; ``config.colour``) or grey. The per-source scores are aggregated by the mean of
-   the best half (robust to occlusion in some sources); semi-global matching along 4 paths
-   (``config.sgm_p1``/``sgm_p2``); the best plane per pixel wins, refined to sub-plane precision by
-   a parabola. Pixels whose score is below ``config.min_ncc`` are dropped.
+   the best ``config.best_sources`` (by default the best half: robust to occlusion in some
+   sources); semi-global matching along 4 paths (``config.sgm_p1``/``sgm_p2``); the best plane
+   per pixel wins, refined to sub-plane precision by a parabola. Pixels whose score is below
+   ``config.min_ncc`` are dropped.
 3. **Consistency.** A depth survives where at least ``config.min_consistent`` neighbour depth maps
    agree with its reprojection within ``config.consistency_rel`` relative z-depth; depths outside
    the bounding box are dropped.
@@ -215,6 +216,7 @@ def plane_sweep(
     p1: float = 0.05,
     p2: float = 1.0,
     heights: tuple[float, float] | None = None,
+    best_sources: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plane-sweep stereo of one reference view with semi-global cost aggregation.
 
@@ -222,7 +224,8 @@ def plane_sweep(
     c]) images matching ``srcs``. Hypotheses: ``n_depths`` planes (``sweep_planes``:
     fronto-parallel uniform in inverse depth over [near, far], or horizontal z = h over
     ``heights``). Matching cost: 1 − NCC over a ``window`` × ``window`` window (the mean over
-    channels), the mean of the best half of the sources; aggregated along 4 image paths (SGM,
+    channels), the mean of the ``best_sources`` best sources (0: the best half, ``best_of``);
+    aggregated along 4 image paths (SGM,
     penalties ``p1`` for a one-plane step, ``p2`` for a jump). Returns (depth (h, w) float32
     z-depth, refined to sub-plane precision by a parabola, NaN where no plane is valid; score
     (h, w) float32, the aggregated NCC at the winning plane, −1 where no source sees the pixel or
@@ -247,7 +250,7 @@ def plane_sweep(
     vol = np.empty((h, w, len(params)), np.float32)
     _sweep_ncc(
         np.ascontiguousarray(np.moveaxis(ref_img, 2, 0), np.float32), stack, hw, homs,
-        int(window) // 2, max(1, (len(srcs) + 1) // 2), vol,
+        int(window) // 2, best_of(len(srcs), best_sources), vol,
     )  # fmt: skip
     agg = _sgm(1.0 - vol, float(p1), float(p2)) if p2 > 0 else 1.0 - vol
     n_p = len(params)
@@ -265,6 +268,13 @@ def plane_sweep(
     score = np.take_along_axis(vol, best[..., None], 2)[..., 0]
     score = np.where(inner & np.isfinite(depth), score, -1.0).astype(np.float32)
     return depth, score
+
+
+def best_of(n_sources: int, best_sources: int) -> int:
+    """How many best-scoring sources a plane's score averages: ``best_sources`` (0: half of
+    ``n_sources``, rounded up), at least 1 and at most ``n_sources``."""
+    k = (n_sources + 1) // 2 if best_sources <= 0 else best_sources
+    return max(1, min(int(k), n_sources))
 
 
 @njit(cache=True, parallel=True, fastmath=True)
@@ -534,7 +544,7 @@ def _match_views(
         depth, score = plane_sweep(
             views[i], small[i], [views[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
             near, far, int(n_depths), int(cfg.window), float(cfg.sgm_p1),
-            float(cfg.sgm_p2), heights,
+            float(cfg.sgm_p2), heights, int(cfg.best_sources),
         )  # fmt: skip
         depth[score < cfg.min_ncc] = np.nan
         raw.append(depth)
