@@ -388,15 +388,15 @@ def hole_breakdown(
         with np.errstate(invalid="ignore"):
             vis = np.abs(dv - z) < 0.01 + 0.005 * z
         seen += vis
-        for arr, m in ((raw_ok, rm), (fused_ok, fm)):
-            ds, zs = sample_depth(m, sc, p_scene)
-            with np.errstate(invalid="ignore"):
-                arr |= vis & (np.abs(ds - zs) < rel * zs)
-            if m is rm:
-                with np.errstate(invalid="ignore"):
-                    e = np.where(vis, (ds - zs) / zs, np.nan)
-                closer = np.isfinite(e) & (np.abs(e) < np.abs(nearest))
-                nearest[closer] = e[closer]
+        ds, zs = sample_depth(rm, sc, p_scene)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e = np.where(vis, (ds - zs) / zs, np.nan)
+            raw_ok |= np.abs(e) < rel
+        closer = np.isfinite(e) & (np.abs(e) < np.abs(nearest))
+        nearest[closer] = e[closer]
+        ds, zs = sample_depth(fm, sc, p_scene)
+        with np.errstate(invalid="ignore"):
+            fused_ok |= vis & (np.abs(ds - zs) < rel * zs)
     cause = np.select([seen < 2, ~raw_ok, ~fused_ok], list(HOLE_CAUSES[:3]), default=HOLE_CAUSES[3])
     no_stereo = cause == "no_stereo"
     split = np.select(
@@ -673,12 +673,13 @@ def _print(out: dict) -> None:
             f"the truth has one ({100 * h['unsupported']:.1f} % without a fully supported one, "
             "before a fill); lost as: " + ", ".join(f"{k} {100 * h[k]:.0f} %" for k in HOLE_CAUSES)
         )
-        if NO_STEREO_SPLIT[0] in h:
-            print(
-                "  no stereo: "
-                + ", ".join(f"{k[10:]} {100 * h[k]:.0f} %" for k in NO_STEREO_SPLIT)
-                + " (no depth on the point's pixels / the closest depth in front of / behind it)"
+        print(
+            "  no stereo: "
+            + ", ".join(
+                f"{k.removeprefix('no_stereo_')} {100 * h[k]:.0f} %" for k in NO_STEREO_SPLIT
             )
+            + " (no depth on the point's pixels / the closest depth in front of / behind it)"
+        )
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")

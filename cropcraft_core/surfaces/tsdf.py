@@ -225,11 +225,10 @@ def plane_sweep(
     fronto-parallel uniform in inverse depth over [near, far], or horizontal z = h over
     ``heights``). Matching cost: 1 − NCC over a ``window`` × ``window`` window (the mean over
     channels), the mean of the ``best_sources`` best sources (0: the best half, ``best_of``);
-    aggregated along 4 image paths (SGM,
-    penalties ``p1`` for a one-plane step, ``p2`` for a jump). Returns (depth (h, w) float32
-    z-depth, refined to sub-plane precision by a parabola, NaN where no plane is valid; score
-    (h, w) float32, the aggregated NCC at the winning plane, −1 where no source sees the pixel or
-    the winner is the first or last plane).
+    aggregated along 4 image paths (SGM, penalties ``p1`` for a one-plane step, ``p2`` for a
+    jump). Returns (depth (h, w) float32 z-depth, refined to sub-plane precision by a parabola,
+    NaN where no plane is valid; score (h, w) float32, the aggregated NCC at the winning plane,
+    −1 where no source sees the pixel or the winner is the first or last plane).
     """
     ref_img = ref_img if ref_img.ndim == 3 else ref_img[..., None]
     src_imgs = [g if g.ndim == 3 else g[..., None] for g in src_imgs]
