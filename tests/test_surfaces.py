@@ -160,6 +160,44 @@ def test_fewer_best_sources_match_what_most_sources_cannot_see(scene):
     assert found[0, 1] > 0.9 * found[0, 0], found
 
 
+def test_shiftable_windows_find_more_true_depths_beside_depth_edges():
+    """``shiftable``: a pixel's score is the best of the windows that contain it. On a dense
+    canopy (LAI about 3.7: low leaves seen through small gaps), more pixels beside a depth jump
+    (one of its 3 × 3 neighbours 10 % nearer or farther) get their true depth than with the
+    centred window alone, and the view as a whole gains too. (Measured at 0.75 × 320×240, within
+    2 % of the true depth: beside the jumps 0.28 → 0.33, the whole view 0.46 → 0.51.) The best of
+    25 windows scores higher, so the NCC threshold drops less: 85 % of the view reaches 0.4
+    without, 98 % with."""
+    import cv2
+
+    from cropcraft_core.surfaces.tsdf import plane_sweep, to_colour
+
+    layout = CanopyLayout(plot_length=1.0, plot_width=1.0, margin=0.4)
+    dense = {"leaf_length": 1.1, "internode_length": 1.5, "num_nodes": 11}
+    mesh = generate_canopy("soybean", dense, layout, seed=4).mesh
+    cams = _arc(14, 1.1, 1.5)
+    ref, srcs = 6, [4, 5, 7, 8]
+    small = {j: cams[j].scaled(0.75) for j in [ref, *srcs]}
+    col = {j: to_colour(_view(mesh, cams[j])[0], cams[j], 0.75) for j in small}
+    _, d_true = _view(mesh, small[ref])
+    d32 = d_true.astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    edge = (cv2.dilate(d32, k) - cv2.erode(d32, k)) > 0.1 * d32
+    assert 0.3 < edge.mean() < 0.8  # measured 0.55
+    good, kept = {}, {}
+    for shift in (False, True):
+        depth, score = plane_sweep(
+            col[ref], small[ref], [col[j] for j in srcs], [small[j] for j in srcs], 0.5, 3.0,
+            128, 5, 0.05, 0.3, (-0.05, 1.2), 0, shift,
+        )  # fmt: skip
+        ok = (score >= 0.25) & (np.abs(depth - d_true) < 0.02 * d_true)
+        good[shift] = (float(ok[edge].mean()), float(ok.mean()))
+        kept[shift] = float((score >= 0.4).mean())
+    assert good[True][0] > 1.1 * good[False][0], good
+    assert good[True][1] > 1.04 * good[False][1], good
+    assert kept[True] > kept[False], kept
+
+
 def test_sweep_spans_the_heights_the_scene_occupies_not_the_box(scene, monkeypatch):
     """A box reaching 1.2 m below the ground (as soybean's does, for SfM that saw no soil): the
     coarse pass finds the soil and the canopy top, and the main pass's planes span about that,

@@ -217,6 +217,7 @@ def plane_sweep(
     p2: float = 1.0,
     heights: tuple[float, float] | None = None,
     best_sources: int = 0,
+    shiftable: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plane-sweep stereo of one reference view with semi-global cost aggregation.
 
@@ -224,7 +225,9 @@ def plane_sweep(
     c]) images matching ``srcs``. Hypotheses: ``n_depths`` planes (``sweep_planes``:
     fronto-parallel uniform in inverse depth over [near, far], or horizontal z = h over
     ``heights``). Matching cost: 1 − NCC over a ``window`` × ``window`` window (the mean over
-    channels), the mean of the ``best_sources`` best sources (0: the best half, ``best_of``);
+    channels; with ``shiftable``, per source the best of the windows that contain the pixel, so
+    a pixel beside a depth edge can match on a window wholly on its own side), the mean of the
+    ``best_sources`` best sources (0: the best half, ``best_of``);
     aggregated along 4 image paths (SGM, penalties ``p1`` for a one-plane step, ``p2`` for a
     jump). Returns (depth (h, w) float32 z-depth, refined to sub-plane precision by a parabola,
     NaN where no plane is valid; score (h, w) float32, the aggregated NCC at the winning plane,
@@ -249,7 +252,8 @@ def plane_sweep(
     vol = np.empty((h, w, len(params)), np.float32)
     _sweep_ncc(
         np.ascontiguousarray(np.moveaxis(ref_img, 2, 0), np.float32), stack, hw, homs,
-        int(window) // 2, best_of(len(srcs), best_sources), vol,
+        int(window) // 2, int(window) // 2 if shiftable else 0, best_of(len(srcs), best_sources),
+        vol,
     )  # fmt: skip
     agg = _sgm(1.0 - vol, float(p1), float(p2)) if p2 > 0 else 1.0 - vol
     n_p = len(params)
@@ -277,11 +281,12 @@ def best_of(n_sources: int, best_sources: int) -> int:
 
 
 @njit(cache=True, parallel=True, fastmath=True)
-def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover - numba
+def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no cover - numba
     """ref (C, h, w) float32; srcs (S, C, hs, ws) float32; src_hw (S, 2) int64 real sizes;
     homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32 aggregated
-    NCC (per source the mean over the C channels of their NCC; the mean of the best m_best
-    sources; -1 where fewer sources see the pixel)."""
+    NCC (per source the mean over the C channels of their NCC, with ``shift`` > 0 the best of
+    that over the windows centred up to ``shift`` pixels away in x and y; the mean of the best
+    m_best sources; -1 where fewer sources see the pixel)."""
     n_c, h, w = ref.shape
     n_d, n_s = homs.shape[0], homs.shape[1]
     # reference window statistics (integral images)
@@ -300,6 +305,7 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover 
         iw = np.zeros((h + 1, w + 1))
         iw2 = np.zeros((h + 1, w + 1))
         irw = np.zeros((h + 1, w + 1))
+        tmp = np.empty((h, w), np.float32)
         for s in range(n_s):
             hs, ws = src_hw[s, 0], src_hw[s, 1]
             m = homs[k, s]
@@ -362,6 +368,25 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, m_best, out):  # pragma: no cover 
                             vw = 1e-5
                         ncc = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
                         scores[s, y, x] += ncc / n_c
+            if shift > 0:
+                # shiftable windows: the best of the windows that contain the pixel (a max
+                # filter of the centred windows' scores), rows then columns
+                for y in range(h):
+                    for x in range(w):
+                        b = -1.0
+                        for xx in range(max(0, x - shift), min(w, x + shift + 1)):
+                            if scores[s, y, xx] > b:
+                                b = scores[s, y, xx]
+                        tmp[y, x] = b
+                for y in range(h):
+                    for x in range(w):
+                        if not seen[y, x]:
+                            continue
+                        b = -1.0
+                        for yy in range(max(0, y - shift), min(h, y + shift + 1)):
+                            if tmp[yy, x] > b:
+                                b = tmp[yy, x]
+                        scores[s, y, x] = b
         # aggregate: mean of the best m_best sources
         for y in range(h):
             for x in range(w):
@@ -543,7 +568,7 @@ def _match_views(
         depth, score = plane_sweep(
             views[i], small[i], [views[j] for j in nbrs[i]], [small[j] for j in nbrs[i]],
             near, far, int(n_depths), int(cfg.window), float(cfg.sgm_p1),
-            float(cfg.sgm_p2), heights, int(cfg.best_sources),
+            float(cfg.sgm_p2), heights, int(cfg.best_sources), bool(cfg.shiftable_windows),
         )  # fmt: skip
         depth[score < cfg.min_ncc] = np.nan
         raw.append(depth)
