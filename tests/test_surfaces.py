@@ -167,7 +167,8 @@ def test_shiftable_windows_find_more_true_depths_beside_depth_edges():
     centred window alone, and the view as a whole gains too. (Measured at 0.75 × 320×240, within
     2 % of the true depth: beside the jumps 0.28 → 0.33, the whole view 0.46 → 0.51.) The best of
     25 windows scores higher, so the NCC threshold drops less: 85 % of the view reaches 0.4
-    without, 98 % with."""
+    without, 98 % with. What it costs, leaves fattened beside their own edges, shows in the
+    fused row view and the fits (RESULTS, *Shiftable windows*), which is why it is off."""
     import cv2
 
     from cropcraft_core.surfaces.tsdf import plane_sweep, to_colour
