@@ -535,6 +535,102 @@ def test_paper_settings_per_crop():
     assert SurfacesConfig.for_crop("soybean").nerf_iterations == 20000
 
 
+def test_nerfacto_command_trains_every_photo_with_the_offline_method(tmp_path):
+    """The ns-train command that ``NerfactoSurfaces.fit`` runs: this interpreter with ``-m``
+    (nerfstudio installed with ``pip --target`` has no ``ns-train`` on the PATH), CropCraft's
+    registered method (no LPIPS download at model build), every photo in training, nerfstudio's
+    evaluation passes never due, checkpoints often enough for a deadline, the crop's settings."""
+    import sys
+
+    from cropcraft_core.surfaces.nerfacto import METHOD, METHOD_ENV, SAVE_EVERY, train_command
+
+    cfg = SurfacesConfig.for_crop("maize", backend="nerfacto", nerf_iterations=300)
+    cmd = train_command(cfg, tmp_path / "data", tmp_path / "out")
+    assert cmd[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", METHOD]
+
+    def value(flag: str) -> str:
+        return cmd[cmd.index(flag) + 1]
+
+    assert value("--max-num-iterations") == "300"
+    for flag in ("--steps-per-eval-batch", "--steps-per-eval-image", "--steps-per-eval-all-images"):
+        assert int(value(flag)) > 300
+    assert value("--steps-per-save") == str(SAVE_EVERY)
+    assert (value("--pipeline.model.near-plane"), value("--pipeline.model.far-plane")) == (
+        "0.05",
+        "6.0",
+    )
+    assert value("--pipeline.model.hidden-dim") == "128"
+    # the dataparser's own options come after its subcommand
+    tail = cmd[cmd.index("nerfstudio-data") :]
+    assert tail[tail.index("--orientation-method") + 1] == "vertical"
+    assert tail[tail.index("--eval-mode") + 1] == "all"
+    assert METHOD_ENV.startswith(f"{METHOD}=cropcraft_core.surfaces.nerfacto_method:")
+    # a user's own options go before the dataparser's subcommand
+    off = ("--pipeline.model.camera-optimizer.mode", "off")
+    cmd = train_command(replace(cfg, nerf_args=off), tmp_path / "data", tmp_path / "out")
+    i = cmd.index("nerfstudio-data")
+    assert tuple(cmd[i - 2 : i]) == off
+
+
+def test_nerf_training_deadline_stops_it_like_ctrl_c_and_reaps_its_workers(tmp_path):
+    """``run_training`` past its deadline: SIGINT to the trainer's process group (the trainer
+    saves nothing more and exits), then whatever it left behind (nerfstudio's data workers) is
+    killed. Real processes: a 'trainer' that exits 0 on Ctrl-C and a 'worker' that would sleep
+    on for a minute."""
+    import os
+    import sys
+    import time
+
+    from cropcraft_core.surfaces.nerfacto import run_training
+
+    pidfile = tmp_path / "worker.pid"
+    trainer = (
+        "import signal, subprocess, sys, time\n"
+        "w = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+        f"open({str(pidfile)!r}, 'w').write(str(w.pid))\n"
+        "try:\n"
+        "    time.sleep(60)\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted', flush=True)\n"
+    )
+    t = time.perf_counter()
+    with open(tmp_path / "log", "w") as log:
+        rc, stopped = run_training([sys.executable, "-c", trainer], log, deadline_s=3.0)
+    assert stopped and rc == 0
+    assert time.perf_counter() - t < 30
+    assert "interrupted" in (tmp_path / "log").read_text()
+    worker = int(pidfile.read_text())
+    for _ in range(50):  # the worker was SIGKILLed; wait for its zombie to be reaped by init
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            break
+        if open(f"/proc/{worker}/stat").read().split()[2] == "Z":
+            break
+        time.sleep(0.1)
+    else:
+        raise AssertionError("the trainer's worker outlived it")
+    with open(tmp_path / "log2", "w") as log:  # no deadline: the exit code as it is
+        assert run_training([sys.executable, "-c", "raise SystemExit(3)"], log, None) == (3, False)
+
+
+def test_nerfacto_env_adds_the_method_to_a_users_own(monkeypatch):
+    from cropcraft_core.surfaces.nerfacto import METHOD_ENV, train_env
+
+    monkeypatch.delenv("NERFSTUDIO_METHOD_CONFIGS", raising=False)
+    assert train_env()["NERFSTUDIO_METHOD_CONFIGS"] == METHOD_ENV
+    monkeypatch.setenv("NERFSTUDIO_METHOD_CONFIGS", "mine=pkg.mod:spec")
+    assert train_env()["NERFSTUDIO_METHOD_CONFIGS"] == f"mine=pkg.mod:spec,{METHOD_ENV}"
+
+
+def test_nerf_deadline_must_be_positive():
+    with pytest.raises(ConfigError, match="nerf_max_seconds"):
+        SurfacesConfig(backend="nerfacto", nerf_max_seconds=0)
+    with pytest.raises(ConfigError, match="nerf_args"):
+        SurfacesConfig(backend="nerfacto", nerf_args="--pipeline.model.camera-optimizer.mode off")
+    assert SurfacesConfig(nerf_max_seconds=60).nerf_max_seconds == 60
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not (_cuda() and _nerfstudio()), reason="needs nerfstudio and CUDA")
 def test_nerfacto_fits_on_gpu(scene, tmp_path):  # pragma: no cover - GPU hosts only

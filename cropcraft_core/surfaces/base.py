@@ -229,6 +229,13 @@ class SurfacesConfig:
     """points: side of the neighbourhood closing the empty pixels between splats (≤ 1: off)."""
     nerf_iterations: int = 20000
     """nerfacto: training iterations (the paper: 20K)."""
+    nerf_args: tuple[str, ...] = ()
+    """nerfacto: further ``ns-train`` options, placed before the dataparser's, e.g.
+    ``("--pipeline.model.camera-optimizer.mode", "off")`` for exactly known poses."""
+    nerf_max_seconds: float | None = None
+    """nerfacto: a deadline for training (s): past it training stops and the last checkpoint
+    (saved every ``nerfacto.SAVE_EVERY`` steps) is used; the iterations reached are in
+    ``timings['nerf_iterations_done']``. None: train all ``nerf_iterations``."""
     near_plane: float | None = None
     """nerfacto: near plane in nerfstudio's scaled frame (the paper's maize: 0.05; None: the
     nerfstudio default)."""
@@ -300,6 +307,11 @@ class SurfacesConfig:
             object.__setattr__(self, "depth_range", (near, far))
         if int(self.nerf_iterations) < 1:
             raise ConfigError(f"nerf_iterations must be ≥ 1, got {self.nerf_iterations}")
+        if isinstance(self.nerf_args, str):
+            raise ConfigError(f"nerf_args must be a list of options, not {self.nerf_args!r}")
+        object.__setattr__(self, "nerf_args", tuple(str(x) for x in self.nerf_args))
+        if self.nerf_max_seconds is not None and not float(self.nerf_max_seconds) > 0:
+            raise ConfigError(f"nerf_max_seconds must be > 0, got {self.nerf_max_seconds}")
 
     @classmethod
     def for_crop(cls, crop: str, **overrides: Any) -> SurfacesConfig:

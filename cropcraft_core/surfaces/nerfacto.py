@@ -1,15 +1,21 @@
 """The paper's visible surfaces: nerfstudio's Nerfacto (needs nerfstudio and a CUDA GPU).
 
 ``fit`` writes the photos and a nerfstudio ``transforms.json`` (OpenGL camera axes, camera to
-world) into ``config.workdir`` and runs ``ns-train nerfacto`` (``config.nerf_iterations``, the
-paper's 20K; near/far planes, MLP width and ``nerfstudio-data --orientation-method`` from the
-config, see ``SurfacesConfig.for_crop``). ``render`` loads the trained pipeline through
+world) into ``config.workdir`` and runs ``ns-train cropcraft-nerfacto`` (nerfacto without its
+eager LPIPS download, ``cropcraft_core.surfaces.nerfacto_method``; ``config.nerf_iterations``,
+the paper's 20K, or fewer by ``config.nerf_max_seconds``; near/far planes, MLP width and
+``nerfstudio-data --orientation-method`` from the config, see ``SurfacesConfig.for_crop``; more
+options in ``config.nerf_args``). ``render`` loads the trained pipeline through
 nerfstudio's ``eval_setup`` and renders any ``PinholeCamera``, mapping it into nerfstudio's
 normalised frame with the run's ``dataparser_transforms.json`` and the depth back to metres of
 z-depth. ``point_cloud`` renders every fitted view at a quarter size and unprojects it (as the
 paper samples its NeRF).
 
 Without nerfstudio or CUDA the constructor raises ``SurfacesError`` naming the CPU backend.
+
+Status (November 25, benchmarks/RESULTS.md#nerfacto-gpu): it runs end to end on an H100 (without
+tiny-cuda-nn), but on the default synthetic scene with exact poses its surfaces lie ~20× too
+far from the cameras; the CPU backends stay the default.
 """
 
 from __future__ import annotations
@@ -17,10 +23,11 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +42,12 @@ from cropcraft_core.surfaces.base import (
     check_inputs,
 )
 
+#: the nerfstudio method ``fit`` trains (``cropcraft_core.surfaces.nerfacto_method``) and
+#: its registration; the latter repeated here, since that module imports nerfstudio
+METHOD = "cropcraft-nerfacto"
+METHOD_ENV = f"{METHOD}=cropcraft_core.surfaces.nerfacto_method:method"
+#: checkpoint interval (steps): what a ``nerf_max_seconds`` deadline can lose
+SAVE_EVERY = 500
 UNAVAILABLE = "nerfacto needs nerfstudio and a CUDA GPU; use the CPU backend: --surfaces tsdf"
 #: OpenCV camera axes ↔ OpenGL (nerfstudio) camera axes
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -75,9 +88,15 @@ def write_transforms(folder: Path, images: list[np.ndarray], cameras: list[Pinho
 
 
 def train_command(cfg: SurfacesConfig, data: Path, out: Path) -> list[str]:
-    """The ``ns-train nerfacto`` command line for ``cfg``."""
+    """The ``ns-train cropcraft-nerfacto`` command line for ``cfg`` (run it with
+    :func:`train_env`), as ``python -m`` by this interpreter: the one ``nerfacto_available``
+    found nerfstudio in, also where nerfstudio was installed without its console scripts on the
+    PATH (``pip install --target``). Every photo trains (``--eval-mode all``: nerfstudio's
+    default holds 10 % of them out), and nerfstudio's own evaluation passes are off (they only
+    report image metrics, and build LPIPS, see ``nerfacto_method``)."""
+    never = str(int(cfg.nerf_iterations) + 1)
     cmd = [
-        "ns-train", "nerfacto",
+        sys.executable, "-m", "nerfstudio.scripts.train", METHOD,
         "--data", str(data),
         "--output-dir", str(out),
         "--experiment-name", "cropcraft",
@@ -86,6 +105,10 @@ def train_command(cfg: SurfacesConfig, data: Path, out: Path) -> list[str]:
         "--machine.seed", str(int(cfg.seed)),
         "--vis", "tensorboard",
         "--viewer.quit-on-train-completion", "True",
+        "--steps-per-save", str(SAVE_EVERY),
+        "--steps-per-eval-batch", never,
+        "--steps-per-eval-image", never,
+        "--steps-per-eval-all-images", never,
     ]  # fmt: skip
     if cfg.near_plane is not None:
         cmd += ["--pipeline.model.near-plane", str(cfg.near_plane)]
@@ -93,8 +116,60 @@ def train_command(cfg: SurfacesConfig, data: Path, out: Path) -> list[str]:
         cmd += ["--pipeline.model.far-plane", str(cfg.far_plane)]
     if cfg.hidden_dim is not None:
         cmd += ["--pipeline.model.hidden-dim", str(int(cfg.hidden_dim))]
-    cmd += ["nerfstudio-data", "--orientation-method", cfg.orientation]
+    cmd += list(cfg.nerf_args)
+    cmd += ["nerfstudio-data", "--orientation-method", cfg.orientation, "--eval-mode", "all"]
     return cmd
+
+
+def train_env() -> dict[str, str]:
+    """This process's environment with ``cropcraft-nerfacto`` registered for nerfstudio."""
+    env = os.environ.copy()
+    known = env.get("NERFSTUDIO_METHOD_CONFIGS", "")
+    env["NERFSTUDIO_METHOD_CONFIGS"] = ",".join(x for x in (known, METHOD_ENV) if x)
+    return env
+
+
+def run_training(cmd: list[str], log, deadline_s: float | None) -> tuple[int, bool]:
+    """Run ``cmd`` (ns-train) in its own process group, output to ``log``; past ``deadline_s``
+    stop it as Ctrl-C does (its trainer keeps the checkpoints it saved), and kill it 120 s
+    later if it has not gone. Whatever it leaves in its group (nerfstudio's data workers) is
+    killed at the end, also when this process is interrupted. Returns (exit code, stopped at
+    the deadline)."""
+    proc = subprocess.Popen(
+        cmd, stdout=log, stderr=subprocess.STDOUT, env=train_env(), start_new_session=True
+    )
+    stopped = False
+    try:
+        try:
+            return proc.wait(timeout=deadline_s), stopped
+        except subprocess.TimeoutExpired:
+            stopped = True
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                return proc.wait(timeout=120), stopped
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                return proc.wait(), stopped
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+
+
+def checkpoint_globals():
+    """A ``torch.serialization.safe_globals`` context that lets nerfstudio 1.1's checkpoint
+    loading (a bare ``torch.load``) read its own checkpoints under torch >= 2.6, whose
+    ``weights_only`` default refuses the numpy scalars and dtypes nerfstudio saves in them
+    (the step counter). Only numpy's scalar and dtype types are allowed, nothing that runs
+    code."""
+    import torch
+
+    core = getattr(np, "_core", None) or np.core
+    allowed = [core.multiarray.scalar, np.dtype]
+    allowed += [getattr(np.dtypes, n) for n in getattr(np.dtypes, "__all__", ())]
+    return torch.serialization.safe_globals(allowed)
 
 
 class NerfactoSurfaces(SurfaceBackend):
@@ -118,17 +193,21 @@ class NerfactoSurfaces(SurfaceBackend):
         work = Path(cfg.workdir or tempfile.mkdtemp(prefix="cropcraft_nerfacto_"))
         data, out = work / "data", work / "outputs"
         write_transforms(data, imgs, cams)
-        exe = shutil.which("ns-train") or str(Path(sys.executable).parent / "ns-train")
         cmd = train_command(cfg, data, out)
-        cmd[0] = exe
         if progress:
             progress("nerfacto", 0.0)
         log = work / "ns-train.log"
+        t0 = time.perf_counter()
         with open(log, "w") as fh:
-            rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=os.environ.copy())
-        if rc.returncode != 0:
-            raise SurfacesError(f"ns-train failed (exit {rc.returncode}); see {log}")
-        self.run_dir = out / "cropcraft" / "nerfacto" / "run"
+            rc, stopped = run_training(cmd, fh, cfg.nerf_max_seconds)
+        if rc != 0 and not stopped:
+            raise SurfacesError(f"ns-train failed (exit {rc}); see {log}")
+        self.timings["nerf_train"] = time.perf_counter() - t0
+        self.run_dir = out / "cropcraft" / METHOD / "run"
+        steps = sorted(self.run_dir.glob("nerfstudio_models/step-*.ckpt"))
+        if not steps:
+            raise SurfacesError(f"ns-train stopped before its first checkpoint; see {log}")
+        self.timings["nerf_iterations_done"] = int(steps[-1].stem.split("-")[1]) + 1
         self.cameras, self.bbox = cams, box
         self._read_run()
         if progress:
@@ -145,9 +224,16 @@ class NerfactoSurfaces(SurfaceBackend):
 
     def _load_pipeline(self):
         if self._pipeline is None:
+            from nerfstudio.configs.method_configs import all_methods
             from nerfstudio.utils.eval_utils import eval_setup
 
-            _, self._pipeline, _, _ = eval_setup(self.run_dir / "config.yml", test_mode="inference")
+            from cropcraft_core.surfaces.nerfacto_method import method
+
+            all_methods.setdefault(METHOD, method.config)  # eval_setup looks the run's up
+            with checkpoint_globals():
+                _, self._pipeline, _, _ = eval_setup(
+                    self.run_dir / "config.yml", test_mode="inference"
+                )
         return self._pipeline
 
     # ------------------------------------------------------------------ queries
