@@ -202,6 +202,7 @@ BENCHMARKS = {
     "optimizer": "benchmarks.bench_optimizer",
     "pipeline": "benchmarks.bench_pipeline",
     "surfaces": "benchmarks.bench_surfaces",
+    "nerfacto": "benchmarks.bench_nerfacto",
 }
 
 

@@ -247,3 +247,19 @@ def test_pipeline_benchmark_keeps_a_reused_scenes_crop(tmp_path):
     with pytest.raises(SystemExit, match=r"scene\.json: the scene is maize, not soybean"):
         scene_crop(tmp_path, "soybean")
     assert f.read_bytes() == before
+
+
+def test_nerfacto_benchmark_scores_a_view_against_its_true_depth():
+    """``bench nerfacto``'s per-view score, by hand: a 2 × 2 truth, one pixel rendered 1 cm off,
+    one 10 % too far, one left empty, and one where the truth has nothing (not counted)."""
+    import numpy as np
+
+    from benchmarks.bench_nerfacto import view_scores
+
+    true = np.array([[1.0, 2.0], [1.5, np.nan]])
+    depth = np.array([[1.01, 2.2], [np.nan, 3.0]])
+    s = view_scores(depth, true)
+    assert s["median_abs_err_m"] == pytest.approx((0.01 + 0.2) / 2)
+    assert s["median_ratio"] == pytest.approx((1.01 + 1.1) / 2)
+    assert s["within"] == pytest.approx(0.5)
+    assert s["holes"] == pytest.approx(1 / 3)

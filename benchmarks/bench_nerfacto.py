@@ -1,0 +1,208 @@
+"""The paper's NeRF stage (nerfacto) on a synthetic scene, in two halves for two machines.
+
+``train`` (a CUDA host with nerfstudio): fits ``NerfactoSurfaces`` to a ``cropcraft synth``
+scene's photos with their true poses, samples its point cloud, fits the rows (metric: the poses
+are), makes the row camera's observation, renders a few of the photos' own views and scores them
+against the scene's true per-view depth (``depth/*.npy``), and writes what the other half needs
+into ``--out``: ``observation.npz``, ``row.json`` (the row camera in the truth frame, timings,
+per-view scores), ``points.npz``, ``ns-train.log``. It needs neither Open3D nor the truth mesh,
+which a GPU worker image may lack.
+
+``compare`` (any host with the project installed): the same figures ``bench pipeline --poses
+truth`` prints for the CPU backends, from the kept files: the depth histogram's L1 against the
+true mesh's from the same camera, mask areas, depth errors, and with ``--fit SEEDSxEVALS`` the fit
+and its traits against the truth (``bench_pipeline.fit_and_compare``).
+
+    cropcraft bench nerfacto train --scene-dir DIR --iterations 5000 --out KEPT
+    cropcraft bench nerfacto compare --scene-dir DIR --kept KEPT [--fit 10x300] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: how many of the photos' own views ``train`` renders and scores against their true depth
+VIEWS_SCORED = 8
+#: a rendered depth within this much of the true one (m) counts as right (the scores' "within")
+WITHIN_M = 0.02
+
+
+def view_scores(depth: np.ndarray, true: np.ndarray) -> dict:
+    """A rendered z-depth against the true one of the same view (NaN where nothing): median
+    absolute error, median ratio (a scale or a far background shows here), share within
+    :data:`WITHIN_M`, and share of the truth's pixels left empty."""
+    seen = np.isfinite(true)
+    both = seen & np.isfinite(depth) & (true > 0)
+    err = np.abs(depth[both] - true[both])
+    return {
+        "median_abs_err_m": float(np.median(err)) if err.size else float("nan"),
+        "median_ratio": float(np.median(depth[both] / true[both])) if err.size else float("nan"),
+        "within": float((err < WITHIN_M).mean()) if err.size else 0.0,
+        "holes": float((seen & ~np.isfinite(depth)).sum() / max(int(seen.sum()), 1)),
+    }
+
+
+def train(a: argparse.Namespace) -> dict:
+    from PIL import Image
+
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.observe import Observation
+    from cropcraft_core.rowfit import fit_rows_with_scale
+    from cropcraft_core.rowfit import preset as rowfit_preset
+    from cropcraft_core.rowfit.truth import camera_in_truth
+    from cropcraft_core.sfm import import_transforms_json
+    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend
+
+    root, out = Path(a.scene_dir), Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    crop = json.loads((root / "scene.json").read_text())["crop"]
+    poses = import_transforms_json(root / "transforms.json")
+    images = [
+        np.asarray(Image.open(root / "images" / Path(n).name).convert("RGB")) for n, _ in poses
+    ]
+    # nerfacto: the paper's settings per crop; a CPU backend (to check this benchmark without a
+    # GPU): the scene flow's settings
+    extra = {} if a.backend == "nerfacto" else CROP_SURFACES[crop]
+    cfg = SurfacesConfig.for_crop(
+        crop,
+        **{
+            **extra,
+            "backend": a.backend,
+            "nerf_iterations": a.iterations,
+            "nerf_max_seconds": a.max_seconds,
+            "nerf_args": a.nerf_arg,
+            "workdir": str(out / "work"),
+        },
+    )
+    sec: dict[str, float] = {}
+    t = time.perf_counter()
+    backend = make_backend(cfg)
+    backend.fit(images, poses.cameras)
+    sec["train"] = time.perf_counter() - t
+    log = out / "work" / "ns-train.log"
+    if log.exists():
+        (out / "ns-train.log").write_text(log.read_text()[-200_000:])
+
+    t = time.perf_counter()
+    points, colors = backend.point_cloud(100_000)
+    sec["point_cloud"] = time.perf_counter() - t
+    np.savez_compressed(out / "points.npz", points=points, colors=colors)
+
+    t = time.perf_counter()
+    layout = default_layout(crop)
+    pre = rowfit_preset(crop, row_spacing=layout.row_spacing, box_center=None, box_size=None)
+    fit = fit_rows_with_scale(
+        points, colors, crop, pre, rng=0, metric_scale=1.0, known_row_spacing=layout.row_spacing
+    )
+    sec["rowfit"] = time.perf_counter() - t
+    t = time.perf_counter()
+    # as the scene flow's observe stage (bench_pipeline._observe, whose module needs Open3D)
+    obs = Observation.from_surfaces(
+        crop, backend.render, fit.camera, fit.camera_in_scene(), fit.scale, fit.render_height
+    )
+    sec["observe"] = time.perf_counter() - t
+    obs.save(out / "observation.npz")
+
+    t = time.perf_counter()
+    scored = {}
+    step = max(len(poses) // VIEWS_SCORED, 1)
+    for name, cam in list(poses)[::step][:VIEWS_SCORED]:
+        true = root / "depth" / f"{Path(name).stem}.npy"
+        if true.exists():  # a GPU host may be sent only these views' depth
+            scored[true.stem] = view_scores(backend.render(cam)[0], np.load(true))
+    sec["views_scored"] = time.perf_counter() - t
+    rec = {
+        "scene_dir": str(root),
+        "crop": crop,
+        "backend": a.backend,
+        "iterations": a.iterations,
+        "seconds": sec,
+        "surfaces_timings": backend.timings,
+        "camera_truth": camera_in_truth(fit, np.eye(4)).to_dict(),
+        "row_fit": fit.to_dict(),
+        "views": scored,
+        "views_mean": {
+            k: float(np.mean([v[k] for v in scored.values()])) for k in next(iter(scored.values()))
+        },
+    }
+    (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
+    return rec
+
+
+def compare(a: argparse.Namespace) -> dict:
+    from benchmarks.bench_pipeline import fit_and_compare, observation_vs_truth
+    from benchmarks.bench_surfaces import _truth_mesh
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.observe import Observation
+    from cropcraft_core.surfaces import SurfacesConfig, make_backend
+
+    root, kept = Path(a.scene_dir), Path(a.kept)
+    rec = json.loads((kept / "row.json").read_text())
+    obs = Observation.load(kept / "observation.npz")
+    truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
+    d_true, _ = truth.render(PinholeCamera.from_dict(rec["camera_truth"]))
+    d_true = np.where(np.isfinite(d_true), d_true, np.nan)
+    h_obs, h_true, area = observation_vs_truth(obs, d_true)
+    keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
+    keys += ("views_mean",)
+    out = {k: rec[k] for k in keys}
+    out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
+    out["mask_area"] = area
+    out["holes"] = float((~np.isfinite(obs.depth) & np.isfinite(d_true)).mean())
+    both = np.isfinite(obs.depth) & np.isfinite(d_true)
+    out["median_abs_depth_err_m"] = float(np.median(np.abs(obs.depth[both] - d_true[both])))
+    plant = both & obs.mask
+    if plant.any():
+        err = obs.depth[plant] - d_true[plant]
+        out["plant_depth_err_m"] = {
+            q: float(np.percentile(err, p)) for q, p in (("median", 50), ("p25", 25), ("p75", 75))
+        }
+    if a.fit:
+        out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench nerfacto", description=__doc__.splitlines()[0]
+    )
+    sub = ap.add_subparsers(dest="half", required=True)
+    tr = sub.add_parser("train", help="the CUDA half: nerfacto → rows → observation")
+    tr.add_argument("--scene-dir", required=True, help="a cropcraft synth scene")
+    tr.add_argument("--iterations", type=int, default=20_000, help="the paper's 20K")
+    tr.add_argument(
+        "--max-seconds", type=float, default=None, help="training deadline (nerf_max_seconds)"
+    )
+    tr.add_argument(
+        "--nerf-arg",
+        action="append",
+        default=[],
+        help="an ns-train option or value (nerf_args), e.g. "
+        "--nerf-arg=--pipeline.model.camera-optimizer.mode --nerf-arg=off",
+    )
+    tr.add_argument("--out", required=True, help="folder for the compare half's files")
+    tr.add_argument(
+        "--backend",
+        default="nerfacto",
+        help="surfaces backend (default nerfacto; a CPU one checks this benchmark without a GPU)",
+    )
+    co = sub.add_parser("compare", help="the CPU half: against the truth, optionally fit")
+    co.add_argument("--scene-dir", required=True)
+    co.add_argument("--kept", required=True, help="the train half's --out")
+    co.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
+    co.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    out = train(a) if a.half == "train" else compare(a)
+    print(json.dumps({k: v for k, v in out.items() if k != "row_fit"}, indent=1, default=float))
+    if getattr(a, "json", None):
+        Path(a.json).write_text(json.dumps(out, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
