@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Stages a nerfacto check for an offline CUDA host that already has torch, numpy, OpenCV, numba,
+# tensorboard and torchmetrics (CPython 3.12, x86-64), such as the lent GPU machines: the wheels
+# of nerfstudio 1.1.5 and of those of its needs `ns-train` imports (23 MB) into .whl/, and a
+# `cropcraft synth` scene (photos, transforms.json, scene.json, the depth of the views
+# `bench nerfacto train` scores) into .gpu/SCENE_NAME/. Both folders must be git-ignored.
+#   bash deploy/gpu_check_prepare.sh SCENE_DIR
+# then on the GPU host, from the repository root:
+#   pip install --no-index --no-deps --target /tmp/site .whl/*.whl
+#   PYTHONPATH=/tmp/site:$PWD python3 -m benchmarks.bench_nerfacto train \
+#       --scene-dir .gpu/SCENE_NAME --max-seconds 330 --out OUT
+# and back here: cropcraft bench nerfacto compare --scene-dir SCENE_DIR --kept OUT
+# (benchmarks/RESULTS.md#nerfacto-gpu has what the first run found).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scene="${1:?usage: deploy/gpu_check_prepare.sh SCENE_DIR}"
+[ -f "$scene/transforms.json" ] || { echo "$scene: no transforms.json (a cropcraft synth scene?)" >&2; exit 2; }
+pip=(.venv/bin/python -m pip download -q --no-deps -d .whl)
+mkdir -p .whl
+"${pip[@]}" nerfstudio==1.1.5 tyro==0.8.14 shtab docstring-parser appdirs dill pathos ppft \
+  gsplat==1.4.0 nerfacc==0.5.2 pyquaternion pytorch-msssim splines==0.3.0 tensorly viser==0.2.7
+# compiled ones for the host's CPython 3.12; rawpy, not newrawpy (built against numpy 1)
+"${pip[@]}" --only-binary=:all: --python-version 3.12 --implementation cp \
+  --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
+  --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform manylinux1_x86_64 \
+  fpsample==0.3.3 msgspec==0.22.0 rawpy==0.28.0 websockets
+
+name="$(basename "$scene")"
+dest=".gpu/$name"
+rm -rf "$dest" && mkdir -p "$dest/depth"
+cp -r "$scene/images" "$scene/transforms.json" "$scene/scene.json" "$dest/"
+# the views bench_nerfacto.train scores: every len // VIEWS_SCORED-th, VIEWS_SCORED of them
+.venv/bin/python - "$scene" "$dest" <<'EOF'
+import shutil, sys
+from pathlib import Path
+from benchmarks.bench_nerfacto import VIEWS_SCORED
+from cropcraft_core.sfm import import_transforms_json
+src, dest = Path(sys.argv[1]), Path(sys.argv[2])
+poses = list(import_transforms_json(src / "transforms.json"))
+for name, _ in poses[:: max(len(poses) // VIEWS_SCORED, 1)][:VIEWS_SCORED]:
+    shutil.copy(src / "depth" / f"{Path(name).stem}.npy", dest / "depth")
+EOF
+du -sh .whl "$dest"
