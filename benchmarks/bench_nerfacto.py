@@ -47,6 +47,12 @@ def view_scores(depth: np.ndarray, true: np.ndarray) -> dict:
     }
 
 
+def scored_views(poses) -> list:
+    """The (name, camera) pairs of ``poses`` that ``train`` scores: every
+    ``len // VIEWS_SCORED``-th, at most :data:`VIEWS_SCORED` of them."""
+    return list(poses)[:: max(len(poses) // VIEWS_SCORED, 1)][:VIEWS_SCORED]
+
+
 def train(a: argparse.Namespace) -> dict:
     from PIL import Image
 
@@ -110,8 +116,7 @@ def train(a: argparse.Namespace) -> dict:
 
     t = time.perf_counter()
     scored = {}
-    step = max(len(poses) // VIEWS_SCORED, 1)
-    for name, cam in list(poses)[::step][:VIEWS_SCORED]:
+    for name, cam in scored_views(poses):
         true = root / "depth" / f"{Path(name).stem}.npy"
         if true.exists():  # a GPU host may be sent only these views' depth
             scored[true.stem] = view_scores(backend.render(cam)[0], np.load(true))
@@ -135,7 +140,7 @@ def train(a: argparse.Namespace) -> dict:
 
 
 def compare(a: argparse.Namespace) -> dict:
-    from benchmarks.bench_pipeline import fit_and_compare, observation_vs_truth
+    from benchmarks.bench_pipeline import depth_errors, fit_and_compare, observation_vs_truth
     from benchmarks.bench_surfaces import _truth_mesh
     from cropcraft_core.geometry.camera import PinholeCamera
     from cropcraft_core.observe import Observation
@@ -154,14 +159,7 @@ def compare(a: argparse.Namespace) -> dict:
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     out["mask_area"] = area
     out["holes"] = float((~np.isfinite(obs.depth) & np.isfinite(d_true)).mean())
-    both = np.isfinite(obs.depth) & np.isfinite(d_true)
-    out["median_abs_depth_err_m"] = float(np.median(np.abs(obs.depth[both] - d_true[both])))
-    plant = both & obs.mask
-    if plant.any():
-        err = obs.depth[plant] - d_true[plant]
-        out["plant_depth_err_m"] = {
-            q: float(np.percentile(err, p)) for q, p in (("median", 50), ("p25", 25), ("p75", 75))
-        }
+    out.update(depth_errors(obs, d_true))
     if a.fit:
         out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
     return out

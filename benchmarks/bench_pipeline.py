@@ -99,6 +99,24 @@ def observation_vs_truth(obs, d_true: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return unit(obs.stats.depth), unit(st_true.depth), area
 
 
+def depth_errors(obs, d_true: np.ndarray) -> dict:
+    """The observation's depth against the true mesh's ``d_true`` from the same camera:
+    ``median_abs_depth_err_m`` where both have a surface, and ``plant_depth_err_m`` (median,
+    p25, p75 of observation − truth: + = reconstructed too deep, i.e. low) where both see
+    plants (absent if nowhere)."""
+    both = np.isfinite(obs.depth) & np.isfinite(d_true)
+    out = {"median_abs_depth_err_m": float(np.median(np.abs(obs.depth[both] - d_true[both])))}
+    plant = both & obs.mask
+    if plant.any():
+        err = obs.depth[plant] - d_true[plant]
+        out["plant_depth_err_m"] = {
+            "median": float(np.median(err)),
+            "p25": float(np.percentile(err, 25)),
+            "p75": float(np.percentile(err, 75)),
+        }
+    return out
+
+
 def truth_stats(obs, d_true: np.ndarray):
     """Statistics of the true canopy mesh's depth ``d_true`` (NaN where no leaf) from the
     observation's camera, as a perfect reconstruction would give them: no background, the
@@ -257,17 +275,7 @@ def run(a: argparse.Namespace) -> dict:
         out["holes"] = _holes(
             root, poses, truth_poses, backend, fit, scene_from_true, a.image_scale, d_true, obs
         )
-    both = np.isfinite(depth_m) & np.isfinite(d_true)
-    out["median_abs_depth_err_m"] = float(np.median(np.abs(depth_m[both] - d_true[both])))
-    # bias where both see plants (observation − truth, + = reconstructed too deep, i.e. low)
-    plant = both & obs.mask
-    if plant.any():
-        err = depth_m[plant] - d_true[plant]
-        out["plant_depth_err_m"] = {
-            "median": float(np.median(err)),
-            "p25": float(np.percentile(err, 25)),
-            "p75": float(np.percentile(err, 75)),
-        }
+    out.update(depth_errors(obs, d_true))
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
         obs.save(Path(a.keep) / "observation.npz")

@@ -29,15 +29,14 @@ name="$(basename "$scene")"
 dest=".gpu/$name"
 rm -rf "$dest" && mkdir -p "$dest/depth"
 cp -r "$scene/images" "$scene/transforms.json" "$scene/scene.json" "$dest/"
-# the views bench_nerfacto.train scores: every len // VIEWS_SCORED-th, VIEWS_SCORED of them
+# the true depth of the views bench_nerfacto.train scores
 .venv/bin/python - "$scene" "$dest" <<'EOF'
 import shutil, sys
 from pathlib import Path
-from benchmarks.bench_nerfacto import VIEWS_SCORED
+from benchmarks.bench_nerfacto import scored_views
 from cropcraft_core.sfm import import_transforms_json
 src, dest = Path(sys.argv[1]), Path(sys.argv[2])
-poses = list(import_transforms_json(src / "transforms.json"))
-for name, _ in poses[:: max(len(poses) // VIEWS_SCORED, 1)][:VIEWS_SCORED]:
+for name, _ in scored_views(import_transforms_json(src / "transforms.json")):
     shutil.copy(src / "depth" / f"{Path(name).stem}.npy", dest / "depth")
 EOF
 du -sh .whl "$dest"

@@ -42,8 +42,8 @@ from cropcraft_core.surfaces.base import (
     check_inputs,
 )
 
-#: the nerfstudio method ``fit`` trains (``cropcraft_core.surfaces.nerfacto_method``) and
-#: its registration; the latter repeated here, since that module imports nerfstudio
+#: the nerfstudio method ``fit`` trains (``cropcraft_core.surfaces.nerfacto_method``, which
+#: imports nerfstudio) and its ``NERFSTUDIO_METHOD_CONFIGS`` registration
 METHOD = "cropcraft-nerfacto"
 METHOD_ENV = f"{METHOD}=cropcraft_core.surfaces.nerfacto_method:method"
 #: checkpoint interval (steps): what a ``nerf_max_seconds`` deadline can lose

@@ -9,7 +9,7 @@ its first step, although CropCraft never asks for the metric (it renders depth; 
 evaluation images, the only callers, are switched off by ``train_command``).
 
 ``NerfactoSurfaces`` selects it for ``ns-train`` through nerfstudio's
-``NERFSTUDIO_METHOD_CONFIGS`` environment variable (:data:`METHOD_ENV`).
+``NERFSTUDIO_METHOD_CONFIGS`` environment variable (``nerfacto.METHOD_ENV``).
 """
 
 from __future__ import annotations
@@ -22,9 +22,7 @@ from nerfstudio.configs.method_configs import method_configs
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-NAME = "cropcraft-nerfacto"  # = nerfacto.METHOD
-#: ``NERFSTUDIO_METHOD_CONFIGS`` entry that registers :data:`method`
-METHOD_ENV = f"{NAME}=cropcraft_core.surfaces.nerfacto_method:method"
+from cropcraft_core.surfaces.nerfacto import METHOD
 
 
 class LazyLPIPS:
@@ -65,7 +63,7 @@ class CropNerfactoModelConfig(NerfactoModelConfig):
 
 def _config():
     config = copy.deepcopy(method_configs["nerfacto"])
-    config.method_name = NAME
+    config.method_name = METHOD
     stock = config.pipeline.model
     config.pipeline.model = CropNerfactoModelConfig(
         **{f.name: getattr(stock, f.name) for f in fields(stock) if f.init and f.name != "_target"}
