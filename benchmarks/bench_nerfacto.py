@@ -57,6 +57,7 @@ def train(a: argparse.Namespace) -> dict:
     from PIL import Image
 
     from cropcraft_core.config import default_layout
+    from cropcraft_core.errors import CropCraftError
     from cropcraft_core.observe import Observation
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
@@ -93,6 +94,29 @@ def train(a: argparse.Namespace) -> dict:
     log = out / "work" / "ns-train.log"
     if log.exists():
         (out / "ns-train.log").write_text(log.read_text()[-200_000:])
+    rec = {
+        "scene_dir": str(root),
+        "crop": crop,
+        "backend": a.backend,
+        "iterations": a.iterations,
+        "nerf_args": list(a.nerf_arg),
+        "seconds": sec,
+        "surfaces_timings": backend.timings,
+    }
+
+    # the photos' own views first: they judge the radiance field even where no rows are found
+    t = time.perf_counter()
+    scored = {}
+    for name, cam in scored_views(poses):
+        true = root / "depth" / f"{Path(name).stem}.npy"
+        if true.exists():  # a GPU host may be sent only these views' depth
+            scored[true.stem] = view_scores(backend.render(cam)[0], np.load(true))
+    sec["views_scored"] = time.perf_counter() - t
+    rec["views"] = scored
+    if scored:
+        first = next(iter(scored.values()))
+        rec["views_mean"] = {k: float(np.mean([v[k] for v in scored.values()])) for k in first}
+    (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
 
     t = time.perf_counter()
     points, colors = backend.point_cloud(100_000)
@@ -102,9 +126,16 @@ def train(a: argparse.Namespace) -> dict:
     t = time.perf_counter()
     layout = default_layout(crop)
     pre = rowfit_preset(crop, row_spacing=layout.row_spacing, box_center=None, box_size=None)
-    fit = fit_rows_with_scale(
-        points, colors, crop, pre, rng=0, metric_scale=1.0, known_row_spacing=layout.row_spacing
-    )
+    try:
+        fit = fit_rows_with_scale(
+            points, colors, crop, pre, rng=0, metric_scale=1.0,
+            known_row_spacing=layout.row_spacing,
+        )  # fmt: skip
+    except CropCraftError as e:  # a wrong radiance field: its views' scores above say how
+        sec["rowfit"] = time.perf_counter() - t
+        rec["error"] = f"row fit: {e}"
+        (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
+        return rec
     sec["rowfit"] = time.perf_counter() - t
     t = time.perf_counter()
     # as the scene flow's observe stage (bench_pipeline._observe, whose module needs Open3D)
@@ -113,28 +144,8 @@ def train(a: argparse.Namespace) -> dict:
     )
     sec["observe"] = time.perf_counter() - t
     obs.save(out / "observation.npz")
-
-    t = time.perf_counter()
-    scored = {}
-    for name, cam in scored_views(poses):
-        true = root / "depth" / f"{Path(name).stem}.npy"
-        if true.exists():  # a GPU host may be sent only these views' depth
-            scored[true.stem] = view_scores(backend.render(cam)[0], np.load(true))
-    sec["views_scored"] = time.perf_counter() - t
-    rec = {
-        "scene_dir": str(root),
-        "crop": crop,
-        "backend": a.backend,
-        "iterations": a.iterations,
-        "seconds": sec,
-        "surfaces_timings": backend.timings,
-        "camera_truth": camera_in_truth(fit, np.eye(4)).to_dict(),
-        "row_fit": fit.to_dict(),
-        "views": scored,
-        "views_mean": {
-            k: float(np.mean([v[k] for v in scored.values()])) for k in next(iter(scored.values()))
-        },
-    }
+    rec["camera_truth"] = camera_in_truth(fit, np.eye(4)).to_dict()
+    rec["row_fit"] = fit.to_dict()
     (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
     return rec
 
@@ -148,6 +159,8 @@ def compare(a: argparse.Namespace) -> dict:
 
     root, kept = Path(a.scene_dir), Path(a.kept)
     rec = json.loads((kept / "row.json").read_text())
+    if "camera_truth" not in rec:
+        raise SystemExit(f"{kept / 'row.json'}: no observation to compare ({rec.get('error')})")
     obs = Observation.load(kept / "observation.npz")
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
     d_true, _ = truth.render(PinholeCamera.from_dict(rec["camera_truth"]))
