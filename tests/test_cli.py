@@ -263,3 +263,42 @@ def test_nerfacto_benchmark_scores_a_view_against_its_true_depth():
     assert s["median_ratio"] == pytest.approx((1.01 + 1.1) / 2)
     assert s["within"] == pytest.approx(0.5)
     assert s["holes"] == pytest.approx(1 / 3)
+
+
+def test_nerfacto_probe_plane_is_the_same_ground_in_every_view(tmp_path):
+    """``nerfacto_probe prepare --plane``: the control scene's depth is the plane's (a camera
+    looking straight down from 1.5 m sees z-depth 1.5 everywhere), and its texture is a function
+    of the ground point, so a point two cameras both see has one colour in both photos."""
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    from benchmarks.nerfacto_probe import main as probe
+    from benchmarks.nerfacto_probe import plane_texture
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.sfm import import_transforms_json
+    from cropcraft_core.surfaces.nerfacto import write_transforms
+
+    cams = [
+        PinholeCamera.look_down((0.0, 0.0), 1.5, size=(64, 48), vfov_deg=50.0),
+        PinholeCamera.look_down((0.2, 0.1), 1.2, (0.6, 0.8), size=(64, 48), vfov_deg=50.0),
+    ]
+    scene = tmp_path / "scene"
+    blank = [np.zeros((48, 64, 3), np.uint8)] * 2
+    write_transforms(scene, blank, cams)
+    out = tmp_path / "plane"
+    assert probe(["prepare", "--scene-dir", str(scene), "--out", str(out), "--plane"]) == 0
+    names = [n for n, _ in import_transforms_json(out / "transforms.json")]
+    depth = [np.load(out / "depth" / f"{n.rsplit('.', 1)[0]}.npy") for n in names]
+    np.testing.assert_allclose(depth[0], 1.5, rtol=1e-6)
+    np.testing.assert_allclose(depth[1], 1.2, rtol=1e-6)
+    frames = json.loads((out / "data" / "transforms.json").read_text())["frames"]
+    photos = [np.asarray(Image.open(out / "data" / f["file_path"])).astype(int) for f in frames]
+    assert photos[0].std() > 20  # textured, not flat
+    # every pixel is the texture at its centre ray's ground point, in either view
+    for cam, d, photo in zip(cams, depth, photos, strict=True):
+        ground = cam.unproject(d)
+        np.testing.assert_allclose(ground[..., 2], 0.0, atol=1e-6)
+        want = np.clip(plane_texture(ground[..., 0], ground[..., 1]), 0, 1) * 255
+        assert np.abs(photo - want).max() <= 0.51
