@@ -63,7 +63,7 @@ def train(a: argparse.Namespace) -> dict:
     from cropcraft_core.rowfit import preset as rowfit_preset
     from cropcraft_core.rowfit.truth import camera_in_truth
     from cropcraft_core.sfm import import_transforms_json
-    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend
+    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
 
     root, out = Path(a.scene_dir), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -83,13 +83,16 @@ def train(a: argparse.Namespace) -> dict:
             "nerf_iterations": a.iterations,
             "nerf_max_seconds": a.max_seconds,
             "nerf_args": a.nerf_arg,
+            "nerf_far_margin": a.far_margin,
             "workdir": str(out / "work"),
         },
     )
     sec: dict[str, float] = {}
     t = time.perf_counter()
     backend = make_backend(cfg)
-    backend.fit(images, poses.cameras)
+    # nerf_far_margin needs a box: the crop's scene box (the poses are the truth's, metric)
+    box = resolve_bbox("auto", crop) if a.far_margin is not None else None
+    backend.fit(images, poses.cameras, box)
     sec["train"] = time.perf_counter() - t
     log = out / "work" / "ns-train.log"
     if log.exists():
@@ -196,6 +199,11 @@ def main(argv: list[str] | None = None) -> int:
         help="an ns-train option or value (nerf_args), e.g. "
         "--nerf-arg=--pipeline.model.camera-optimizer.mode --nerf-arg=off",
     )
+    tr.add_argument(
+        "--far-margin", type=float, default=None,
+        help="surfaces.nerf_far_margin: far plane at this margin times the farthest "
+        "camera-to-scene-box distance (default: nerfstudio's far plane)",
+    )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the compare half's files")
     tr.add_argument(
         "--backend",

@@ -118,7 +118,7 @@ def uniform_sampler(n: int):
     return Uniform()
 
 
-def _setup(data: Path, rays: int, camera_opt: str, sets: list[str]):
+def _setup(data: Path, rays: int, camera_opt: str, sets: list[str], far=None):
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     from cropcraft_core.surfaces.nerfacto_method import method
@@ -130,6 +130,10 @@ def _setup(data: Path, rays: int, camera_opt: str, sets: list[str]):
     cfg.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
         orientation_method="up", eval_mode="all"
     )
+    if far is not None:  # (scale, far plane) as NerfactoSurfaces.fit sets them
+        cfg.pipeline.datamanager.dataparser.auto_scale_poses = False
+        cfg.pipeline.datamanager.dataparser.scale_factor = far[0]
+        cfg.pipeline.model.far_plane = far[1]
     cfg.pipeline.datamanager.train_num_rays_per_batch = rays
     cfg.pipeline.model.camera_optimizer.mode = camera_opt
     model = cfg.pipeline.model
@@ -196,7 +200,16 @@ def train(a: argparse.Namespace) -> list:
         raise SystemExit(f"{data}: no nerfstudio transforms.json (make one with `plane`)")
     poses = import_transforms_json(root / "transforms.json")
     stems = [Path(n).stem for n, _ in poses]
-    cfg, pipe = _setup(data, a.rays, a.camera_optimizer, a.set)
+    far = None
+    if a.far_margin is not None:  # the surfaces config's nerf_far_margin on the crop's box
+        from cropcraft_core.surfaces import resolve_bbox
+        from cropcraft_core.surfaces.nerfacto import pose_scale, scene_far
+
+        scale = pose_scale(list(poses.cameras))
+        box = resolve_bbox("auto", a.crop)
+        far = (scale, a.far_margin * scene_far(list(poses.cameras), box) * scale)
+        print(f"scale {scale:.4f}, far plane {far[1]:.3f} (nerfstudio's frame)", flush=True)
+    cfg, pipe = _setup(data, a.rays, a.camera_optimizer, a.set, far)
     opt = Optimizers(cfg.optimizers, pipe.get_param_groups())
     attrs = TrainingCallbackAttributes(
         optimizers=opt, grad_scaler=None, pipeline=pipe, trainer=None
@@ -260,6 +273,12 @@ def main(argv: list[str] | None = None) -> int:
     tr.add_argument("--camera-optimizer", default="off", choices=["off", "SO3xR3", "SE3"])
     tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     tr.add_argument("--uniform-samples", type=int, default=0, help="no proposal sampler")
+    tr.add_argument(
+        "--far-margin", type=float, default=None,
+        help="far plane at this margin times the farthest camera-to-box distance "
+        "(surfaces.nerf_far_margin; the box: the crop's scene box, metric poses)",
+    )  # fmt: skip
+    tr.add_argument("--crop", default="soybean", help="whose scene box --far-margin uses")
     tr.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
     tr.add_argument("--json", default=None, help="also write the rows here (at every report)")
     a = ap.parse_args(argv)

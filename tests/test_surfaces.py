@@ -572,6 +572,49 @@ def test_nerfacto_command_trains_every_photo_with_the_offline_method(tmp_path):
     assert tuple(cmd[i - 2 : i]) == off
 
 
+def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
+    """``nerf_far_margin``: ``fit`` fixes nerfstudio's scale (the cameras' largest distance from
+    their mean becomes 1) and puts the far plane at the margin times the farthest camera-to-box
+    distance in that frame. By hand: cameras at x = ±2 (scale 1/2), box ±1 (farthest corner
+    from either camera: √(3² + 1 + 1) = √11 m), margin 1.1 → far 1.1·√11/2 in nerfstudio's
+    frame. Without a box, or without a margin, nerfstudio keeps its own scale and far plane."""
+    import cropcraft_core.surfaces.nerfacto as nf
+
+    cams = []
+    for x in (-2.0, 2.0):
+        c = PinholeCamera.look_down((x, 0.0), 1.0, size=(32, 24))
+        m = c.cam_to_world.copy()
+        m[2, 3] = 0.0  # both centres at z = 0
+        cams.append(replace(c, cam_to_world=m))
+    assert nf.pose_scale(cams) == pytest.approx(0.5)
+    box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    assert nf.scene_far(cams, box) == pytest.approx(math.sqrt(11))
+
+    seen = []
+
+    def no_training(cmd, log, deadline_s):  # records the command, fails as ns-train would
+        seen.append(cmd)
+        return 1, False
+
+    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
+    monkeypatch.setattr(nf, "run_training", no_training)
+    images = [np.zeros((24, 32, 3), np.uint8)] * 2
+    for margin, bbox in ((1.1, box), (None, box), (1.1, None)):
+        cfg = SurfacesConfig(backend="nerfacto", nerf_far_margin=margin, workdir=str(tmp_path))
+        with pytest.raises(SurfacesError, match="ns-train failed"):
+            nf.NerfactoSurfaces(cfg).fit(images, cams, bbox)
+    with_box, no_margin, no_box = seen
+    tail = with_box[with_box.index("nerfstudio-data") :]
+    assert tail[tail.index("--auto-scale-poses") + 1] == "False"
+    assert float(tail[tail.index("--scale-factor") + 1]) == pytest.approx(0.5)
+    far = float(with_box[with_box.index("--pipeline.model.far-plane") + 1])
+    assert far == pytest.approx(1.1 * math.sqrt(11) * 0.5)
+    for cmd in (no_margin, no_box):
+        assert "--scale-factor" not in cmd and "--pipeline.model.far-plane" not in cmd
+    with pytest.raises(ConfigError, match="nerf_far_margin"):
+        SurfacesConfig(backend="nerfacto", nerf_far_margin=0.5)
+
+
 def test_nerf_training_deadline_stops_it_like_ctrl_c_and_reaps_its_workers(tmp_path):
     """``run_training`` past its deadline: SIGINT to the trainer's process group (the trainer
     saves nothing more and exits), then whatever it left behind (nerfstudio's data workers) is

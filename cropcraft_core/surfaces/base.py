@@ -241,6 +241,13 @@ class SurfacesConfig:
     nerfstudio default)."""
     far_plane: float | None = None
     """nerfacto: far plane (the paper's maize: 6.0; None: the nerfstudio default)."""
+    nerf_far_margin: float | None = None
+    """nerfacto: where set and ``fit`` is given a bounding box, the far plane is this margin
+    times the farthest any camera is from the box (its corners), and nerfstudio's scale is
+    fixed by CropCraft (``nerfacto.pose_scale``) so that the plane is known in its frame; it
+    replaces ``far_plane``. With nerfstudio's far plane (1000) nerfacto explained the default
+    synthetic canopy's photos by a far backdrop; a far plane at the scene kept the density near
+    the plot from collapsing (benchmarks/RESULTS.md#nerfacto-scene). None: off."""
     hidden_dim: int | None = None
     """nerfacto: MLP width (the paper's maize: 128; None: the nerfstudio default)."""
     orientation: str = "up"
@@ -312,6 +319,8 @@ class SurfacesConfig:
         object.__setattr__(self, "nerf_args", tuple(str(x) for x in self.nerf_args))
         if self.nerf_max_seconds is not None and not float(self.nerf_max_seconds) > 0:
             raise ConfigError(f"nerf_max_seconds must be > 0, got {self.nerf_max_seconds}")
+        if self.nerf_far_margin is not None and not float(self.nerf_far_margin) >= 1:
+            raise ConfigError(f"nerf_far_margin must be ≥ 1, got {self.nerf_far_margin}")
 
     @classmethod
     def for_crop(cls, crop: str, **overrides: Any) -> SurfacesConfig:

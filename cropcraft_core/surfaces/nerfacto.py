@@ -87,7 +87,31 @@ def write_transforms(folder: Path, images: list[np.ndarray], cameras: list[Pinho
     return path
 
 
-def train_command(cfg: SurfacesConfig, data: Path, out: Path) -> list[str]:
+def pose_scale(cameras: list[PinholeCamera]) -> float:
+    """The scale CropCraft gives nerfstudio-data (``--scale-factor``, auto-scaling off) when it
+    sets the far plane itself: the camera centres' largest distance from their mean becomes 1,
+    as nerfstudio's own auto-scale nearly does (it divides by the largest coordinate after
+    centring and orienting, an L∞ norm, where this is an L2 norm: never larger)."""
+    c = np.array([cam.center for cam in cameras])
+    r = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
+    if not r > 0:
+        raise InputError("the cameras all sit at one point: nerfacto needs a baseline")
+    return 1.0 / r
+
+
+def scene_far(cameras: list[PinholeCamera], bbox: np.ndarray) -> float:
+    """The farthest any camera centre is from a corner of ``bbox`` (2, 3): no point of the box
+    lies farther along any ray (m)."""
+    lo, hi = np.asarray(bbox, np.float64)
+    corners = np.array(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij")).reshape(3, -1).T
+    c = np.array([cam.center for cam in cameras])
+    return float(np.linalg.norm(c[:, None, :] - corners[None], axis=2).max())
+
+
+def train_command(
+    cfg: SurfacesConfig, data: Path, out: Path, scale: float | None = None,
+    far: float | None = None,
+) -> list[str]:  # fmt: skip
     """The ``ns-train cropcraft-nerfacto`` command line for ``cfg`` (run it with
     :func:`train_env`), as ``python -m`` by this interpreter: the one ``nerfacto_available``
     found nerfstudio in, also where nerfstudio was installed without its console scripts on the
@@ -112,12 +136,15 @@ def train_command(cfg: SurfacesConfig, data: Path, out: Path) -> list[str]:
     ]  # fmt: skip
     if cfg.near_plane is not None:
         cmd += ["--pipeline.model.near-plane", str(cfg.near_plane)]
-    if cfg.far_plane is not None:
-        cmd += ["--pipeline.model.far-plane", str(cfg.far_plane)]
+    far = cfg.far_plane if far is None else far
+    if far is not None:
+        cmd += ["--pipeline.model.far-plane", str(far)]
     if cfg.hidden_dim is not None:
         cmd += ["--pipeline.model.hidden-dim", str(int(cfg.hidden_dim))]
     cmd += list(cfg.nerf_args)
     cmd += ["nerfstudio-data", "--orientation-method", cfg.orientation, "--eval-mode", "all"]
+    if scale is not None:
+        cmd += ["--auto-scale-poses", "False", "--scale-factor", repr(float(scale))]
     return cmd
 
 
@@ -193,7 +220,12 @@ class NerfactoSurfaces(SurfaceBackend):
         work = Path(cfg.workdir or tempfile.mkdtemp(prefix="cropcraft_nerfacto_"))
         data, out = work / "data", work / "outputs"
         write_transforms(data, imgs, cams)
-        cmd = train_command(cfg, data, out)
+        scale = far = None
+        if cfg.nerf_far_margin is not None and box is not None:
+            scale = pose_scale(cams)
+            far = float(cfg.nerf_far_margin) * scene_far(cams, box) * scale
+            self.timings["nerf_far_plane"] = far  # in nerfstudio's frame
+        cmd = train_command(cfg, data, out, scale, far)
         if progress:
             progress("nerfacto", 0.0)
         log = work / "ns-train.log"
