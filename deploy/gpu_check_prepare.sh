@@ -10,7 +10,13 @@
 #   PYTHONPATH=/tmp/site:$PWD python3 -m benchmarks.bench_nerfacto train \
 #       --scene-dir .gpu/SCENE_NAME --max-seconds 330 --out OUT
 # and back here: cropcraft bench nerfacto compare --scene-dir SCENE_DIR --kept OUT
-# (benchmarks/RESULTS.md#nerfacto-gpu has what the first run found).
+# (benchmarks/RESULTS.md#nerfacto-gpu has what the first run found). Add --far-margin 1.1 for
+# a far plane at the scene box (surfaces.nerf_far_margin). To watch the density form step by
+# step instead (benchmarks/RESULTS.md#nerfacto-scene), on the GPU host:
+#   python3 -m benchmarks.nerfacto_probe prepare --scene-dir .gpu/SCENE_NAME --out /tmp/s
+#   python3 -m benchmarks.nerfacto_probe train --scene-dir /tmp/s --rays 4096 --steps 1000 \
+#       --every 100 --max-seconds 200 [--far-margin 1.1] [--set NAME=VALUE]
+# (prepare --plane makes the textured control plane from the same cameras).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scene="${1:?usage: deploy/gpu_check_prepare.sh SCENE_DIR}"

@@ -13,9 +13,11 @@ paper samples its NeRF).
 
 Without nerfstudio or CUDA the constructor raises ``SurfacesError`` naming the CPU backend.
 
-Status (November 25, benchmarks/RESULTS.md#nerfacto-gpu): it runs end to end on an H100 (without
-tiny-cuda-nn), but on the default synthetic scene with exact poses its surfaces lie ~20× too
-far from the cameras; the CPU backends stay the default.
+Status (November 26, benchmarks/RESULTS.md#nerfacto-scene): it runs end to end on an H100/H200
+(without tiny-cuda-nn) and learns a textured control plane from the default synthetic scene's
+cameras, but explains that scene's canopy photos by a far backdrop (surfaces ~20× too far);
+``SurfacesConfig.nerf_far_margin`` (a far plane at the scene box) is the candidate fix, not yet
+confirmed on a GPU. The CPU backends stay the default.
 """
 
 from __future__ import annotations
