@@ -125,7 +125,7 @@ def _setup(data: Path, rays: int, camera_opt: str, sets: list[str], far=None):
 
     cfg = method.config
     cfg.machine.device_type = "cuda" if _cuda() else "cpu"
-    cfg.mixed_precision = _cuda()
+    cfg.mixed_precision = False  # this loop has no autocast (fp32; precision did not matter)
     cfg.pipeline.datamanager.data = data
     cfg.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
         orientation_method="up", eval_mode="all"
