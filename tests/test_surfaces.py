@@ -577,7 +577,8 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
     their mean becomes 1) and puts the far plane at the margin times the farthest camera-to-box
     distance in that frame. By hand: cameras at x = ±2 (scale 1/2), box ±1 (farthest corner
     from either camera: √(3² + 1 + 1) = √11 m), margin 1.1 → far 1.1·√11/2 in nerfstudio's
-    frame. Without a box, or without a margin, nerfstudio keeps its own scale and far plane."""
+    frame. Without a margin nerfstudio keeps its own scale and far plane; a margin without a box
+    is an error that names the setting."""
     import cropcraft_core.surfaces.nerfacto as nf
 
     cams = []
@@ -599,18 +600,21 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
     monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
     monkeypatch.setattr(nf, "run_training", no_training)
     images = [np.zeros((24, 32, 3), np.uint8)] * 2
-    for margin, bbox in ((1.1, box), (None, box), (1.1, None)):
+    for margin in (1.1, None):
         cfg = SurfacesConfig(backend="nerfacto", nerf_far_margin=margin, workdir=str(tmp_path))
         with pytest.raises(SurfacesError, match="ns-train failed"):
-            nf.NerfactoSurfaces(cfg).fit(images, cams, bbox)
-    with_box, no_margin, no_box = seen
+            nf.NerfactoSurfaces(cfg).fit(images, cams, box)
+    with_box, no_margin = seen
     tail = with_box[with_box.index("nerfstudio-data") :]
     assert tail[tail.index("--auto-scale-poses") + 1] == "False"
     assert float(tail[tail.index("--scale-factor") + 1]) == pytest.approx(0.5)
     far = float(with_box[with_box.index("--pipeline.model.far-plane") + 1])
     assert far == pytest.approx(1.1 * math.sqrt(11) * 0.5)
-    for cmd in (no_margin, no_box):
-        assert "--scale-factor" not in cmd and "--pipeline.model.far-plane" not in cmd
+    assert "--scale-factor" not in no_margin and "--pipeline.model.far-plane" not in no_margin
+    cfg = SurfacesConfig(backend="nerfacto", nerf_far_margin=1.1, workdir=str(tmp_path))
+    with pytest.raises(SurfacesError, match="nerf_far_margin needs a bounding box"):
+        nf.NerfactoSurfaces(cfg).fit(images, cams, None)
+    assert len(seen) == 2  # nothing was trained
     with pytest.raises(ConfigError, match="nerf_far_margin"):
         SurfacesConfig(backend="nerfacto", nerf_far_margin=0.5)
 

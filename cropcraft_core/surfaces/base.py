@@ -242,7 +242,7 @@ class SurfacesConfig:
     far_plane: float | None = None
     """nerfacto: far plane (the paper's maize: 6.0; None: the nerfstudio default)."""
     nerf_far_margin: float | None = None
-    """nerfacto: where set and ``fit`` is given a bounding box, the far plane is this margin
+    """nerfacto: where set (``fit`` then needs a bounding box), the far plane is this margin
     times the farthest any camera is from the box (its corners), and nerfstudio's scale is
     fixed by CropCraft (``nerfacto.pose_scale``) so that the plane is known in its frame; it
     replaces ``far_plane``. With nerfstudio's far plane (1000) nerfacto explained the default

@@ -223,7 +223,12 @@ class NerfactoSurfaces(SurfaceBackend):
         data, out = work / "data", work / "outputs"
         write_transforms(data, imgs, cams)
         scale = far = None
-        if cfg.nerf_far_margin is not None and box is not None:
+        if cfg.nerf_far_margin is not None:
+            if box is None:
+                raise SurfacesError(
+                    "surfaces nerf_far_margin needs a bounding box of the scene in the poses' "
+                    "frame (surfaces.bbox), to put the far plane at"
+                )
             scale = pose_scale(cams)
             far = float(cfg.nerf_far_margin) * scene_far(cams, box) * scale
             self.timings["nerf_far_plane"] = far  # in nerfstudio's frame
