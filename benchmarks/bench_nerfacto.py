@@ -97,6 +97,11 @@ def train(a: argparse.Namespace) -> dict:
     log = out / "work" / "ns-train.log"
     if log.exists():
         (out / "ns-train.log").write_text(log.read_text()[-200_000:])
+
+    def keep() -> dict:  # row.json as it stands: each stage adds to it
+        (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
+        return rec
+
     rec = {
         "scene_dir": str(root),
         "crop": crop,
@@ -119,7 +124,7 @@ def train(a: argparse.Namespace) -> dict:
     if scored:
         first = next(iter(scored.values()))
         rec["views_mean"] = {k: float(np.mean([v[k] for v in scored.values()])) for k in first}
-    (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
+    keep()
 
     t = time.perf_counter()
     points, colors = backend.point_cloud(100_000)
@@ -135,11 +140,10 @@ def train(a: argparse.Namespace) -> dict:
             known_row_spacing=layout.row_spacing,
         )  # fmt: skip
     except CropCraftError as e:  # a wrong radiance field: its views' scores above say how
-        sec["rowfit"] = time.perf_counter() - t
-        rec["error"] = f"row fit: {e}"
-        (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
-        return rec
+        fit, rec["error"] = None, f"row fit: {e}"
     sec["rowfit"] = time.perf_counter() - t
+    if fit is None:
+        return keep()
     t = time.perf_counter()
     # as the scene flow's observe stage (bench_pipeline._observe, whose module needs Open3D)
     obs = Observation.from_surfaces(
@@ -149,8 +153,7 @@ def train(a: argparse.Namespace) -> dict:
     obs.save(out / "observation.npz")
     rec["camera_truth"] = camera_in_truth(fit, np.eye(4)).to_dict()
     rec["row_fit"] = fit.to_dict()
-    (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
-    return rec
+    return keep()
 
 
 def compare(a: argparse.Namespace) -> dict:

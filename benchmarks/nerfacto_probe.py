@@ -1,10 +1,11 @@
 """Why nerfacto's surfaces come out far away: train it in this process and watch its density.
 
-Session 29 found that nerfacto (nerfstudio 1.1.5, torch fallback, torch 2.11/2.13) fails the same
-way on a CPU as on an H100/H200, within the first hundred steps, and also on a textured ground
-plane (the easiest scene a radiance field can get): the density along the photos' rays decays
-instead of rising at the true surface. This runs that experiment where anyone can repeat it, on
-a CPU in minutes, with no GPU lease:
+Session 29 found with it that nerfacto (nerfstudio 1.1.5, torch fallback) learns a textured
+ground plane seen by the default synthetic scene's cameras within a few hundred steps, but on
+that scene's canopy photos lets the density near the plot collapse within ~100 steps and paints
+the photos on a far backdrop; a far plane at the scene kept the density at the canopy in CPU
+runs (benchmarks/RESULTS.md#nerfacto-scene). This runs that experiment where anyone can
+repeat it, on a GPU in minutes or on a CPU in an hour:
 
     python -m benchmarks.nerfacto_probe prepare --scene-dir SYNTH_SCENE --out PLANE --plane
     python -m benchmarks.nerfacto_probe train --scene-dir PLANE --steps 200 [--set far_plane=6.0]
@@ -69,33 +70,27 @@ def prepare(a: argparse.Namespace) -> dict:
     src, out = Path(a.scene_dir), Path(a.out)
     poses = import_transforms_json(src / "transforms.json")
     (out / "depth").mkdir(parents=True, exist_ok=True)
-    if not a.plane:
-        images = []
-        for name, _ in poses:
-            stem = Path(name).stem
+    images = []
+    for (name, _), cam in zip(poses, poses.cameras, strict=True):
+        stem = Path(name).stem
+        if not a.plane:
             images.append(np.asarray(Image.open(src / "images" / Path(name).name).convert("RGB")))
             if (src / "depth" / f"{stem}.npy").exists():  # a GPU host gets a few views' only
                 shutil.copy(src / "depth" / f"{stem}.npy", out / "depth" / f"{stem}.npy")
-        write_transforms(out / "data", images, poses.cameras)
-        shutil.copy(src / "transforms.json", out / "transforms.json")
-        return {"views": len(images), "out": str(out), "plane": False}
-    images = []
-    for (name, _), cam in zip(poses, poses.cameras, strict=True):
-        ys, xs = np.mgrid[0 : cam.height, 0 : cam.width] + 0.5
-        d = np.stack([(xs - cam.cx) / cam.fx, (ys - cam.cy) / cam.fy, np.ones_like(xs)], -1)
-        rot, o = cam.cam_to_world[:3, :3], cam.cam_to_world[:3, 3]
-        dw = d @ rot.T
+            continue
+        dirs = cam.ray_directions(normalized=False)  # camera z = 1: t is the z-depth
+        o = cam.center
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = -o[2] / dw[..., 2]  # the z-depth, as d's camera z is 1
+            z = -o[2] / dirs[..., 2]
         z[~(z > 0)] = np.nan
-        p = o + dw * np.nan_to_num(z)[..., None]
+        p = o + dirs * np.nan_to_num(z)[..., None]
         img = np.rint(np.clip(plane_texture(p[..., 0], p[..., 1]), 0, 1) * 255).astype(np.uint8)
         img[~np.isfinite(z)] = 0
         images.append(img)
-        np.save(out / "depth" / f"{Path(name).stem}.npy", z.astype(np.float32))
+        np.save(out / "depth" / f"{stem}.npy", z.astype(np.float32))
     write_transforms(out / "data", images, poses.cameras)
     shutil.copy(src / "transforms.json", out / "transforms.json")
-    return {"views": len(images), "out": str(out), "plane": True}
+    return {"views": len(images), "out": str(out), "plane": bool(a.plane)}
 
 
 def uniform_sampler(n: int):
@@ -197,18 +192,17 @@ def train(a: argparse.Namespace) -> list:
     root = Path(a.scene_dir)
     data = root / "data"
     if not (data / "transforms.json").exists():
-        raise SystemExit(f"{data}: no nerfstudio transforms.json (make one with `plane`)")
+        raise SystemExit(f"{data}: no nerfstudio transforms.json (make one with `prepare`)")
     poses = import_transforms_json(root / "transforms.json")
     stems = [Path(n).stem for n, _ in poses]
     far = None
     if a.far_margin is not None:  # the surfaces config's nerf_far_margin on the crop's box
         from cropcraft_core.surfaces import resolve_bbox
-        from cropcraft_core.surfaces.nerfacto import pose_scale, scene_far
+        from cropcraft_core.surfaces.nerfacto import far_plane_setting
 
-        scale = pose_scale(list(poses.cameras))
         box = resolve_bbox("auto", a.crop)
-        far = (scale, a.far_margin * scene_far(list(poses.cameras), box) * scale)
-        print(f"scale {scale:.4f}, far plane {far[1]:.3f} (nerfstudio's frame)", flush=True)
+        far = far_plane_setting(list(poses.cameras), box, a.far_margin)
+        print(f"scale {far[0]:.4f}, far plane {far[1]:.3f} (nerfstudio's frame)", flush=True)
     cfg, pipe = _setup(data, a.rays, a.camera_optimizer, a.set, far)
     opt = Optimizers(cfg.optimizers, pipe.get_param_groups())
     attrs = TrainingCallbackAttributes(

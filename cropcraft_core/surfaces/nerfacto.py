@@ -110,6 +110,15 @@ def scene_far(cameras: list[PinholeCamera], bbox: np.ndarray) -> float:
     return float(np.linalg.norm(c[:, None, :] - corners[None], axis=2).max())
 
 
+def far_plane_setting(
+    cameras: list[PinholeCamera], bbox: np.ndarray, margin: float
+) -> tuple[float, float]:
+    """``SurfacesConfig.nerf_far_margin``'s (scale, far plane): nerfstudio-data's scale factor
+    (:func:`pose_scale`) and ``margin`` × :func:`scene_far` in the frame that scale makes."""
+    scale = pose_scale(cameras)
+    return scale, float(margin) * scene_far(cameras, bbox) * scale
+
+
 def train_command(
     cfg: SurfacesConfig, data: Path, out: Path, scale: float | None = None,
     far: float | None = None,
@@ -229,8 +238,7 @@ class NerfactoSurfaces(SurfaceBackend):
                     "surfaces nerf_far_margin needs a bounding box of the scene in the poses' "
                     "frame (surfaces.bbox), to put the far plane at"
                 )
-            scale = pose_scale(cams)
-            far = float(cfg.nerf_far_margin) * scene_far(cams, box) * scale
+            scale, far = far_plane_setting(cams, box, cfg.nerf_far_margin)
             self.timings["nerf_far_plane"] = far  # in nerfstudio's frame
         cmd = train_command(cfg, data, out, scale, far)
         if progress:
