@@ -90,8 +90,8 @@ def train(a: argparse.Namespace) -> dict:
     sec: dict[str, float] = {}
     t = time.perf_counter()
     backend = make_backend(cfg)
-    # nerf_far_margin needs a box: the crop's scene box (the poses are the truth's, metric)
-    box = resolve_bbox("auto", crop) if a.far_margin is not None else None
+    # the crop's scene box, as the scene flow gives (the poses are the truth's, metric)
+    box = resolve_bbox("auto", crop)
     backend.fit(images, poses.cameras, box)
     sec["train"] = time.perf_counter() - t
     log = out / "work" / "ns-train.log"
@@ -168,7 +168,8 @@ def compare(a: argparse.Namespace) -> dict:
     if "camera_truth" not in rec:
         raise SystemExit(f"{kept / 'row.json'}: no observation to compare ({rec.get('error')})")
     obs = Observation.load(kept / "observation.npz")
-    truth = make_backend(SurfacesConfig(backend="truth"), mesh=_truth_mesh(root))
+    truth_mesh = _truth_mesh(root)
+    truth = make_backend(SurfacesConfig(backend="truth"), mesh=truth_mesh)
     d_true, _ = truth.render(PinholeCamera.from_dict(rec["camera_truth"]))
     d_true = np.where(np.isfinite(d_true), d_true, np.nan)
     h_obs, h_true, area = observation_vs_truth(obs, d_true)
@@ -179,12 +180,49 @@ def compare(a: argparse.Namespace) -> dict:
     out["mask_area"] = area
     out["holes"] = float((~np.isfinite(obs.depth) & np.isfinite(d_true)).mean())
     out.update(depth_errors(obs, d_true))
+    if (kept / "points.npz").exists():
+        with np.load(kept / "points.npz") as z:
+            out["points"] = points_vs_truth(z["points"], truth_mesh)
     if a.fit:
         out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
     return out
 
 
+def points_vs_truth(points: np.ndarray, mesh) -> dict:
+    """The point cloud (n, 3) m (truth frame) against the true scene: each point's distance to
+    the nearest true surface, the canopy ``mesh`` or the soil (z = 0): the share within
+    :data:`WITHIN_M` and the median."""
+    import open3d as o3d
+
+    from cropcraft_core.render.raycast import build_scene
+
+    if not len(points):
+        return {"n": 0, "within": 0.0, "median_dist_m": float("nan")}
+    p = np.asarray(points, np.float64)
+    dist = build_scene(mesh.vertices, mesh.faces).compute_distance(
+        o3d.core.Tensor(p.astype(np.float32))
+    )
+    d = np.minimum(dist.numpy().astype(np.float64), np.abs(p[:, 2]))
+    return {
+        "n": len(p),
+        "within": float((d < WITHIN_M).mean()),
+        "median_dist_m": float(np.median(d)),
+    }
+
+
+def _margin(text: str) -> float | None:
+    """``--far-margin``: a number, or 'off' for nerfstudio's own far plane."""
+    if text.lower() in ("off", "none", "null"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or 'off', not {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
+    from cropcraft_core.surfaces import SurfacesConfig
+
     ap = argparse.ArgumentParser(
         prog="cropcraft bench nerfacto", description=__doc__.splitlines()[0]
     )
@@ -203,9 +241,9 @@ def main(argv: list[str] | None = None) -> int:
         "--nerf-arg=--pipeline.model.camera-optimizer.mode --nerf-arg=off",
     )
     tr.add_argument(
-        "--far-margin", type=float, default=None,
+        "--far-margin", type=_margin, default=SurfacesConfig.nerf_far_margin,
         help="surfaces.nerf_far_margin: far plane at this margin times the farthest "
-        "camera-to-scene-box distance (default: nerfstudio's far plane)",
+        "camera-to-scene-box distance (default %(default)s); 'off': nerfstudio's far plane",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the compare half's files")
     tr.add_argument(

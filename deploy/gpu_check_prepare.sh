@@ -10,8 +10,11 @@
 #   PYTHONPATH=/tmp/site:$PWD python3 -m benchmarks.bench_nerfacto train \
 #       --scene-dir .gpu/SCENE_NAME --max-seconds 330 --out OUT
 # and back here: cropcraft bench nerfacto compare --scene-dir SCENE_DIR --kept OUT
-# (benchmarks/RESULTS.md#nerfacto-gpu has what the first run found). Add --far-margin 1.1 for
-# a far plane at the scene box (surfaces.nerf_far_margin). To watch the density form step by
+# (benchmarks/RESULTS.md#nerfacto-gpu, #nerfacto-far-plane: what the runs found). The far plane
+# sits at the scene box by default (surfaces.nerf_far_margin 1.5); --far-margin off gives
+# nerfstudio's own (1000). Three runs side by side share the GPU (~1,200 steps each in 270 s);
+# $OUT returns files of a few MB (row.json, observation.npz, points.npz), not a tarball of them
+# all. To watch the density form step by
 # step instead (benchmarks/RESULTS.md#nerfacto-scene), on the GPU host:
 #   python3 -m benchmarks.nerfacto_probe prepare --scene-dir .gpu/SCENE_NAME --out /tmp/s
 #   python3 -m benchmarks.nerfacto_probe train --scene-dir /tmp/s --rays 4096 --steps 1000 \

@@ -180,7 +180,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
     (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
     cached seeds instead of serving the old default's answer; likewise the surfaces' ``"auto"``
-    scene box is written out as the crop's box (``SCENE_BOX``)."""
+    scene box is written out as the crop's box (``SCENE_BOX``), and nerfacto's far-plane margin
+    (``SurfacesConfig.nerf_far_margin``) as its default."""
     from cropcraft_core.fit.fitting import FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
@@ -209,6 +210,13 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             pass
         else:
             surfaces["bbox"] = resolve_bbox("auto", crop).tolist()
+    if surfaces.get("backend") == "nerfacto" and "nerf_far_margin" not in surfaces:
+        try:
+            from cropcraft_core.surfaces import SurfacesConfig
+        except ImportError:
+            pass
+        else:  # nerfacto surfaces trained with nerfstudio's far plane are not served again
+            surfaces["nerf_far_margin"] = SurfacesConfig.nerf_far_margin
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),

@@ -265,6 +265,28 @@ def test_nerfacto_benchmark_scores_a_view_against_its_true_depth():
     assert s["holes"] == pytest.approx(1 / 3)
 
 
+def test_nerfacto_benchmark_scores_points_against_the_true_surfaces():
+    """``bench nerfacto compare``'s point-cloud score, by hand (real Open3D distances): a unit
+    square leaf at z = 0.5 and the soil at z = 0; a point 1 cm above the leaf, one on the soil,
+    one 5 cm above the leaf's edge and one 10 cm up in the air beside it."""
+    import numpy as np
+
+    from benchmarks.bench_nerfacto import points_vs_truth
+    from cropcraft_core.geometry.mesh import CanopyMesh
+
+    v = np.array([[0, 0, 0.5], [1, 0, 0.5], [1, 1, 0.5], [0, 1, 0.5]], np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    zero = np.zeros(2, np.int32)
+    mesh = CanopyMesh(v, f, np.zeros(2, np.uint8), zero, zero)
+    pts = np.array([[0.5, 0.5, 0.51], [3.0, 3.0, 0.0], [1.0, 0.5, 0.55], [2.0, 2.0, 0.1]])
+    s = points_vs_truth(pts, mesh)
+    assert s["n"] == 4
+    assert s["within"] == pytest.approx(0.5)  # the first two
+    # distances 0.01, 0, 0.05, 0.1: the median is (0.01 + 0.05) / 2
+    assert s["median_dist_m"] == pytest.approx(0.03, abs=1e-6)
+    assert points_vs_truth(np.zeros((0, 3)), mesh)["n"] == 0
+
+
 def test_nerfacto_probe_plane_is_the_same_ground_in_every_view(tmp_path):
     """``nerfacto_probe prepare --plane``: the control scene's depth is the plane's (a camera
     looking straight down from 1.5 m sees z-depth 1.5 everywhere), and its texture is a function

@@ -369,6 +369,20 @@ def test_the_surfaces_stage_hashes_the_crops_scene_box_it_resolves(monkeypatch):
     assert stage_configs(mine, "maize")["surfaces"]["bbox"] == [[-1, -1, -1], [1, 1, 1]]
 
 
+def test_nerfacto_surfaces_are_keyed_by_their_far_plane_margin():
+    """nerfacto's default far plane moved to the scene (session 30): a nerfacto surfaces stage
+    is keyed with the margin written out, so surfaces trained with nerfstudio's far plane
+    (stored under the old key) are trained again; the CPU backends' keys do not change."""
+    from cropcraft_core.surfaces import SurfacesConfig
+    from flows.scene import resolve_config, stage_configs
+
+    nerf = stage_configs(resolve_config(CROP, {"surfaces.backend": "nerfacto"}), CROP)
+    assert nerf["surfaces"]["nerf_far_margin"] == SurfacesConfig.nerf_far_margin == 1.5
+    off = resolve_config(CROP, {"surfaces.backend": "nerfacto", "surfaces.nerf_far_margin": None})
+    assert stage_configs(off, CROP)["surfaces"]["nerf_far_margin"] is None
+    assert "nerf_far_margin" not in stage_configs(resolve_config(CROP), CROP)["surfaces"]
+
+
 def test_guided_matching_is_off_by_default_and_in_the_poses_stage_hash():
     """Epipolar re-matching is slower and less accurate on canopies (run_sfm's docstring): off
     unless asked for, and asking for it re-runs SfM (its stage hashes apart)."""

@@ -576,9 +576,9 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
     """``nerf_far_margin``: ``fit`` fixes nerfstudio's scale (the cameras' largest distance from
     their mean becomes 1) and puts the far plane at the margin times the farthest camera-to-box
     distance in that frame. By hand: cameras at x = ±2 (scale 1/2), box ±1 (farthest corner
-    from either camera: √(3² + 1 + 1) = √11 m), margin 1.1 → far 1.1·√11/2 in nerfstudio's
-    frame. Without a margin nerfstudio keeps its own scale and far plane; a margin without a box
-    is an error that names the setting."""
+    from either camera: √(3² + 1 + 1) = √11 m), the default margin 1.5 → far 1.5·√11/2 in
+    nerfstudio's frame. Without a margin, or with a far plane given, nerfstudio keeps
+    its own scale (and far plane); a margin without a box is an error that names the setting."""
     import cropcraft_core.surfaces.nerfacto as nf
 
     cams = []
@@ -600,21 +600,23 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
     monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
     monkeypatch.setattr(nf, "run_training", no_training)
     images = [np.zeros((24, 32, 3), np.uint8)] * 2
-    for margin in (1.1, None):
-        cfg = SurfacesConfig(backend="nerfacto", nerf_far_margin=margin, workdir=str(tmp_path))
+    for kw in ({}, {"nerf_far_margin": None}, {"far_plane": 6.0}):
+        cfg = SurfacesConfig(backend="nerfacto", workdir=str(tmp_path), **kw)
         with pytest.raises(SurfacesError, match="ns-train failed"):
             nf.NerfactoSurfaces(cfg).fit(images, cams, box)
-    with_box, no_margin = seen
+    with_box, no_margin, given = seen
     tail = with_box[with_box.index("nerfstudio-data") :]
     assert tail[tail.index("--auto-scale-poses") + 1] == "False"
     assert float(tail[tail.index("--scale-factor") + 1]) == pytest.approx(0.5)
     far = float(with_box[with_box.index("--pipeline.model.far-plane") + 1])
-    assert far == pytest.approx(1.1 * math.sqrt(11) * 0.5)
+    assert far == pytest.approx(1.5 * math.sqrt(11) * 0.5)
     assert "--scale-factor" not in no_margin and "--pipeline.model.far-plane" not in no_margin
-    cfg = SurfacesConfig(backend="nerfacto", nerf_far_margin=1.1, workdir=str(tmp_path))
+    assert "--scale-factor" not in given
+    assert given[given.index("--pipeline.model.far-plane") + 1] == "6.0"
+    cfg = SurfacesConfig(backend="nerfacto", workdir=str(tmp_path))
     with pytest.raises(SurfacesError, match="nerf_far_margin needs a bounding box"):
         nf.NerfactoSurfaces(cfg).fit(images, cams, None)
-    assert len(seen) == 2  # nothing was trained
+    assert len(seen) == 3  # nothing was trained
     with pytest.raises(ConfigError, match="nerf_far_margin"):
         SurfacesConfig(backend="nerfacto", nerf_far_margin=0.5)
 
