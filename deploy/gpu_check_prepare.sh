@@ -19,7 +19,9 @@
 #   python3 -m benchmarks.nerfacto_probe prepare --scene-dir .gpu/SCENE_NAME --out /tmp/s
 #   python3 -m benchmarks.nerfacto_probe train --scene-dir /tmp/s --rays 4096 --steps 1000 \
 #       --every 100 --max-seconds 200 [--far-margin 1.1] [--set NAME=VALUE]
-# (prepare --plane makes the textured control plane from the same cameras).
+# (prepare --plane makes the textured control plane from the same cameras). The acceptance test
+# (nerfacto fits a synthetic arc of 14 views; 2,000 iterations, a few minutes alone):
+#   PYTHONPATH=/tmp/site:$PWD python3 -m pytest tests/test_surfaces.py -o addopts= -m gpu -rA
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scene="${1:?usage: deploy/gpu_check_prepare.sh SCENE_DIR}"
@@ -28,6 +30,8 @@ pip=(.venv/bin/python -m pip download -q --no-deps -d .whl)
 mkdir -p .whl
 "${pip[@]}" nerfstudio==1.1.5 tyro==0.8.14 shtab docstring-parser appdirs dill pathos ppft \
   gsplat==1.4.0 nerfacc==0.5.2 pyquaternion pytorch-msssim splines==0.3.0 tensorly viser==0.2.7
+# pytest, for the acceptance test (tests/test_surfaces.py -m gpu; it needs no Open3D)
+"${pip[@]}" pytest pluggy iniconfig pygments packaging
 # compiled ones for the host's CPython 3.12; rawpy, not newrawpy (built against numpy 1)
 "${pip[@]}" --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \

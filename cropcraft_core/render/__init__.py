@@ -1,4 +1,10 @@
-"""Depth rendering and previews: numba z-buffer rasterizer, Open3D ray casting, shaded images."""
+"""Depth rendering and previews: numba z-buffer rasterizer, Open3D ray casting, shaded images.
+
+The ray-casting names load Open3D on first use, so that the z-buffer and the previews without
+shadows import on a host without it (the lent GPU machines, for the nerfacto acceptance test).
+"""
+
+from typing import Any
 
 from cropcraft_core.render.preview import (
     depth_to_rgb,
@@ -7,8 +13,18 @@ from cropcraft_core.render.preview import (
     shade_rgb,
 )
 from cropcraft_core.render.raster import render_depth
-from cropcraft_core.render.raycast import build_scene, cast_rays, raycast_depth
 from cropcraft_core.render.result import RenderResult
+
+_RAYCAST = ("build_scene", "cast_rays", "raycast_depth")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _RAYCAST:
+        from cropcraft_core.render import raycast
+
+        return getattr(raycast, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "RenderResult",

@@ -17,7 +17,6 @@ from cropcraft_core.errors import ConfigError, GeometryError, InputError, Output
 from cropcraft_core.geometry.camera import ROW_CAMERA_SIZE, ROW_CAMERA_VFOV_DEG, PinholeCamera
 from cropcraft_core.geometry.mesh import CanopyMesh, Organ
 from cropcraft_core.render.raster import render_depth
-from cropcraft_core.render.raycast import build_scene, cast_rays
 
 #: Base colours per organ, sRGB 0–255.
 ORGAN_RGB = {
@@ -143,6 +142,9 @@ def shade_rgb(
             [pts[lit] + 1e-4 * n_sun - origin, gp[g_lit] + [0.0, 0.0, 1e-4] - origin]
         )
         if len(o_all):
+            # Open3D only here: the rest of the package (the z-buffer) imports without it
+            from cropcraft_core.render.raycast import build_scene, cast_rays
+
             scene = build_scene(mesh.vertices - origin, mesh.faces)
             blocked = np.isfinite(cast_rays(scene, o_all, sun)[0])
             light_hit[lit[blocked[: len(lit)]]] = 0.0
