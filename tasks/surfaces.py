@@ -51,6 +51,8 @@ def surfaces(
             for name in poses.names:
                 with Image.open(image_dir / name) as im:
                     images.append(np.asarray(im.convert("RGB")))
+        if cfg.get("backend") == "nerfacto" and not cfg.get("workdir"):
+            cfg["workdir"] = str(tmp / "nerfacto")  # its photos and checkpoints go with tmp
         backend = make_backend(SurfacesConfig.from_dict(cfg))
         backend.fit(images, poses.cameras, bbox)
         points, colors = backend.point_cloud(n_points)

@@ -5,8 +5,10 @@ save/load, config errors, nerfacto availability."""
 from __future__ import annotations
 
 import copy
+import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -621,6 +623,119 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
         SurfacesConfig(backend="nerfacto", nerf_far_margin=0.5)
 
 
+def _fake_ns_train(made: list, fail: bool = False):
+    """Stands in for ``run_training`` where nerfstudio is absent: writes what ``ns-train``
+    leaves in its output folder (config, dataparser transform, a checkpoint with the pipeline's
+    and the optimisers' state) or, failing, a log line and exit 1."""
+    import torch
+
+    import cropcraft_core.surfaces.nerfacto as nf
+
+    def train(cmd, log, deadline_s):
+        out, data = Path(cmd[cmd.index("--output-dir") + 1]), Path(cmd[cmd.index("--data") + 1])
+        made.append(data.parent)
+        if fail:
+            log.write("step 0\nRuntimeError: CUDA out of memory\n")
+            return 1, False
+        run = out / "cropcraft" / nf.METHOD / "run"
+        (run / "nerfstudio_models").mkdir(parents=True)
+        (run / "config.yml").write_text(f"method_name: {nf.METHOD}\n")
+        meta = {"transform": np.eye(4)[:3].tolist(), "scale": 0.5}
+        (run / "dataparser_transforms.json").write_text(json.dumps(meta))
+        state = {
+            "step": 499,
+            "pipeline": {"_model.field.w": torch.arange(6.0)},
+            "optimizers": {"fields": {"state": torch.zeros(1000)}},
+            "scalers": {},
+        }
+        torch.save(state, run / "nerfstudio_models" / "step-000000499.ckpt")
+        return 0, False
+
+    return train
+
+
+def test_saved_nerfacto_surfaces_load_without_their_training_folder(tmp_path, monkeypatch):
+    """The flow saves the surfaces into the store and a later task (another worker, another
+    night) loads them: ``save`` keeps the run with them (config, dataparser transform, the
+    dataset's transforms.json, the last checkpoint's pipeline weights without the optimisers'
+    state), ``fit``'s own temporary folder goes with the object, and the loaded surfaces point
+    nerfstudio's ``eval_setup`` at the saved copy. ns-train itself needs CUDA; the GPU
+    acceptance test renders through this path."""
+    import gc
+    import shutil
+    from types import SimpleNamespace
+
+    import torch
+
+    import cropcraft_core.surfaces.nerfacto as nf
+    from cropcraft_core.surfaces import load_surfaces
+
+    made: list[Path] = []
+    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
+    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made))
+    cams = [PinholeCamera.look_down((x, 0.0), 1.0, size=(32, 24)) for x in (-0.5, 0.5)]
+    imgs = [np.zeros((24, 32, 3), np.uint8)] * 2
+    box = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 1.0]])
+    b = nf.NerfactoSurfaces(SurfacesConfig(backend="nerfacto"))
+    b.fit(imgs, cams, box)
+    work = made[0]
+    assert (work / "data" / "images" / "frame_00001.png").is_file()
+    saved = b.save(tmp_path / "saved")
+    del b
+    gc.collect()
+    assert not work.exists()  # photos and checkpoints of fit's own folder are gone
+    run = saved / nf.RUN_FOLDER
+    assert sorted(str(p.relative_to(run)) for p in run.rglob("*") if p.is_file()) == [
+        "config.yml",
+        "data/transforms.json",
+        "dataparser_transforms.json",
+        "nerfstudio_models/step-000000499.ckpt",
+    ]
+    state = torch.load(run / "nerfstudio_models" / "step-000000499.ckpt")
+    assert set(state) == {"pipeline", "step"} and state["step"] == 499
+    assert torch.equal(state["pipeline"]["_model.field.w"], torch.arange(6.0))
+
+    moved = Path(shutil.move(saved, tmp_path / "elsewhere"))
+    b2 = load_surfaces(moved)
+    assert b2.run_dir == moved / nf.RUN_FOLDER and b2._scale == 0.5
+    # what eval_setup reads once the callback ran: base_dir / relative_model_dir, the dataset
+    old = work / "data"
+    parser = SimpleNamespace(data=old, downscale_factor=None)
+    config = SimpleNamespace(
+        relative_model_dir=Path("nerfstudio_models"),
+        pipeline=SimpleNamespace(datamanager=SimpleNamespace(data=old, dataparser=parser)),
+    )
+    b2._relocate(config)
+    ckpt_dir = Path("/training/outputs/cropcraft/run") / config.relative_model_dir
+    assert ckpt_dir == (moved / nf.RUN_FOLDER / "nerfstudio_models").resolve()
+    assert (config.pipeline.datamanager.data / "transforms.json").is_file()
+    assert parser.data == config.pipeline.datamanager.data and parser.downscale_factor == 1
+
+
+def test_failed_nerfacto_training_keeps_its_folder_and_says_why(monkeypatch):
+    """ns-train failing: the error carries the log's last lines (what a Prefect run shows) and
+    names the log, and fit's temporary folder is kept for it."""
+    import gc
+    import shutil
+
+    import cropcraft_core.surfaces.nerfacto as nf
+
+    made: list[Path] = []
+    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
+    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made, fail=True))
+    cams = [PinholeCamera.look_down((x, 0.0), 1.0, size=(32, 24)) for x in (-0.5, 0.5)]
+    imgs = [np.zeros((24, 32, 3), np.uint8)] * 2
+    b = nf.NerfactoSurfaces(SurfacesConfig(backend="nerfacto", nerf_far_margin=None))
+    with pytest.raises(SurfacesError, match=r"(?s)ns-train failed \(exit 1\).*CUDA out of memory"):
+        b.fit(imgs, cams)
+    del b
+    gc.collect()
+    try:
+        assert (made[0] / "ns-train.log").is_file()
+    finally:
+        shutil.rmtree(made[0], ignore_errors=True)
+
+
 def test_nerf_training_deadline_stops_it_like_ctrl_c_and_reaps_its_workers(tmp_path):
     """``run_training`` past its deadline: SIGINT to the trainer's process group (the trainer
     saves nothing more and exits), then whatever it left behind (nerfstudio's data workers) is
@@ -683,8 +798,15 @@ def test_nerf_deadline_must_be_positive():
 @pytest.mark.gpu
 @pytest.mark.skipif(not (_cuda() and _nerfstudio()), reason="needs nerfstudio and CUDA")
 def test_nerfacto_fits_on_gpu(scene, tmp_path):  # pragma: no cover - GPU hosts only
+    """nerfacto (the default far plane at the scene box) fits a 14-view arc; the saved surfaces
+    render the same after the training folder is gone."""
+    import shutil
+
+    from cropcraft_core.surfaces import load_surfaces
+
     mesh, cams, imgs, bbox = scene
-    cfg = SurfacesConfig(backend="nerfacto", nerf_iterations=2000, workdir=str(tmp_path))
+    work = tmp_path / "train"
+    cfg = SurfacesConfig(backend="nerfacto", nerf_iterations=2000, workdir=str(work))
     b = make_backend(cfg)
     b.fit(imgs, cams, bbox)
     cam = PinholeCamera.look_down(height_m=1.2, size=(200, 150))
@@ -693,6 +815,10 @@ def test_nerfacto_fits_on_gpu(scene, tmp_path):  # pragma: no cover - GPU hosts 
     both = np.isfinite(depth) & np.isfinite(d_true)
     assert np.median(np.abs(depth[both] - d_true[both])) < 0.05
     assert len(b.point_cloud(1000)[0]) > 0
+    b.save(tmp_path / "saved")
+    shutil.rmtree(work)
+    again, rgb_again = load_surfaces(tmp_path / "saved").render(cam)
+    np.testing.assert_allclose(again, depth, rtol=1e-4, atol=1e-4)
 
 
 def test_hole_breakdown_names_the_stage_that_lost_each_hole():

@@ -9,7 +9,10 @@ options in ``config.nerf_args``). ``render`` loads the trained pipeline through
 nerfstudio's ``eval_setup`` and renders any ``PinholeCamera``, mapping it into nerfstudio's
 normalised frame with the run's ``dataparser_transforms.json`` and the depth back to metres of
 z-depth. ``point_cloud`` renders every fitted view at a quarter size and unprojects it (as the
-paper samples its NeRF).
+paper samples its NeRF). ``save`` keeps the trained run with the surfaces (``RUN_FOLDER``: ~80 MB,
+the last checkpoint's weights without the optimisers' state), so that they load on another
+worker or after the training folder is gone; a temporary training folder (no
+``config.workdir``) is removed when the object is collected or the process exits.
 
 Without nerfstudio or CUDA the constructor raises ``SurfacesError`` naming the CPU backend.
 
@@ -26,11 +29,13 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +54,8 @@ from cropcraft_core.surfaces.base import (
 #: imports nerfstudio) and its ``NERFSTUDIO_METHOD_CONFIGS`` registration
 METHOD = "cropcraft-nerfacto"
 METHOD_ENV = f"{METHOD}=cropcraft_core.surfaces.nerfacto_method:method"
+#: the folder inside saved surfaces that holds the trained run (``NerfactoSurfaces.save``)
+RUN_FOLDER = "nerfacto_run"
 #: checkpoint interval (steps): what a ``nerf_max_seconds`` deadline can lose
 SAVE_EVERY = 500
 UNAVAILABLE = "nerfacto needs nerfstudio and a CUDA GPU; use the CPU backend: --surfaces tsdf"
@@ -197,6 +204,15 @@ def run_training(cmd: list[str], log, deadline_s: float | None) -> tuple[int, bo
         proc.wait()
 
 
+def log_tail(log: Path, lines: int = 15) -> str:
+    """The last ``lines`` lines of a training log (for an error message a Prefect run shows)."""
+    try:
+        text = log.read_text(errors="replace")
+    except OSError as e:
+        return f"(cannot read {log}: {e})"
+    return "\n".join(text.rstrip().splitlines()[-lines:])
+
+
 def checkpoint_globals():
     """A ``torch.serialization.safe_globals`` context that lets nerfstudio 1.1's checkpoint
     loading (a bare ``torch.load``) read its own checkpoints under torch >= 2.6, whose
@@ -221,6 +237,8 @@ class NerfactoSurfaces(SurfaceBackend):
         if not nerfacto_available():
             raise SurfacesError(UNAVAILABLE)
         self.run_dir: Path | None = None
+        self._relocated = False  # loaded from saved surfaces (``_relocate``)
+        self._cleanup: weakref.finalize | None = None  # removes fit's own temporary folder
         self._pipeline = None
         self._transform = np.eye(4)
         self._scale = 1.0
@@ -229,9 +247,6 @@ class NerfactoSurfaces(SurfaceBackend):
     def fit(self, images, cameras, bbox=None, progress: Progress | None = None) -> None:
         imgs, cams, box = check_inputs(images, cameras, bbox)
         cfg = self.config
-        work = Path(cfg.workdir or tempfile.mkdtemp(prefix="cropcraft_nerfacto_"))
-        data, out = work / "data", work / "outputs"
-        write_transforms(data, imgs, cams)
         scale = far = None
         if cfg.far_plane is None and cfg.nerf_far_margin is not None:
             if box is None:
@@ -242,6 +257,13 @@ class NerfactoSurfaces(SurfaceBackend):
                 )
             scale, far = far_plane_setting(cams, box, cfg.nerf_far_margin)
             self.timings["nerf_far_plane"] = far  # in nerfstudio's frame
+        if cfg.workdir:
+            work = Path(cfg.workdir)
+        else:  # a folder of its own (photos, checkpoints: hundreds of MB), gone with this object
+            work = Path(tempfile.mkdtemp(prefix="cropcraft_nerfacto_"))
+            self._cleanup = weakref.finalize(self, shutil.rmtree, str(work), True)
+        data, out = work / "data", work / "outputs"
+        write_transforms(data, imgs, cams)
         cmd = train_command(cfg, data, out, scale, far)
         if progress:
             progress("nerfacto", 0.0)
@@ -250,22 +272,30 @@ class NerfactoSurfaces(SurfaceBackend):
         with open(log, "w") as fh:
             rc, stopped = run_training(cmd, fh, cfg.nerf_max_seconds)
         if rc != 0 and not stopped:
-            raise SurfacesError(f"ns-train failed (exit {rc}); see {log}")
+            self._keep_workdir()
+            raise SurfacesError(f"ns-train failed (exit {rc}); see {log}:\n{log_tail(log)}")
         self.timings["nerf_train"] = time.perf_counter() - t0
         self.run_dir = out / "cropcraft" / METHOD / "run"
         steps = sorted(self.run_dir.glob("nerfstudio_models/step-*.ckpt"))
         if not steps:
-            raise SurfacesError(f"ns-train stopped before its first checkpoint; see {log}")
+            self._keep_workdir()
+            raise SurfacesError(
+                f"ns-train stopped before its first checkpoint; see {log}:\n{log_tail(log)}"
+            )
         self.timings["nerf_iterations_done"] = int(steps[-1].stem.split("-")[1]) + 1
         self.cameras, self.bbox = cams, box
         self._read_run()
         if progress:
             progress("nerfacto", 1.0)
 
+    def _keep_workdir(self) -> None:
+        """A failed fit keeps its temporary folder: its ns-train.log is what says why."""
+        if self._cleanup is not None:
+            self._cleanup.detach()
+            self._cleanup = None
+
     def _read_run(self) -> None:
-        if self.run_dir is None or not (self.run_dir / "config.yml").exists():
-            raise SurfacesError(f"no trained nerfacto run in {self.run_dir}")
-        meta = json.loads((self.run_dir / "dataparser_transforms.json").read_text())
+        meta = json.loads((self._require_run() / "dataparser_transforms.json").read_text())
         t = np.eye(4)
         t[:3, :4] = np.asarray(meta["transform"], np.float64)
         self._transform, self._scale = t, float(meta["scale"])
@@ -281,7 +311,9 @@ class NerfactoSurfaces(SurfaceBackend):
             all_methods.setdefault(METHOD, method.config)  # eval_setup looks the run's up
             with checkpoint_globals():
                 _, self._pipeline, _, _ = eval_setup(
-                    self.run_dir / "config.yml", test_mode="inference"
+                    self.run_dir / "config.yml",
+                    test_mode="inference",
+                    update_config_callback=self._relocate if self._relocated else None,
                 )
         return self._pipeline
 
@@ -314,12 +346,66 @@ class NerfactoSurfaces(SurfaceBackend):
 
     # ------------------------------------------------------------------ persistence
     def _save_payload(self, folder: Path) -> dict:
-        return {"run_dir": str(self.run_dir)}
+        """Copy what rendering needs into ``folder/RUN_FOLDER`` so that the saved surfaces load
+        on another host, or after the training folder is gone: the run's ``config.yml`` and
+        ``dataparser_transforms.json``, the dataset's ``transforms.json`` (nerfstudio's data
+        parser reads it to build the model; no photo is read) and the last checkpoint with the
+        pipeline's weights only (the optimisers' state, about two thirds of the file, dropped)."""
+        import torch
+
+        run = self._require_run()
+        steps = sorted(run.glob("nerfstudio_models/step-*.ckpt"))
+        if not steps:
+            raise SurfacesError(f"no nerfacto checkpoint in {run / 'nerfstudio_models'}")
+        dest = folder / RUN_FOLDER
+        (dest / "nerfstudio_models").mkdir(parents=True, exist_ok=True)
+        (dest / "data").mkdir(exist_ok=True)
+        for name in ("config.yml", "dataparser_transforms.json"):
+            shutil.copyfile(run / name, dest / name)
+        shutil.copyfile(self._data_dir() / "transforms.json", dest / "data" / "transforms.json")
+        with checkpoint_globals():
+            state = torch.load(steps[-1], map_location="cpu")
+        slim = {"pipeline": state["pipeline"], "step": int(state["step"])}
+        tmp = dest / "nerfstudio_models" / (steps[-1].name + ".tmp")
+        torch.save(slim, tmp)
+        os.replace(tmp, dest / "nerfstudio_models" / steps[-1].name)
+        return {"run": RUN_FOLDER, "step": slim["step"]}
 
     def _load_payload(self, folder: Path, meta: dict) -> None:
         if not nerfacto_available():
             raise SurfacesError(UNAVAILABLE)
-        if "run_dir" not in meta:
+        self._relocated, self._cleanup = False, None  # (load does not run __init__)
+        if "run" in meta:
+            self.run_dir = folder / str(meta["run"])
+            self._relocated = True
+        elif "run_dir" in meta:  # saved before the run was kept with the surfaces
+            self.run_dir = Path(meta["run_dir"])
+        else:
             raise InputError(f"{folder}: saved nerfacto surfaces name no training run")
-        self.run_dir = Path(meta["run_dir"])
         self._read_run()
+
+    def _require_run(self) -> Path:
+        if self.run_dir is None or not (self.run_dir / "config.yml").exists():
+            raise SurfacesError(f"no trained nerfacto run in {self.run_dir}")
+        return self.run_dir
+
+    def _data_dir(self) -> Path:
+        """The nerfstudio dataset the run was trained on (its ``transforms.json``): beside the
+        run when loaded from saved surfaces, else ``fit``'s workdir/data (the run is
+        workdir/outputs/cropcraft/METHOD/run, as :func:`train_command` lays it out)."""
+        run = self._require_run()
+        return run / "data" if self._relocated else run.parents[3] / "data"
+
+    def _relocate(self, config):
+        """``eval_setup``'s callback for a run loaded from saved surfaces: the checkpoint and the
+        dataset are where ``save`` put them, not where training wrote them, and no photo is
+        opened (nerfstudio-data's automatic downscale reads the first; training used 1). The
+        checkpoint folder is given as an absolute path, which nerfstudio's
+        ``base_dir / relative_model_dir`` then is."""
+        run = self._require_run().resolve()
+        config.relative_model_dir = run / "nerfstudio_models"
+        dm = config.pipeline.datamanager
+        dm.data = run / "data"
+        dm.dataparser.data = run / "data"
+        dm.dataparser.downscale_factor = 1
+        return config
