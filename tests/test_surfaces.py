@@ -527,7 +527,7 @@ def _nerfstudio() -> bool:
 
 @pytest.mark.skipif(_cuda() and _nerfstudio(), reason="nerfstudio and CUDA are present")
 def test_nerfacto_without_cuda_names_cpu_backend():
-    with pytest.raises(SurfacesError, match="--surfaces tsdf"):
+    with pytest.raises(SurfacesError, match="--set surfaces.backend=tsdf"):
         make_backend(SurfacesConfig(backend="nerfacto"))
 
 

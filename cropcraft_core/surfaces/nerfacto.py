@@ -58,7 +58,10 @@ METHOD_ENV = f"{METHOD}=cropcraft_core.surfaces.nerfacto_method:method"
 RUN_FOLDER = "nerfacto_run"
 #: checkpoint interval (steps): what a ``nerf_max_seconds`` deadline can lose
 SAVE_EVERY = 500
-UNAVAILABLE = "nerfacto needs nerfstudio and a CUDA GPU; use the CPU backend: --surfaces tsdf"
+UNAVAILABLE = (
+    "nerfacto needs nerfstudio and a CUDA GPU; use a CPU backend: surfaces.backend tsdf (the "
+    "default; --set surfaces.backend=tsdf) or points"
+)
 #: OpenCV camera axes ↔ OpenGL (nerfstudio) camera axes
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
