@@ -122,13 +122,21 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     """
     cfg = copy.deepcopy(DEFAULTS)
     try:
-        from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, resolve_bbox
+        from cropcraft_core.surfaces import (
+            CROP_SURFACES,
+            NERF_PAPER,
+            SurfacesConfig,
+            resolve_bbox,
+        )
     except ImportError:  # the surfaces package is optional in a partial checkout
         SurfacesConfig = None
     else:  # the crop's measured surfaces settings, under the user's overrides
         cfg["surfaces"].update(CROP_SURFACES.get(crop, {}))
     for k, v in (overrides or {}).items():
         _set_dotted(cfg, str(k), v)
+    if SurfacesConfig is not None and cfg["surfaces"].get("backend") == "nerfacto":
+        for k, v in NERF_PAPER.get(crop, {}).items():  # the paper's, under the user's own
+            cfg["surfaces"].setdefault(k, v)
     from cropcraft_core.config import default_layout
     from cropcraft_core.fit import FitConfig
     from cropcraft_core.observe import preset as observe_preset

@@ -383,6 +383,28 @@ def test_nerfacto_surfaces_are_keyed_by_their_far_plane_margin():
     assert "nerf_far_margin" not in stage_configs(resolve_config(CROP), CROP)["surfaces"]
 
 
+def test_nerfacto_in_the_flow_takes_the_papers_settings_per_crop():
+    """The ``scene-nerfacto`` deployment promises the paper's NeRF: for maize its near/far
+    planes, MLP width and orientation (``NERF_PAPER``), under the user's own settings; soybean
+    keeps nerfstudio's; the CPU backends get none of them."""
+    from cropcraft_core.surfaces import NERF_PAPER, SurfacesConfig
+    from flows.scene import resolve_config
+
+    maize = resolve_config("maize", {"surfaces.backend": "nerfacto"})["surfaces"]
+    assert {k: maize[k] for k in NERF_PAPER["maize"]} == NERF_PAPER["maize"]
+    cfg = SurfacesConfig.from_dict(
+        {k: v for k, v in maize.items() if k not in ("bbox", "n_points")}
+    )
+    assert (cfg.near_plane, cfg.far_plane, cfg.hidden_dim, cfg.orientation) == (
+        0.05, 6.0, 128, "vertical",
+    )  # fmt: skip
+    mine = resolve_config("maize", {"surfaces.backend": "nerfacto", "surfaces.far_plane": 8.0})
+    assert mine["surfaces"]["far_plane"] == 8.0 and mine["surfaces"]["hidden_dim"] == 128
+    soy = resolve_config("soybean", {"surfaces.backend": "nerfacto"})["surfaces"]
+    assert "far_plane" not in soy and "hidden_dim" not in soy
+    assert "far_plane" not in resolve_config("maize")["surfaces"]
+
+
 def test_guided_matching_is_off_by_default_and_in_the_poses_stage_hash():
     """Epipolar re-matching is slower and less accurate on canopies (run_sfm's docstring): off
     unless asked for, and asking for it re-runs SfM (its stage hashes apart)."""

@@ -8,6 +8,7 @@ saved backend back. See ``cropcraft_core.surfaces.base``.
 from cropcraft_core.surfaces.base import (
     BACKENDS,
     CROP_SURFACES,
+    NERF_PAPER,
     SurfaceBackend,
     SurfacesConfig,
     SurfacesError,
@@ -19,6 +20,7 @@ from cropcraft_core.surfaces.base import (
 __all__ = [
     "BACKENDS",
     "CROP_SURFACES",
+    "NERF_PAPER",
     "SurfaceBackend",
     "SurfacesConfig",
     "SurfacesError",

@@ -88,6 +88,16 @@ CROP_SURFACES: dict[str, dict[str, Any]] = {
 }
 
 
+#: The paper's nerfacto settings per crop over ``SurfacesConfig``'s (its implementation details):
+#: soybean nerfstudio's defaults, maize near/far planes 0.05/6.0 (nerfstudio's frame; the far
+#: plane given wins over ``nerf_far_margin``), MLP width 128, 'vertical' orientation. The scene
+#: flow applies them under the user's settings where the backend is nerfacto.
+NERF_PAPER: dict[str, dict[str, Any]] = {
+    "soybean": {},
+    "maize": {"near_plane": 0.05, "far_plane": 6.0, "hidden_dim": 128, "orientation": "vertical"},
+}
+
+
 def resolve_bbox(bbox: Any, crop: str) -> np.ndarray | None:
     """``"auto"`` → the crop's :data:`SCENE_BOX`; None → None; else a checked (2, 3) box."""
     if bbox is None:
@@ -329,14 +339,9 @@ class SurfacesConfig:
     def for_crop(cls, crop: str, **overrides: Any) -> SurfacesConfig:
         """The paper's settings per crop: soybean = nerfstudio defaults; maize = near/far planes
         0.05/6.0, MLP width 128, orientation 'vertical'. ``overrides`` win."""
-        base: dict[str, Any] = {}
-        if crop == "maize":
-            base = {"near_plane": 0.05, "far_plane": 6.0, "hidden_dim": 128}
-            base["orientation"] = "vertical"
-        elif crop != "soybean":
+        if crop not in NERF_PAPER:
             raise ConfigError(f"unknown crop {crop!r}: choose soybean or maize")
-        base.update(overrides)
-        return cls(**base)
+        return cls(**{**NERF_PAPER[crop], **overrides})
 
     def to_dict(self) -> dict:
         d = asdict(self)
