@@ -712,6 +712,29 @@ def test_saved_nerfacto_surfaces_load_without_their_training_folder(tmp_path, mo
     assert parser.data == config.pipeline.datamanager.data and parser.downscale_factor == 1
 
 
+def test_nerfacto_counts_only_surfaces_inside_the_box_as_supported(monkeypatch):
+    """The observe stage's coverage figure: a depth that puts the surface outside the scene box
+    (the backdrop at the far plane, seen past the soil) is not a reconstructed surface. The
+    render is nerfstudio's (CUDA); here a known depth map stands in for it."""
+    import cropcraft_core.surfaces.nerfacto as nf
+
+    made: list[Path] = []
+    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
+    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made))
+    cam = PinholeCamera.look_down((0.0, 0.0), 1.0, size=(4, 3))
+    box = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 1.0]])
+    b = nf.NerfactoSurfaces(SurfacesConfig(backend="nerfacto"))
+    other = PinholeCamera.look_down((0.3, 0.0), 1.0, size=(4, 3))
+    b.fit([np.zeros((3, 4, 3), np.uint8)] * 2, [cam, other], box)
+    depth = np.full((3, 4), 0.6, np.float32)  # 0.4 m up: inside
+    depth[0, 0], depth[1, 2], depth[2, 3] = 4.5, np.nan, 1.05  # far shell, nothing, in the soil
+    monkeypatch.setattr(b, "render", lambda camera: (depth, np.zeros((3, 4, 3), np.uint8)))
+    got = b.render_supported(cam)
+    want = depth.copy()
+    want[0, 0] = np.nan
+    np.testing.assert_array_equal(got, want)
+
+
 def test_failed_nerfacto_training_keeps_its_folder_and_says_why(monkeypatch):
     """ns-train failing: the error carries the log's last lines (what a Prefect run shows) and
     names the log, and fit's temporary folder is kept for it."""

@@ -48,6 +48,7 @@ from cropcraft_core.surfaces.base import (
     SurfacesConfig,
     SurfacesError,
     check_inputs,
+    in_bbox,
 )
 
 #: the nerfstudio method ``fit`` trains (``cropcraft_core.surfaces.nerfacto_method``, which
@@ -343,6 +344,18 @@ class NerfactoSurfaces(SurfaceBackend):
         depth = (dist / norm).astype(np.float32)
         depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
         return depth, np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
+
+    def render_supported(self, camera: PinholeCamera) -> np.ndarray:
+        """``render``'s depth where it lies inside the bounding box: outside it a ray met what
+        the field put beyond the scene (the backdrop at the far plane, where it saw past the
+        soil), not a surface of the plot."""
+        depth = self.render(camera)[0]
+        if self.bbox is None:
+            return depth
+        seen = np.isfinite(depth)
+        points = camera.unproject(np.where(seen, depth, 0.0)).reshape(-1, 3)
+        inside = in_bbox(points, self.bbox).reshape(depth.shape)
+        return np.where(seen & inside, depth, np.nan).astype(np.float32)
 
     def point_cloud(self, n_max: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
         return self.rendered_point_cloud(n_max)
