@@ -5,7 +5,10 @@
 # `cropcraft synth` scene (photos, transforms.json, scene.json, the depth of the views
 # `bench nerfacto train` scores) into .gpu/SCENE_NAME/. Both folders must be git-ignored.
 #   bash deploy/gpu_check_prepare.sh SCENE_DIR
-# then on the GPU host, from the repository root:
+# then on the GPU host (carrying .whl and .gpu), from the repository root, the acceptance test
+# and a training run side by side with their small outputs in $OUT:
+#   bash deploy/gpu_check_run.sh SCENE_NAME SECONDS [bench nerfacto train options]
+# or by hand:
 #   pip install --no-index --no-deps --target /tmp/site .whl/*.whl
 #   PYTHONPATH=/tmp/site:$PWD python3 -m benchmarks.bench_nerfacto train \
 #       --scene-dir .gpu/SCENE_NAME --max-seconds 330 --out OUT
