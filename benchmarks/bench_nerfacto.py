@@ -4,14 +4,15 @@
 scene's photos with their true poses, samples its point cloud, fits the rows (metric: the poses
 are), makes the row camera's observation, renders a few of the photos' own views and scores them
 against the scene's true per-view depth (``depth/*.npy``), and writes what the other half needs
-into ``--out``: ``observation.npz``, ``row.json`` (the row camera in the truth frame, timings,
-per-view scores), ``points.npz``, ``ns-train.log``. It needs neither Open3D nor the truth mesh,
+into ``--out``: ``observation.npz``, ``row.json`` (the row camera in the truth frame and its
+direction / lateral / height errors, timings, per-view scores), ``points.npz``, ``ns-train.log``. It needs neither Open3D nor the truth mesh,
 which a GPU worker image may lack.
 
 ``compare`` (any host with the project installed): the same figures ``bench pipeline --poses
 truth`` prints for the CPU backends, from the kept files: the depth histogram's L1 against the
-true mesh's from the same camera, mask areas, depth errors, and with ``--fit SEEDSxEVALS`` the fit
-and its traits against the truth (``bench_pipeline.fit_and_compare``).
+true mesh's from the same camera, mask areas, depth errors, the point cloud's distance to the
+true surfaces (``points``), and with ``--fit SEEDSxEVALS`` the fit and its traits against the
+truth (``bench_pipeline.fit_and_compare``).
 
     cropcraft bench nerfacto train --scene-dir DIR --iterations 5000 --out KEPT
     cropcraft bench nerfacto compare --scene-dir DIR --kept KEPT [--fit 10x300] [--json FILE]
@@ -61,7 +62,7 @@ def train(a: argparse.Namespace) -> dict:
     from cropcraft_core.observe import Observation
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
-    from cropcraft_core.rowfit.truth import camera_in_truth
+    from cropcraft_core.rowfit.truth import camera_in_truth, row_fit_errors
     from cropcraft_core.sfm import import_transforms_json
     from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
 
@@ -152,6 +153,7 @@ def train(a: argparse.Namespace) -> dict:
     sec["observe"] = time.perf_counter() - t
     obs.save(out / "observation.npz")
     rec["camera_truth"] = camera_in_truth(fit, np.eye(4)).to_dict()
+    rec["row_errors"] = row_fit_errors(fit, np.eye(4), layout).to_dict()  # targets 2°/3 cm/3 %
     rec["row_fit"] = fit.to_dict()
     return keep()
 
@@ -176,6 +178,8 @@ def compare(a: argparse.Namespace) -> dict:
     keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
     keys += ("views_mean",)
     out = {k: rec[k] for k in keys}
+    if "row_errors" in rec:  # train halves from before it was recorded lack it
+        out["row_errors"] = rec["row_errors"]
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     out["mask_area"] = area
     out["holes"] = float((~np.isfinite(obs.depth) & np.isfinite(d_true)).mean())
