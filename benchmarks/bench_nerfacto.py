@@ -5,8 +5,9 @@ scene's photos with their true poses, samples its point cloud, fits the rows (me
 are), makes the row camera's observation, renders a few of the photos' own views and scores them
 against the scene's true per-view depth (``depth/*.npy``), and writes what the other half needs
 into ``--out``: ``observation.npz``, ``row.json`` (the row camera in the truth frame and its
-direction / lateral / height errors, timings, per-view scores), ``points.npz``, ``ns-train.log``. It needs neither Open3D nor the truth mesh,
-which a GPU worker image may lack.
+direction / lateral / height errors, timings, per-view scores), ``points.npz``,
+``ns-train.log``. It needs neither Open3D nor the truth mesh, which a GPU worker image may
+lack.
 
 ``compare`` (any host with the project installed): the same figures ``bench pipeline --poses
 truth`` prints for the CPU backends, from the kept files: the depth histogram's L1 against the
