@@ -215,6 +215,55 @@ def points_vs_truth(points: np.ndarray, mesh) -> dict:
     }
 
 
+def print_compare(out: dict) -> None:
+    """``compare``'s figures as a table against #4's targets (``bench_pipeline.TARGETS``)."""
+    from benchmarks.bench_pipeline import TARGETS
+
+    t = out.get("surfaces_timings", {})
+    head = f"{out['backend']} surfaces of {out['scene_dir']}"
+    if out["backend"] == "nerfacto":
+        far = t.get("nerf_far_plane")
+        head += f": {t.get('nerf_iterations_done', '?')} iterations, far plane " + (
+            f"{far:.3f} (nerfstudio's frame)" if far is not None else "nerfstudio's"
+        )
+    print(head)
+    v, pts = out["views_mean"], out.get("points", {})
+    print(
+        f"  the photos' own views: median depth ratio {v['median_ratio']:.3f}, error "
+        f"{100 * v['median_abs_err_m']:.1f} cm, {100 * v['within']:.0f} % within "
+        f"{100 * WITHIN_M:.0f} cm, {100 * v['holes']:.1f} % empty"
+    )
+    if pts:
+        print(
+            f"  point cloud: {100 * pts['within']:.1f} % of {pts['n']} points within "
+            f"{100 * WITHIN_M:.0f} cm of a true surface "
+            f"(median {1000 * pts['median_dist_m']:.1f} mm)"
+        )
+    m = out["mask_area"]
+    print(f"  mask area {m['observation']:.3f} (truth {m['truth']:.3f}), holes {out['holes']:.3f}")
+    checks = [("depth histogram L1", out["hist_l1"], "hist_l1")]
+    if "row_errors" in out:
+        r = out["row_errors"]
+        checks = [
+            ("row direction error (deg)", r["direction_deg"], "direction_deg"),
+            ("row lateral offset (m)", r["lateral_m"], "lateral_m"),
+            ("render-height error (rel)", r["height_rel"], "height_rel"),
+            *checks,
+        ]
+    if out.get("fit"):
+        checks.append(("LAI relative error", abs(out["fit"]["lai_rel_err"]), "lai_rel_err"))
+    print(f"  {'measure':<28}{'value':>10}{'target':>10}  met")
+    for label, val, k in checks:
+        ok = "yes" if val <= TARGETS[k] else "NO"
+        print(f"  {label:<28}{val:>10.4f}{TARGETS[k]:>10.3f}  {ok}")
+    if out.get("fit"):
+        f = out["fit"]
+        traits = ", ".join(
+            f"{k} {row['estimated']:.3g} (true {row['true']:.3g})" for k, row in f["traits"].items()
+        )
+        print(f"  fit {f['budget']} in {f['seconds']:.0f} s: {traits}; miss: {f['loss']['whose']}")
+
+
 def _margin(text: str) -> float | None:
     """``--far-margin``: a number, or 'off' for nerfstudio's own far plane."""
     if text.lower() in ("off", "none", "null"):
@@ -263,7 +312,10 @@ def main(argv: list[str] | None = None) -> int:
     co.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     out = train(a) if a.half == "train" else compare(a)
-    print(json.dumps({k: v for k, v in out.items() if k != "row_fit"}, indent=1, default=float))
+    if a.half == "train":  # the device's log: every figure, the CPU half reads row.json
+        print(json.dumps({k: v for k, v in out.items() if k != "row_fit"}, indent=1, default=float))
+    else:
+        print_compare(out)
     if getattr(a, "json", None):
         Path(a.json).write_text(json.dumps(out, indent=1, default=float))
     return 0

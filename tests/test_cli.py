@@ -265,6 +265,34 @@ def test_nerfacto_benchmark_scores_a_view_against_its_true_depth():
     assert s["holes"] == pytest.approx(1 / 3)
 
 
+def test_nerfacto_compare_prints_its_figures_against_the_targets(capsys):
+    """``bench nerfacto compare``'s table: each measure against #4's target (row 2° / 3 cm /
+    3 %, L1 0.15, LAI 15 %), met or not."""
+    from benchmarks.bench_nerfacto import print_compare
+
+    out = {
+        "backend": "nerfacto",
+        "scene_dir": "SA",
+        "surfaces_timings": {"nerf_iterations_done": 1001, "nerf_far_plane": 3.5},
+        "views_mean": {"median_ratio": 0.998, "median_abs_err_m": 0.018, "within": 0.53,
+                       "holes": 0.0},
+        "points": {"n": 100, "within": 0.92, "median_dist_m": 0.0058},
+        "mask_area": {"observation": 0.53, "truth": 0.60},
+        "holes": 0.0,
+        "row_errors": {"direction_deg": 0.66, "lateral_m": 0.036, "height_rel": 0.002},
+        "hist_l1": 0.123,
+        "fit": {"lai_rel_err": -0.266, "budget": "10x300", "seconds": 487.0,
+                "traits": {"lai": {"estimated": 0.922, "true": 1.257}},
+                "loss": {"whose": "reconstruction"}},
+    }  # fmt: skip
+    print_compare(out)
+    text = capsys.readouterr().out
+    assert "1001 iterations, far plane 3.500" in text and "92.0 % of 100 points" in text
+    rows = [line for line in text.splitlines() if line.strip().endswith(("yes", "NO"))]
+    assert [r.split()[-1] for r in rows] == ["yes", "NO", "yes", "yes", "NO"], rows
+    assert "lai 0.922 (true 1.26)" in text and "miss: reconstruction" in text
+
+
 def test_nerfacto_benchmark_scores_points_against_the_true_surfaces():
     """``bench nerfacto compare``'s point-cloud score, by hand (real Open3D distances): a unit
     square leaf at z = 0.5 and the soil at z = 0; a point 1 cm above the leaf, one on the soil,
