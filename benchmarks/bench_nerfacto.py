@@ -216,8 +216,8 @@ def points_vs_truth(points: np.ndarray, mesh) -> dict:
 
 
 def print_compare(out: dict) -> None:
-    """``compare``'s figures as a table against #4's targets (``bench_pipeline.TARGETS``)."""
-    from benchmarks.bench_pipeline import TARGETS
+    """``compare``'s figures, then the table against #4's targets (``bench_pipeline``'s)."""
+    from benchmarks.bench_pipeline import print_checks
 
     t = out.get("surfaces_timings", {})
     head = f"{out['backend']} surfaces of {out['scene_dir']}"
@@ -241,21 +241,7 @@ def print_compare(out: dict) -> None:
         )
     m = out["mask_area"]
     print(f"  mask area {m['observation']:.3f} (truth {m['truth']:.3f}), holes {out['holes']:.3f}")
-    checks = [("depth histogram L1", out["hist_l1"], "hist_l1")]
-    if "row_errors" in out:
-        r = out["row_errors"]
-        checks = [
-            ("row direction error (deg)", r["direction_deg"], "direction_deg"),
-            ("row lateral offset (m)", r["lateral_m"], "lateral_m"),
-            ("render-height error (rel)", r["height_rel"], "height_rel"),
-            *checks,
-        ]
-    if out.get("fit"):
-        checks.append(("LAI relative error", abs(out["fit"]["lai_rel_err"]), "lai_rel_err"))
-    print(f"  {'measure':<28}{'value':>10}{'target':>10}  met")
-    for label, val, k in checks:
-        ok = "yes" if val <= TARGETS[k] else "NO"
-        print(f"  {label:<28}{val:>10.4f}{TARGETS[k]:>10.3f}  {ok}")
+    print_checks(out.get("row_errors"), out["hist_l1"], out.get("fit"))
     if out.get("fit"):
         f = out["fit"]
         traits = ", ".join(

@@ -623,6 +623,27 @@ def whose_miss(
     return "reconstruction" if deeper_at_truth("true_mesh") else "loss"
 
 
+def print_checks(
+    row: dict | None, hist_l1: float, fit: dict | None, extra: list | tuple = ()
+) -> None:
+    """The table of #4's measures against :data:`TARGETS`: the row fit's errors (``row``:
+    ``RowFitErrors.to_dict()``, or None), the depth histogram's L1, ``extra`` (label, value,
+    target key) rows, and the LAI error of ``fit`` (``fit_and_compare``'s record, or None)."""
+    checks = []
+    if row is not None:
+        checks += [
+            ("row direction error (deg)", row["direction_deg"], "direction_deg"),
+            ("row lateral offset (m)", row["lateral_m"], "lateral_m"),
+            ("render-height error (rel)", row["height_rel"], "height_rel"),
+        ]
+    checks += [("depth histogram L1", hist_l1, "hist_l1"), *extra]
+    if fit:
+        checks.append(("LAI relative error", abs(fit["lai_rel_err"]), "lai_rel_err"))
+    print(f"  {'measure':<28}{'value':>10}{'target':>10}  met")
+    for label, v, k in checks:
+        print(f"  {label:<28}{v:>10.4f}{TARGETS[k]:>10.3f}  {'yes' if v <= TARGETS[k] else 'NO'}")
+
+
 def _print(out: dict) -> None:
     sec = out["seconds"]
     print(f"photos → observation, {out['views']} views {out['resolution']}, poses {out['poses']}")
@@ -642,18 +663,12 @@ def _print(out: dict) -> None:
         f"  scale {sc['fitted']:.4f} m/unit from {sc['source']} "
         f"(true {sc['true']:.4f}: {100 * sc['rel_err']:+.2f} %)"
     )
-    checks = [
-        ("row direction error (deg)", out["rowfit"]["direction_deg"], "direction_deg"),
-        ("row lateral offset (m)", out["rowfit"]["lateral_m"], "lateral_m"),
-        ("render-height error (rel)", out["rowfit"]["height_rel"], "height_rel"),
-        ("depth histogram L1", out["hist_l1"], "hist_l1"),
-        ("images → observation (s)", sec["images_to_observation"], "images_to_observation_s"),
-    ]
-    if out.get("fit"):
-        checks.append(("LAI relative error", abs(out["fit"]["lai_rel_err"]), "lai_rel_err"))
-    print(f"  {'measure':<28}{'value':>10}{'target':>10}  met")
-    for label, v, k in checks:
-        print(f"  {label:<28}{v:>10.4f}{TARGETS[k]:>10.3f}  {'yes' if v <= TARGETS[k] else 'NO'}")
+    print_checks(
+        out["rowfit"],
+        out["hist_l1"],
+        out.get("fit"),
+        [("images → observation (s)", sec["images_to_observation"], "images_to_observation_s")],
+    )
     if "registration" in out:
         r, c = out["registration"], out["rowfit_content"]
         print(
