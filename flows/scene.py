@@ -135,7 +135,11 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     for k, v in (overrides or {}).items():
         _set_dotted(cfg, str(k), v)
     if SurfacesConfig is not None and cfg["surfaces"].get("backend") == "nerfacto":
-        for k, v in NERF_PAPER.get(crop, {}).items():  # the paper's, under the user's own
+        # the paper's settings and the far-plane margin, under the user's own; written out so
+        # that the stage's key holds them (surfaces trained with nerfstudio's far plane, before
+        # the margin, are not served again)
+        nerf = {**NERF_PAPER.get(crop, {}), "nerf_far_margin": SurfacesConfig.nerf_far_margin}
+        for k, v in nerf.items():
             cfg["surfaces"].setdefault(k, v)
     from cropcraft_core.config import default_layout
     from cropcraft_core.fit import FitConfig
@@ -188,8 +192,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
     (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
     cached seeds instead of serving the old default's answer; likewise the surfaces' ``"auto"``
-    scene box is written out as the crop's box (``SCENE_BOX``), and nerfacto's far-plane margin
-    (``SurfacesConfig.nerf_far_margin``) as its default."""
+    scene box is written out as the crop's box (``SCENE_BOX``). (nerfacto's defaults are
+    written out by :func:`resolve_config`.)"""
     from cropcraft_core.fit.fitting import FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
@@ -218,13 +222,6 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             pass
         else:
             surfaces["bbox"] = resolve_bbox("auto", crop).tolist()
-    if surfaces.get("backend") == "nerfacto" and "nerf_far_margin" not in surfaces:
-        try:
-            from cropcraft_core.surfaces import SurfacesConfig
-        except ImportError:
-            pass
-        else:  # nerfacto surfaces trained with nerfstudio's far plane are not served again
-            surfaces["nerf_far_margin"] = SurfacesConfig.nerf_far_margin
     return {
         "ingest": dict(cfg["ingest"]),
         "poses": dict(cfg["poses"]),

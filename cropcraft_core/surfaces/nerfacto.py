@@ -208,6 +208,13 @@ def run_training(cmd: list[str], log, deadline_s: float | None) -> tuple[int, bo
         proc.wait()
 
 
+def last_checkpoint(run: Path) -> Path | None:
+    """The run's latest ``nerfstudio_models/step-NNNNNNNNN.ckpt`` (zero-padded: the names
+    sort by step), or None."""
+    steps = sorted(run.glob("nerfstudio_models/step-*.ckpt"))
+    return steps[-1] if steps else None
+
+
 def log_tail(log: Path, lines: int = 15) -> str:
     """The last ``lines`` lines of a training log (for an error message a Prefect run shows)."""
     try:
@@ -280,13 +287,13 @@ class NerfactoSurfaces(SurfaceBackend):
             raise SurfacesError(f"ns-train failed (exit {rc}); see {log}:\n{log_tail(log)}")
         self.timings["nerf_train"] = time.perf_counter() - t0
         self.run_dir = out / "cropcraft" / METHOD / "run"
-        steps = sorted(self.run_dir.glob("nerfstudio_models/step-*.ckpt"))
-        if not steps:
+        last = last_checkpoint(self.run_dir)
+        if last is None:
             self._keep_workdir()
             raise SurfacesError(
                 f"ns-train stopped before its first checkpoint; see {log}:\n{log_tail(log)}"
             )
-        self.timings["nerf_iterations_done"] = int(steps[-1].stem.split("-")[1]) + 1
+        self.timings["nerf_iterations_done"] = int(last.stem.split("-")[1]) + 1
         self.cameras, self.bbox = cams, box
         self._read_run()
         if progress:
@@ -370,8 +377,8 @@ class NerfactoSurfaces(SurfaceBackend):
         import torch
 
         run = self._require_run()
-        steps = sorted(run.glob("nerfstudio_models/step-*.ckpt"))
-        if not steps:
+        last = last_checkpoint(run)
+        if last is None:
             raise SurfacesError(f"no nerfacto checkpoint in {run / 'nerfstudio_models'}")
         dest = folder / RUN_FOLDER
         (dest / "nerfstudio_models").mkdir(parents=True, exist_ok=True)
@@ -380,11 +387,11 @@ class NerfactoSurfaces(SurfaceBackend):
             shutil.copyfile(run / name, dest / name)
         shutil.copyfile(self._data_dir() / "transforms.json", dest / "data" / "transforms.json")
         with checkpoint_globals():
-            state = torch.load(steps[-1], map_location="cpu")
+            state = torch.load(last, map_location="cpu")
         slim = {"pipeline": state["pipeline"], "step": int(state["step"])}
-        tmp = dest / "nerfstudio_models" / (steps[-1].name + ".tmp")
+        tmp = dest / "nerfstudio_models" / (last.name + ".tmp")
         torch.save(slim, tmp)
-        os.replace(tmp, dest / "nerfstudio_models" / steps[-1].name)
+        os.replace(tmp, dest / "nerfstudio_models" / last.name)
         return {"run": RUN_FOLDER, "step": slim["step"]}
 
     def _load_payload(self, folder: Path, meta: dict) -> None:
