@@ -623,10 +623,11 @@ def test_nerfacto_far_plane_from_the_scene_box(tmp_path, monkeypatch):
         SurfacesConfig(backend="nerfacto", nerf_far_margin=0.5)
 
 
-def _fake_ns_train(made: list, fail: bool = False):
-    """Stands in for ``run_training`` where nerfstudio is absent: writes what ``ns-train``
-    leaves in its output folder (config, dataparser transform, a checkpoint with the pipeline's
-    and the optimisers' state) or, failing, a log line and exit 1."""
+def _fake_ns_train(monkeypatch, made: list, fail: bool = False) -> None:
+    """Makes nerfacto available and stands in for its ``run_training`` where nerfstudio is
+    absent: writes what ``ns-train`` leaves in its output folder (config, dataparser transform,
+    a checkpoint with the pipeline's and the optimisers' state) or, failing, a log line and
+    exit 1. Each run's workdir is appended to ``made``."""
     import torch
 
     import cropcraft_core.surfaces.nerfacto as nf
@@ -651,7 +652,8 @@ def _fake_ns_train(made: list, fail: bool = False):
         torch.save(state, run / "nerfstudio_models" / "step-000000499.ckpt")
         return 0, False
 
-    return train
+    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
+    monkeypatch.setattr(nf, "run_training", train)
 
 
 def test_saved_nerfacto_surfaces_load_without_their_training_folder(tmp_path, monkeypatch):
@@ -671,8 +673,7 @@ def test_saved_nerfacto_surfaces_load_without_their_training_folder(tmp_path, mo
     from cropcraft_core.surfaces import load_surfaces
 
     made: list[Path] = []
-    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
-    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made))
+    _fake_ns_train(monkeypatch, made)
     cams = [PinholeCamera.look_down((x, 0.0), 1.0, size=(32, 24)) for x in (-0.5, 0.5)]
     imgs = [np.zeros((24, 32, 3), np.uint8)] * 2
     box = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 1.0]])
@@ -719,8 +720,7 @@ def test_nerfacto_counts_only_surfaces_inside_the_box_as_supported(monkeypatch):
     import cropcraft_core.surfaces.nerfacto as nf
 
     made: list[Path] = []
-    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
-    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made))
+    _fake_ns_train(monkeypatch, made)
     cam = PinholeCamera.look_down((0.0, 0.0), 1.0, size=(4, 3))
     box = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 1.0]])
     b = nf.NerfactoSurfaces(SurfacesConfig(backend="nerfacto"))
@@ -744,8 +744,7 @@ def test_failed_nerfacto_training_keeps_its_folder_and_says_why(monkeypatch):
     import cropcraft_core.surfaces.nerfacto as nf
 
     made: list[Path] = []
-    monkeypatch.setattr(nf, "nerfacto_available", lambda: True)
-    monkeypatch.setattr(nf, "run_training", _fake_ns_train(made, fail=True))
+    _fake_ns_train(monkeypatch, made, fail=True)
     cams = [PinholeCamera.look_down((x, 0.0), 1.0, size=(32, 24)) for x in (-0.5, 0.5)]
     imgs = [np.zeros((24, 32, 3), np.uint8)] * 2
     b = nf.NerfactoSurfaces(SurfacesConfig(backend="nerfacto", nerf_far_margin=None))
