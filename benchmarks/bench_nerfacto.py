@@ -217,7 +217,7 @@ def points_vs_truth(points: np.ndarray, mesh) -> dict:
 
 def print_compare(out: dict) -> None:
     """``compare``'s figures, then the table against #4's targets (``bench_pipeline``'s)."""
-    from benchmarks.bench_pipeline import print_checks
+    from benchmarks.bench_pipeline import print_checks, print_rules
 
     t = out.get("surfaces_timings", {})
     head = f"{out['backend']} surfaces of {out['scene_dir']}"
@@ -248,6 +248,7 @@ def print_compare(out: dict) -> None:
             f"{k} {row['estimated']:.3g} (true {row['true']:.3g})" for k, row in f["traits"].items()
         )
         print(f"  fit {f['budget']} in {f['seconds']:.0f} s: {traits}; miss: {f['loss']['whose']}")
+        print_rules(f)
 
 
 def _margin(text: str) -> float | None:

@@ -290,7 +290,8 @@ def run(a: argparse.Namespace) -> dict:
     out["_observation"] = obs
 
     if a.fit:
-        out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
+        seeds_dir = Path(a.keep) / "seeds" if a.keep else None
+        out["fit"] = fit_and_compare(obs, root, a.fit, d_true, seeds_dir)
     return out
 
 
@@ -460,36 +461,83 @@ def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) ->
     return np.where(np.isfinite(d), d, np.nan)
 
 
-def fit_and_compare(obs, root: Path, budget: str, d_true: np.ndarray) -> dict:
-    """Fit the observation at ``SEEDSxEVALS``, compare the canopy's traits with the truth and
-    say whose miss it is against the true mesh's depth ``d_true`` from the same camera
-    (:func:`loss_attribution`)."""
-    from cropcraft_core.config import default_layout
-    from cropcraft_core.fit import FitConfig, fit_observation
-    from cropcraft_core.metrics import canopy_metrics
-    from cropcraft_core.procedural import generate_canopy
+def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None) -> tuple[dict, dict]:
+    """BO at ``SEEDSxEVALS`` on ``obs``, its seeds combined by every rule at no extra fitting
+    cost (``bench_accuracy.rules``: the crop's default first as ``bo``, then the other rules as
+    ``bo-<rule>`` and the re-scoring's unpolished answer), as ``bench accuracy`` compares them:
+    ``({row: params}, {"params_std": the seeds' spread, "seeds": each seed's best point and
+    loss})``. Each seed resumes from ``checkpoint_dir/seed-N.json`` where given, so a killed run
+    continues where it stopped."""
+    from benchmarks.bench_accuracy import combine_scene, rules, seed_seconds
+    from cropcraft_core.fit import FitConfig, fit_seed
+    from cropcraft_core.optimize.bo import aggregate
 
     seeds, evals = (int(x) for x in budget.lower().split("x"))
     cfg = FitConfig(n_seeds=seeds, n_evals=evals, n_initial=max(evals * 2 // 5, 5))
+    if checkpoint_dir is not None:
+        checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    results = [
+        fit_seed(obs, s, cfg, None, checkpoint_dir / f"seed-{s}.json" if checkpoint_dir else None)
+        for s in range(seeds)
+    ]
+    seconds = sum(seed_seconds(r) for r in results)
+    answers = combine_scene(obs.crop, rules(obs.crop, "bo", cfg), results, seconds, obs)
+    box = cfg.param_box(obs.crop)
+    seeds_rec = [
+        {"seed": r.seed, "params": box.params(r.reported_x), "loss": float(r.best_y)}
+        for r in results
+    ]
+    spread = {"params_std": box.spread(aggregate(results).std_x), "seeds": seeds_rec}
+    return {row: params for row, (params, _) in answers.items()}, spread
+
+
+#: The traits ``fit_and_compare`` compares with the truth's.
+FIT_TRAITS = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", "internode_mean_m")
+
+
+def fit_and_compare(
+    obs, root: Path, budget: str, d_true: np.ndarray, checkpoint_dir: Path | None = None
+) -> dict:
+    """Fit the observation at ``SEEDSxEVALS`` (:func:`fit_rules`), compare the default
+    answer's canopy traits with the truth and say whose miss it is against the true mesh's
+    depth ``d_true`` from the same camera (:func:`loss_attribution`); the other rules' answers
+    and traits (``rules``) and every seed's best point (``seeds``) ride along, so one fit
+    compares the rules on a photo observation as ``bench accuracy`` does on renders."""
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.procedural import generate_canopy
+
     t = time.perf_counter()
-    res = fit_observation(obs, cfg)
+    answers, spread = fit_rules(obs, budget, checkpoint_dir)
     seconds = time.perf_counter() - t
-    canopy = generate_canopy(obs.crop, res.params, default_layout(obs.crop), seed=0)
-    est = canopy_metrics(canopy, gap_fraction=False)
     true = json.loads((root / "truth" / "metrics.json").read_text())
     true_params = json.loads((root / "truth" / "params.json").read_text())
-    keys = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", "internode_mean_m")
-    rows = {k: {"estimated": est.get(k), "true": true.get(k)} for k in keys if k in true}
-    lai = rows.get("lai", {})
+
+    def traits(params: dict) -> dict:
+        canopy = generate_canopy(obs.crop, params, default_layout(obs.crop), seed=0)
+        est = canopy_metrics(canopy, gap_fraction=False)
+        return {k: {"estimated": est.get(k), "true": true.get(k)} for k in FIT_TRAITS if k in true}
+
+    def lai_err(rows: dict) -> float | None:
+        lai = rows.get("lai")
+        return (lai["estimated"] - lai["true"]) / lai["true"] if lai else None
+
+    per_rule = {}
+    for row, params in answers.items():
+        rows = traits(params)
+        per_rule[row] = {"params": params, "traits": rows, "lai_rel_err": lai_err(rows)}
+    main = per_rule.pop("bo")
     return {
         "budget": budget,
         "seconds": seconds,
-        "params": res.params,
-        "params_std": res.params_std,
+        "params": main["params"],
+        "params_std": spread["params_std"],
         "true_params": true_params,
-        "traits": rows,
-        "lai_rel_err": (lai["estimated"] - lai["true"]) / lai["true"] if lai else None,
-        "loss": loss_attribution(obs, d_true, res.params, true_params["params"]),
+        "traits": main["traits"],
+        "lai_rel_err": main["lai_rel_err"],
+        "rules": per_rule,
+        "seeds": spread["seeds"],
+        "loss": loss_attribution(obs, d_true, main["params"], true_params["params"]),
     }
 
 
@@ -644,6 +692,18 @@ def print_checks(
         print(f"  {label:<28}{v:>10.4f}{TARGETS[k]:>10.3f}  {'yes' if v <= TARGETS[k] else 'NO'}")
 
 
+def print_rules(fit: dict) -> None:
+    """The other combination rules' answers from the same seeds (``fit_and_compare``'s
+    ``rules``): LAI error, leaf angle, nodes."""
+    for row, r in fit.get("rules", {}).items():
+        t = r["traits"]
+        print(
+            f"  {row + ':':<28}LAI {100 * r['lai_rel_err']:+.1f} %, leaf angle "
+            f"{t['leaf_angle_mean_deg']['estimated']:.1f}°, "
+            f"{t['node_count']['estimated']:.1f} nodes"
+        )
+
+
 def _print(out: dict) -> None:
     sec = out["seconds"]
     print(f"photos → observation, {out['views']} views {out['resolution']}, poses {out['poses']}")
@@ -706,6 +766,7 @@ def _print(out: dict) -> None:
     if out.get("fit"):
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
+        print_rules(out["fit"])
         att = out["fit"]["loss"]
         n = sum(len(g) for g in SCORE_GROUPS)
         print(

@@ -389,3 +389,27 @@ def test_bad_parameter_box_is_named():
     whole = ParamBox.of("soybean")
     assert whole.is_full and whole.names == tuple(s.name for s in param_space("soybean"))
     assert not ParamBox.of("soybean", {"num_nodes": [2, 14]}).is_full
+
+
+def test_pipeline_bench_combines_one_fits_seeds_by_every_rule(tmp_path):
+    """``bench pipeline --fit`` answers by every combination rule from the same seeds: the
+    crop's default (soybean: the per-parameter median) as ``bo``, the mean, the re-scoring with
+    and without its polish; a rerun resumes every seed from its checkpoint and answers the
+    same."""
+    from benchmarks.bench_pipeline import fit_rules
+
+    obs, _ = observation("soybean", SOY_TRUTH)
+    answers, spread = fit_rules(obs, "3x10", tmp_path / "seeds")
+    assert set(answers) == {"bo", "bo-mean", "bo-reevaluate", "bo-reevaluate-unpolished"}
+    seeds = [s["params"] for s in spread["seeds"]]
+    assert [s["seed"] for s in spread["seeds"]] == [0, 1, 2]
+    for k in SOY_TRUTH:
+        vals = [p[k] for p in seeds]
+        assert answers["bo"][k] == pytest.approx(np.median(vals))
+        assert answers["bo-mean"][k] == pytest.approx(np.mean(vals))
+        assert spread["params_std"][k] == pytest.approx(np.std(vals, ddof=1))
+    assert sorted(p.name for p in (tmp_path / "seeds").iterdir()) == [
+        f"seed-{s}.json" for s in range(3)
+    ]
+    again, spread_again = fit_rules(obs, "3x10", tmp_path / "seeds")
+    assert again == answers and spread_again == spread
