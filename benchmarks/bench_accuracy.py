@@ -126,13 +126,13 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     out, polished = {}, {}
     for row, cfg in rows:
         src = polished.get(replace(cfg, polish_evals=None))
-        if cfg.reevaluates(crop) and cfg.polish_evals == 0 and src is not None:
+        if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals == 0 and src is not None:
             # the same re-scoring without its polish: read from the polished row's record
             _, params, rescore = unpolished(src.extra["selection"])
             out[row] = (params, seconds + rescore)
             continue
         f = combine(crop, results, cfg, seconds, observation if cfg.reevaluates(crop) else None)
-        if cfg.reevaluates(crop) and cfg.polish_evals > 0:
+        if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals > 0:
             polished[replace(cfg, polish_evals=None)] = f
         out[row] = (f.params, f.seconds)
     return out
@@ -239,7 +239,7 @@ def rules(crop: str, label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
     return rows + [
         (f"{row}-unpolished", replace(c, polish_evals=0))
         for row, c in rows
-        if c.reevaluates(crop) and c.polish_evals > 0
+        if c.combine_rule(crop) == "reevaluate" and c.polish_evals > 0
     ]
 
 

@@ -268,11 +268,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seeds", type=int, default=10, help="optimiser seeds (paper: 10)")
     f.add_argument("--evals", type=int, default=500, help="evaluations per seed (paper: 500)")
     f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
+    from cropcraft_core.fit.fitting import COMBINE_RULES
+
     f.add_argument(
         "--combine",
-        choices=["median", "mean", "reevaluate"],
+        choices=list(COMBINE_RULES),
         help="bo's answer from its seeds: the median or the paper's mean of their best points, "
-        "or candidates re-scored on fresh canopies and the best refined (fit/select.py); "
+        "candidates re-scored on fresh canopies and the best refined, or the median unless that "
+        "refined winner's basin is significantly deeper (guarded; fit/select.py); "
         "default: the crop's (soybean median, maize reevaluate)",
     )
     f.add_argument(
@@ -280,8 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=60,
         metavar="N",
-        help="reevaluate: Nelder-Mead evaluations refining the best re-scored candidate "
-        "(60; 0: none)",
+        help="reevaluate, guarded: Nelder-Mead evaluations refining the best re-scored "
+        "candidate (and guarded's median) (60; 0: none)",
     )
     from flows.service_cli import add_param_option
 

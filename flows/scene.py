@@ -69,7 +69,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "local_share": None,  # share of each seed's evaluations spent last on Nelder-Mead
         # (None: the crop's, FitConfig)
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
-        "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate"
+        "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate",
+        # "guarded"
         "reevaluate_canopies": 16,
         "polish_starts": 1,  # "reevaluate": refine the lowest re-scored candidate(s) ...
         "polish_evals": 60,  # ... by Nelder-Mead on the same canopies (0: none)

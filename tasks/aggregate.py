@@ -58,7 +58,9 @@ def aggregate(
             "params": fit.params,
             "params_std": fit.params_std,
             "n_seeds": len(results),
-            "chosen": fit.extra.get("selection", {}).get("chosen", cfg.combine_rule(crop)),
+            "chosen": fit.extra.get("guard", fit.extra.get("selection", {})).get(
+                "chosen", cfg.combine_rule(crop)
+            ),
         },
         t.seconds,
     )

@@ -210,3 +210,78 @@ def test_a_point_an_ulp_outside_the_box_is_set_on_its_bound():
     far = b[:, 0] - 1e-6 * (b[:, 1] - b[:, 0])
     with pytest.raises(ConfigError, match="outside its range"):
         resolve_params("maize", params_from_vector("maize", far))
+
+
+def test_guarded_keeps_the_median_unless_the_winner_is_significantly_deeper():
+    """``combine="guarded"``: the seeds' median, unless re-scoring's winner beats the median's
+    own floor on fresh canopies by more than two standard errors. A winner at the true
+    parameters against seeds stranded far off: the winner. A winner that is the median itself:
+    a tie, the median. A far-off winner against seeds around the truth: the median."""
+    from cropcraft_core.config.params import ParamBox
+    from cropcraft_core.fit.select import Selection, guard
+
+    truth = {
+        "leaf_length": 1.0,
+        "petiole_length": 1.1,
+        "petiole_angle": 1.5,
+        "internode_length": 1.25,
+        "num_nodes": 7.0,
+    }
+    obs = observe_canopy(
+        generate_canopy("soybean", truth, default_layout("soybean"), seed=5),
+        preset("soybean", **SMALL),
+    )
+    box = ParamBox.of("soybean")
+    t = np.array([truth[n] for n in box.names])
+    far = np.array([0.55, 1.9, 3.8, 0.6, 3.0])
+
+    def seeds(centre: np.ndarray) -> list[SeedResult]:
+        pts = [centre + d for d in (np.zeros(5), 0.02 * np.ones(5), -0.02 * np.ones(5))]
+        return [
+            _seed(
+                s, np.clip(p, box.bounds[:, 0], box.bounds[:, 1])[None], np.array([0.1]), box.bounds
+            )
+            for s, p in enumerate(pts)
+        ]
+
+    def selection(x: np.ndarray) -> Selection:
+        return Selection(
+            "seed-0", x, {"seed-0": x}, {"seed-0": 0.0}, reevaluation_seeds(4), 0.0, 0.0
+        )
+
+    fm = ForwardModel(obs)
+    stranded = seeds(far)
+    g = guard(fm, stranded, selection(t), polish_evals=6, box=box, check=8)
+    assert g.chosen == "seed-0" and np.array_equal(g.x, t)
+    assert g.difference[0] < -2 * g.difference[1]
+    assert np.allclose(g.median, np.median([r.best_x for r in stranded], axis=0))
+    assert g.canopy_seeds == reevaluation_seeds(12)[4:]  # none the re-scoring used
+    rec = g.to_dict(box)
+    assert rec["chosen"] == "seed-0" and set(rec["median_floor"]) == set(box.names)
+
+    tie = guard(fm, stranded, selection(g.median), polish_evals=0, box=box, check=8)
+    assert tie.chosen == "median" and tie.difference == (0.0, 0.0)
+
+    near = seeds(t)
+    kept = guard(fm, near, selection(far), polish_evals=6, box=box, check=8)
+    assert kept.chosen == "median" and np.allclose(kept.x, np.median([r.best_x for r in near], 0))
+    assert kept.difference[0] > 0
+
+
+def test_guarded_through_combine_records_its_verdict(soybean_seeds):
+    """The rule re-scores like ``reevaluate`` (it needs the observation), keeps that record and
+    adds its own; its answer is the re-scored winner or the seeds' median, as it says."""
+    obs, cfg, seeds = soybean_seeds
+    cfg = replace(cfg, combine="guarded", polish_evals=4)
+    assert cfg.reevaluates("soybean")
+    fit = combine("soybean", seeds, cfg, 0.0, obs)
+    g, sel = fit.extra["guard"], fit.extra["selection"]
+    assert g["rule"] == "guarded" and g["canopy_seeds"] == reevaluation_seeds(4 + 32)[4:]
+    if g["chosen"] == "median":
+        assert np.allclose(list(fit.params.values()), np.median(aggregate(seeds).per_seed, 0))
+        assert g["difference"]["mean"] >= -2 * g["difference"]["se"]
+    else:
+        assert g["chosen"] == sel["chosen"]
+        assert fit.params == sel["candidates"][sel["chosen"]]["params"]
+    with pytest.raises(ConfigError, match="pass it"):
+        combine("soybean", seeds, cfg, 0.0)

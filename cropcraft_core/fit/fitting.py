@@ -30,7 +30,9 @@ from cropcraft_core.optimize.baselines import run_random, run_trust_region
 from cropcraft_core.optimize.bo import OUTPUT_TRANSFORMS
 
 METHODS = ("bo", "trust-region", "random", "mlp")
-COMBINE_RULES = ("median", "mean", "reevaluate")
+COMBINE_RULES = ("median", "mean", "reevaluate", "guarded")
+#: The rules that re-score candidates on fresh canopies (and so need the observation).
+RESCORING_RULES = ("reevaluate", "guarded")
 # Measured on the benchmark's stored seeds (fit/select.py): re-scoring improved maize's LAIE,
 # LAIPE and NCPE with each of three sets of re-scoring canopies; on dense soybean the loss
 # hardly constrains LAI and the winner jumped with the canopies. Soybean takes the per-parameter
@@ -79,7 +81,9 @@ class FitConfig:
     points), ``median`` (their per-parameter median: robust to a seed stranded at the far end
     of a loss valley) or ``reevaluate`` (every seed's best point, their mean and the minimum of
     the seeds' averaged GPs re-scored on fresh canopies, the lowest wins: ``fit/select.py``,
-    where its measurements are). None: the crop's default, ``DEFAULT_COMBINE`` (soybean with its
+    where its measurements are) or ``guarded`` (the median, unless the re-scoring's polished
+    winner scores significantly lower than the median's own polished floor on further fresh
+    canopies: ``select.guard``). None: the crop's default, ``DEFAULT_COMBINE`` (soybean with its
     node count given: the mean, ``DEFAULT_COMBINE_GIVEN``). The baselines
     follow the paper: random takes the mean, trust-region the lowest-loss seed."""
     reevaluate_canopies: int = 16
@@ -136,7 +140,7 @@ class FitConfig:
 
     def reevaluates(self, crop: str) -> bool:
         """Whether :func:`combine` re-scores candidates (and so needs the observation)."""
-        return self.method == "bo" and self.combine_rule(crop) == "reevaluate"
+        return self.method == "bo" and self.combine_rule(crop) in RESCORING_RULES
 
     def param_box(self, crop: str) -> ParamBox:
         """The box the optimisers search for ``crop`` (checked: ``ParamBox.of``)."""
@@ -345,6 +349,13 @@ def combine(
         final, std = sel.x, agg.std_x
         extra["selection"] = sel.to_dict(box)
         seconds += sel.seconds
+        if config.combine_rule(crop) == "guarded":
+            from cropcraft_core.fit.select import guard
+
+            g = guard(ForwardModel(observation, layout), results, sel, config.polish_evals, box)
+            final = g.x
+            extra["guard"] = g.to_dict(box)
+            seconds += g.seconds
     elif config.method == "bo" and config.combine_rule(crop) == "median":
         final, std = np.median(agg.per_seed, axis=0), agg.std_x
     else:
