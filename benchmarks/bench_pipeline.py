@@ -461,19 +461,20 @@ def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) ->
     return np.where(np.isfinite(d), d, np.nan)
 
 
-def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None) -> tuple[dict, dict]:
+def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None, **options) -> tuple[dict, dict]:
     """BO at ``SEEDSxEVALS`` on ``obs``, its seeds combined by every rule at no extra fitting
     cost (``bench_accuracy.rules``: the crop's default first as ``bo``, then the other rules as
     ``bo-<rule>`` and the re-scoring's unpolished answer), as ``bench accuracy`` compares them:
     ``({row: params}, {"params_std": the seeds' spread, "seeds": each seed's best point and
     loss})``. Each seed resumes from ``checkpoint_dir/seed-N.json`` where given, so a killed run
-    continues where it stopped."""
+    continues where it stopped. ``options``: further ``FitConfig`` fields (e.g. the re-scoring's
+    ``reevaluate_canopies``)."""
     from benchmarks.bench_accuracy import combine_scene, rules, seed_seconds
     from cropcraft_core.fit import FitConfig, fit_seed
     from cropcraft_core.optimize.bo import aggregate
 
     seeds, evals = (int(x) for x in budget.lower().split("x"))
-    cfg = FitConfig(n_seeds=seeds, n_evals=evals, n_initial=max(evals * 2 // 5, 5))
+    cfg = FitConfig(n_seeds=seeds, n_evals=evals, n_initial=max(evals * 2 // 5, 5), **options)
     if checkpoint_dir is not None:
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
     results = [

@@ -276,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="bo's answer from its seeds: the median or the paper's mean of their best points, "
         "candidates re-scored on fresh canopies and the best refined, or the median unless that "
         "refined winner's basin is significantly deeper (guarded; fit/select.py); "
-        "default: the crop's (soybean median, maize reevaluate)",
+        "default: the crop's (soybean guarded, maize reevaluate)",
     )
     f.add_argument(
         "--polish-evals",

@@ -1,6 +1,7 @@
 """Stage ``aggregate``: the final parameters from the per-seed results (``fit.combine``, by
-default the crop's rule: soybean the per-parameter median of the seeds' best points, maize the
-seeds' candidates re-scored against the observation on fresh canopies) and their spread."""
+default the crop's rule: soybean the per-parameter median of the seeds' best points unless
+re-scoring finds a significantly deeper basin, maize the seeds' candidates re-scored against the
+observation on fresh canopies) and their spread."""
 
 from __future__ import annotations
 

@@ -158,9 +158,9 @@ def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
         combine("soybean", seeds, cfg, 0.0)
     with pytest.raises(ConfigError, match="observation is of soybean"):
         combine("maize", seeds, cfg, 0.0, obs)
-    # the crop's default rule: maize re-scores, soybean takes the seeds' median
+    # the crop's default rule: maize re-scores, soybean takes the seeds' guarded median
     assert FitConfig().combine_rule("maize") == "reevaluate"
-    assert FitConfig().combine_rule("soybean") == "median"
+    assert FitConfig().combine_rule("soybean") == "guarded"
     assert FitConfig(combine="mean").combine_rule("maize") == "mean"
     with pytest.raises(ConfigError, match="unknown combine rule"):
         FitConfig(combine="mode").validate()
@@ -172,8 +172,9 @@ def test_reevaluate_needs_the_observation_and_valid_settings(soybean_seeds):
 
 
 def test_median_rule_ignores_a_stranded_seed():
-    """``combine="median"`` (soybean's default) is the per-parameter median of the seeds' best
-    points: one seed stranded at the box's far corner moves the mean, not the median."""
+    """``combine="median"`` (soybean's default answer, unless guarded re-scoring finds a deeper
+    basin) is the per-parameter median of the seeds' best points: one seed stranded at the box's
+    far corner moves the mean, not the median."""
     b = param_bounds("soybean")
     lo, span = b[:, 0], b[:, 1] - b[:, 0]
     rng = np.random.default_rng(3)
@@ -183,7 +184,7 @@ def test_median_rule_ignores_a_stranded_seed():
     for s, x in enumerate(pts):
         X = np.vstack([lo + rng.random((5, len(lo))) * span, x])
         seeds.append(_seed(s, X, np.r_[np.ones(5), 0.1], b))
-    med = combine("soybean", seeds, FitConfig(n_seeds=5), 0.0)  # soybean's default: median
+    med = combine("soybean", seeds, FitConfig(n_seeds=5, combine="median"), 0.0)
     mean = combine("soybean", seeds, FitConfig(n_seeds=5, combine="mean"), 0.0)
     expect = params_from_vector("soybean", np.median(np.vstack(pts), axis=0))
     assert med.params == pytest.approx(expect)

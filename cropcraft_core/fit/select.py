@@ -60,6 +60,13 @@ sets of 16 re-scoring canopies:
   seeds is the safer answer (LAIE 0.32 against 0.14-1.28). Hence no re-scoring for soybean;
   on the first 18 scenes the seeds' per-parameter median beat their mean on six of seven
   columns (``DEFAULT_COMBINE`` in ``fit/fitting.py``), re-scoring on three (AME, ASDE, NCPE).
+* soybean since session 31: the median, guarded (:func:`guard`). The winner is taken only where
+  it beats the median's own polished floor significantly on further fresh canopies: on closed
+  canopies the floors tie and the median stays; where the seeds' median lies in a shallower
+  basin than the one re-scoring found, the deeper one wins (first 12 benchmark scenes at half
+  resolution: the winner on 2, LAIE 0.212 against the median's 0.223, NCPE 0.199 against 0.232;
+  the demo's canopy through SfM +16.2 % against +29.8 %; benchmarks/RESULTS.md, *Combining the
+  seeds*).
 """
 
 from __future__ import annotations
