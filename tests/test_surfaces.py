@@ -779,9 +779,17 @@ def test_nerf_training_deadline_stops_it_like_ctrl_c_and_reaps_its_workers(tmp_p
         "except KeyboardInterrupt:\n"
         "    print('interrupted', flush=True)\n"
     )
+    import signal
+
     t = time.perf_counter()
-    with open(tmp_path / "log", "w") as log:
-        rc, stopped = run_training([sys.executable, "-c", trainer], log, deadline_s=3.0)
+    # a host process that ignores Ctrl-C (as one did inside the test suite) must not pass that
+    # on to the trainer, or the deadline's SIGINT goes unheard
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with open(tmp_path / "log", "w") as log:
+            rc, stopped = run_training([sys.executable, "-c", trainer], log, deadline_s=3.0)
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert stopped and rc == 0
     assert time.perf_counter() - t < 30
     assert "interrupted" in (tmp_path / "log").read_text()

@@ -179,6 +179,10 @@ def train_env() -> dict[str, str]:
     return env
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run_training(cmd: list[str], log, deadline_s: float | None) -> tuple[int, bool]:
     """Run ``cmd`` (ns-train) in its own process group, output to ``log``; past ``deadline_s``
     stop it as Ctrl-C does (its trainer keeps the checkpoints it saved), and kill it 120 s
@@ -186,7 +190,14 @@ def run_training(cmd: list[str], log, deadline_s: float | None) -> tuple[int, bo
     killed at the end, also when this process is interrupted. Returns (exit code, stopped at
     the deadline)."""
     proc = subprocess.Popen(
-        cmd, stdout=log, stderr=subprocess.STDOUT, env=train_env(), start_new_session=True
+        cmd,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=train_env(),
+        start_new_session=True,
+        # a worker that ignores SIGINT would pass that on and the deadline's Ctrl-C would go
+        # unheard (Python installs its KeyboardInterrupt only where SIGINT is not ignored)
+        preexec_fn=_default_sigint,
     )
     stopped = False
     try:
