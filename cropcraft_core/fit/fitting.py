@@ -337,15 +337,17 @@ def combine(
         final = results[best].reported_x
         std = np.zeros_like(final)
     elif config.reevaluates(crop):
+        rule = config.combine_rule(crop)
         if observation is None:
             raise ConfigError(
-                "combine='reevaluate' re-scores candidates against the observation: pass it "
+                f"combine={rule!r} re-scores candidates against the observation: pass it "
                 "(or use combine='mean', the paper's rule)"
             )
-        from cropcraft_core.fit.select import select
+        from cropcraft_core.fit.select import guard, select
 
+        forward = ForwardModel(observation, layout)
         sel = select(
-            ForwardModel(observation, layout),
+            forward,
             results,
             config.reevaluate_canopies,
             config.polish_starts,
@@ -355,10 +357,8 @@ def combine(
         final, std = sel.x, agg.std_x
         extra["selection"] = sel.to_dict(box)
         seconds += sel.seconds
-        if config.combine_rule(crop) == "guarded":
-            from cropcraft_core.fit.select import guard
-
-            g = guard(ForwardModel(observation, layout), results, sel, config.polish_evals, box)
+        if rule == "guarded":
+            g = guard(forward, results, sel, config.polish_evals, box)
             final = g.x
             extra["guard"] = g.to_dict(box)
             seconds += g.seconds
