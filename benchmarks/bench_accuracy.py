@@ -41,7 +41,8 @@ from benchmarks.workers import SHARED, pool
 from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import COMBINE_RULES, combine
-from cropcraft_core.fit.select import unpolished
+from cropcraft_core.fit.forward import ForwardModel
+from cropcraft_core.fit.select import select, unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
 from cropcraft_core.procedural import generate_canopy
@@ -121,19 +122,35 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     """One scene's answer under each of ``rows`` ((row name, FitConfig)) from its seeds'
     ``results`` (combined in seed order, as ``fit_observation`` would), ``seconds`` the seeds'
     summed compute: ``{row: (params, seconds of fitting incl. any re-scoring)}``. Re-scoring
-    rows need the scene's ``observation``."""
+    rows need the scene's ``observation``; rows with the same re-scoring options share one
+    re-scoring (it is deterministic), and each row still counts its seconds."""
     results = sorted(results, key=lambda r: r.seed)
-    out, polished = {}, {}
+    out, made = {}, {}
     for row, cfg in rows:
-        src = polished.get(replace(cfg, polish_evals=None))
-        if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals == 0 and src is not None:
-            # the same re-scoring without its polish: read from the polished row's record
-            _, params, rescore = unpolished(src.extra["selection"])
+        if not cfg.reevaluates(crop):
+            f = combine(crop, results, cfg, seconds)
+            out[row] = (f.params, f.seconds)
+            continue
+        box = cfg.param_box(crop)
+        polished = made.get((cfg.reevaluate_canopies, cfg.polish_starts, "polished", box.names))
+        if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals == 0 and polished:
+            # the same re-scoring without its polish: read from a polished re-scoring
+            _, params, rescore = unpolished(polished.to_dict(box))
             out[row] = (params, seconds + rescore)
             continue
-        f = combine(crop, results, cfg, seconds, observation if cfg.reevaluates(crop) else None)
-        if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals > 0:
-            polished[replace(cfg, polish_evals=None)] = f
+        key = (cfg.reevaluate_canopies, cfg.polish_starts, cfg.polish_evals, box.names)
+        if key not in made and observation is not None:  # (without one, combine names the error)
+            made[key] = select(
+                ForwardModel(observation),
+                results,
+                cfg.reevaluate_canopies,
+                cfg.polish_starts,
+                cfg.polish_evals,
+                box=box,
+            )
+            if cfg.polish_evals > 0:
+                made[(*key[:2], "polished", box.names)] = made[key]
+        f = combine(crop, results, cfg, seconds, observation, selection=made.get(key))
         out[row] = (f.params, f.seconds)
     return out
 

@@ -286,3 +286,20 @@ def test_guarded_through_combine_records_its_verdict(soybean_seeds):
         assert fit.params == sel["candidates"][sel["chosen"]]["params"]
     with pytest.raises(ConfigError, match="pass it"):
         combine("soybean", seeds, cfg, 0.0)
+
+
+def test_benchmark_rows_share_one_rescoring_and_answer_as_separate_combines(soybean_seeds):
+    """``combine_scene`` re-scores once for the guarded and the re-scored rows (and reads the
+    unpolished row from it): every row answers what its own ``combine`` call answers."""
+    from benchmarks.bench_accuracy import combine_scene, rules
+
+    obs, cfg, seeds = soybean_seeds
+    cfg = replace(cfg, combine=None, polish_evals=4)
+    rows = rules("soybean", "bo", cfg)
+    assert {r for r, _ in rows} >= {"bo", "bo-reevaluate", "bo-reevaluate-unpolished"}
+    answers = combine_scene("soybean", rows, seeds, 2.0, obs)
+    for row, c in rows:
+        f = combine("soybean", seeds, c, 2.0, obs if c.reevaluates("soybean") else None)
+        assert answers[row][0] == f.params, row
+    with pytest.raises(ConfigError, match="pass it"):
+        combine_scene("soybean", rows, seeds, 2.0)

@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from cropcraft_core.observe import Observation
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
 from cropcraft_core.optimize.bo import OUTPUT_TRANSFORMS
+
+if TYPE_CHECKING:
+    from cropcraft_core.fit.select import Selection
 
 METHODS = ("bo", "trust-region", "random", "mlp")
 COMBINE_RULES = ("median", "mean", "reevaluate", "guarded")
@@ -310,11 +313,15 @@ def combine(
     seconds: float,
     observation: Observation | None = None,
     layout: CanopyLayout | None = None,
+    selection: Selection | None = None,
 ) -> FitResult:
     """One answer from per-seed results. BO: ``config.combine_rule`` (``reevaluate`` needs the
     ``observation`` the seeds were fitted to, and their ``layout``); random: the paper's mean of
     the seeds' best parameters; trust-region: the lowest-loss seed's. ``params_std`` is always
-    the spread of the seeds' best points; ``extra["selection"]`` holds every re-scored candidate."""
+    the spread of the seeds' best points; ``extra["selection"]`` holds every re-scored candidate.
+    ``selection``: the re-scoring already made on these ``results`` and this observation under
+    ``config``'s re-scoring options (:func:`select`; benchmarks share one between the rules that
+    re-score), used instead of re-scoring again; its seconds are still counted."""
     if not results:
         raise ConfigError("no seed results to combine")
     config = config.validate()
@@ -346,7 +353,7 @@ def combine(
         from cropcraft_core.fit.select import guard, select
 
         forward = ForwardModel(observation, layout)
-        sel = select(
+        sel = selection or select(
             forward,
             results,
             config.reevaluate_canopies,
