@@ -125,14 +125,14 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     rows need the scene's ``observation``; rows with the same re-scoring options share one
     re-scoring (it is deterministic), and each row still counts its seconds."""
     results = sorted(results, key=lambda r: r.seed)
-    out, made = {}, {}
+    out, made, polished_by = {}, {}, {}
     for row, cfg in rows:
         if not cfg.reevaluates(crop):
             f = combine(crop, results, cfg, seconds)
             out[row] = (f.params, f.seconds)
             continue
         box = cfg.param_box(crop)
-        polished = made.get((cfg.reevaluate_canopies, cfg.polish_starts, "polished", box.names))
+        polished = polished_by.get((cfg.reevaluate_canopies, cfg.polish_starts, box.names))
         if cfg.combine_rule(crop) == "reevaluate" and cfg.polish_evals == 0 and polished:
             # the same re-scoring without its polish: read from a polished re-scoring
             _, params, rescore = unpolished(polished.to_dict(box))
@@ -149,7 +149,7 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
                 box=box,
             )
             if cfg.polish_evals > 0:
-                made[(*key[:2], "polished", box.names)] = made[key]
+                polished_by[(*key[:2], box.names)] = made[key]
         f = combine(crop, results, cfg, seconds, observation, selection=made.get(key))
         out[row] = (f.params, f.seconds)
     return out
