@@ -44,11 +44,12 @@ RESCORING_RULES = ("reevaluate", "guarded")
 # against 0.135, NCPE 0.218 against 0.256, LAIE 0.588 against 0.534; better on 6 of 7 columns
 # on the first 13 scenes, LAIE the exception, and on all 7 on the next 5). Since session 31 the
 # median is guarded (``select.guard``): where re-scoring's polished winner beats the median's own
-# polished floor by two standard errors on 32 fresh canopies, the winner is taken. On the
-# benchmark's first 12 scenes (half-resolution row camera, the same seeds) it took the winner on
-# 2 and read LAIE 0.212 against the median's 0.223, LAIPE 0.083 / 0.098, median LAIPE 0.080 /
-# 0.086, NCPE 0.199 / 0.232, NDPE 0.120 / 0.117; through SfM, the demo's canopy (tsdf) +16.2 %
-# against +29.8 % (benchmarks/RESULTS.md, *Combining the seeds*).
+# polished floor by two standard errors on 32 fresh canopies, the winner is taken. On all 30
+# benchmark scenes (half-resolution row camera, the same seeds) it took the winner on 11 and read
+# LAIPE 0.116 against the median's 0.128, median LAIPE 0.080 / 0.097, NCPE 0.236 / 0.265, AME
+# 10.2 / 10.7 deg, but LAIE 0.485 / 0.430 and NDPE 0.145 / 0.135 (two closed canopies read 5-14
+# points lower); through SfM, the demo's canopy (tsdf) +16.2 % against +29.8 %
+# (benchmarks/RESULTS.md, *Combining the seeds*).
 DEFAULT_COMBINE = {"soybean": "guarded", "maize": "reevaluate"}
 # With the node count given (a value in ``FitConfig.box``, not a range), soybean's seeds no
 # longer spread along the valley of fewer, longer internodes with bigger leaves that the median
