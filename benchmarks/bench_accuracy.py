@@ -22,7 +22,12 @@ Every (scene, optimiser seed) pair is one job, and so is each scene's combining 
 once they are in (the re-scoring rows are the costly part): ``--workers N`` runs them in N
 single-threaded processes (default: one per core), and ``--checkpoint-dir DIR`` keeps each
 seed's resumable checkpoint there, so a killed run (hours at the default budget) continues
-where it stopped.
+where it stopped. Each scene's answers under every row are kept there too (``answers/``, named by
+the scene's seeds and the rows' settings), so a resumed run does not combine a finished scene
+again (about two minutes a soybean scene at the full-resolution row camera); delete that folder,
+or bump ``ANSWERS_VERSION`` with a change to a combining rule's code, to recompute them.
+``--finished-only`` fits nothing: it scores the scenes whose seeds are all finished in
+``--checkpoint-dir`` (a long run's table so far, read while it runs).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ import numpy as np
 
 from benchmarks.workers import SHARED, pool
 from cropcraft_core.config import ParamBox, default_layout, param_space
+from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import COMBINE_RULES, combine
 from cropcraft_core.fit.forward import ForwardModel
@@ -57,6 +63,10 @@ PAPER = {  # Table "Synthetic data evaluation": LAIE, NDPE, NCPE
 # LAI_within_15: the share of scenes whose LAI is within 15 % of the truth (the photo
 # pipeline's target, ``bench_pipeline.TARGETS``, and the paper's figure on real soybean)
 COLUMNS = ("LAIE", "LAIPE", "LAIPE_median", "LAI_within_15", "AME", "ASDE", "NDPE", "NCPE")
+#: Part of every kept scene answer's name (``--checkpoint-dir``'s ``answers/``): bump it when a
+#: combining rule's code changes (``fit/select.py``, ``fit/fitting.combine``), so that resumed
+#: runs combine their scenes again instead of reading answers the old code gave.
+ANSWERS_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -157,16 +167,26 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     return out
 
 
-def score(crop: str, params: list[dict], truths: list[dict], seconds: list[float], log=print):
+def score(
+    crop: str,
+    params: list[dict],
+    truths: list[dict],
+    seconds: list[float],
+    log=print,
+    indices: list[int] | None = None,
+):
     """One method's row of the table: each scene's fitted canopy (built with the truth's canopy
-    seed) measured like the truth; LAIE, LAIPE (and its median), AME, ASDE, NDPE, NCPE."""
+    seed) measured like the truth; LAIE, LAIPE (and its median), AME, ASDE, NDPE, NCPE.
+    ``indices``: the scenes' numbers where they are not 0, 1, 2, ... (``--finished-only``)."""
+    indices = list(range(len(params))) if indices is None else list(indices)
     preds = []
-    for i, p_ in enumerate(params):
+    for k, p_ in enumerate(params):
+        i = indices[k]
         fitted = generate_canopy(crop, p_, default_layout(crop), seed=100_000 + i)
         preds.append({"params": p_, **canopy_metrics(fitted, gap_fraction=False)})
         log(
-            f"  {crop} scene {i}: LAI {preds[-1]['lai']:.2f} (true {truths[i]['lai']:.2f}), "
-            f"{seconds[i]:.0f} s of fitting"
+            f"  {crop} scene {i}: LAI {preds[-1]['lai']:.2f} (true {truths[k]['lai']:.2f}), "
+            f"{seconds[k]:.0f} s of fitting"
         )
     errs = evaluate(preds, truths)
     lai_pe = [abs(p_["lai"] - t_["lai"]) / t_["lai"] for p_, t_ in zip(preds, truths, strict=True)]
@@ -194,11 +214,14 @@ def run(
     checkpoint_dir: str | Path | None = None,
     preset_overrides: dict | None = None,
     known: tuple[str, ...] = (),
+    finished_only: bool = False,
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
     seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
     ``preset_overrides``: observation preset changes (loss weights, bins) for every scene;
-    ``known``: parameters every fit is given at the scene's true value."""
+    ``known``: parameters every fit is given at the scene's true value; ``finished_only``: fit
+    nothing, score only the scenes whose seeds are all finished in ``checkpoint_dir`` for every
+    method (``scene_indices`` in the result says which)."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
@@ -223,6 +246,23 @@ def run(
         checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
         preset_overrides=preset_overrides,
     )
+    if finished_only and scene_set.checkpoint_dir is None:
+        raise ConfigError("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")
+    if finished_only:
+        keep = finished_scenes(
+            scene_set,
+            [budget(quick, scenes, m, crn, overrides, scale) for _, m, crn in runs if m != "mlp"],
+            [label for label, m, _ in runs if m != "mlp"],
+        )
+        if not keep:
+            raise ConfigError(
+                f"bench accuracy: no scene has all its seeds finished in {checkpoint_dir}"
+            )
+        log(f"  finished in {checkpoint_dir}: {len(keep)} of {len(observations)} scenes {keep}")
+        scene_set = scene_set.subset(keep)
+        observations, truths = scene_set.observations, [truths[i] for i in keep]
+        out["scenes"] = len(keep)
+    out["scene_indices"] = list(scene_set.indices)
     boxes = scene_set.boxes
     ex = pool(workers, {"observations": observations})
     try:
@@ -233,7 +273,9 @@ def run(
                 params = [
                     ParamBox.of(crop, bx).clip(p) for p, bx in zip(params, boxes, strict=True)
                 ]
-                out["methods"][label] = score(crop, params, truths, seconds, log=log)
+                out["methods"][label] = score(
+                    crop, params, truths, seconds, log=log, indices=scene_set.indices
+                )
                 continue
             rows = rules(crop, label, b.fit)
             answers = _fit_and_combine(scene_set, b, label, rows, ex, workers, log)
@@ -241,7 +283,9 @@ def run(
                 params = [answers[i][row][0] for i in range(len(observations))]
                 seconds = [answers[i][row][1] for i in range(len(observations))]
                 log(f"  {row}:")
-                out["methods"][row] = score(crop, params, truths, seconds, log=log)
+                out["methods"][row] = score(
+                    crop, params, truths, seconds, log=log, indices=scene_set.indices
+                )
     finally:
         if ex is not None:
             ex.shutdown()
@@ -281,44 +325,120 @@ def _seed_job(args) -> tuple[int, object, float]:
 @dataclass(frozen=True)
 class _Scenes:
     """What every method's fits in one benchmark run share: the scenes' observations, the
-    parameters given in each (``boxes[scene]``, ``{}`` where none), the observation preset's
-    changes (part of a checkpoint's name) and where the seeds checkpoint (``None``: nowhere)."""
+    parameters given in each (``boxes[k]``, ``{}`` where none), the observation preset's
+    changes (part of a checkpoint's name), where the seeds checkpoint (``None``: nowhere) and
+    the scenes' numbers (``indices[k]``; 0, 1, 2, ... unless a subset was taken)."""
 
     observations: list
     boxes: list[dict]
     checkpoint_dir: Path | None = None
     preset_overrides: dict | None = None
+    indices: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.indices is None:
+            object.__setattr__(self, "indices", tuple(range(len(self.observations))))
+
+    def subset(self, keep: list[int]) -> _Scenes:
+        """The scenes numbered ``keep`` (numbers, not positions)."""
+        pos = [self.indices.index(i) for i in keep]
+        return replace(
+            self,
+            observations=[self.observations[k] for k in pos],
+            boxes=[self.boxes[k] for k in pos],
+            indices=tuple(keep),
+        )
+
+    def stems(self, b: Budget, label: str) -> list[str]:
+        """Per scene, the name its kept files start with: the crop, the method and what makes
+        its fit another one (resolution, budget, optimiser, preset changes, known parameters,
+        a raised camera), and the scene's number."""
+        cfg = b.fit
+        crop = self.observations[0].crop
+        tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
+        if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
+            tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
+        # another loss or other statistics: another fit, its own checkpoints
+        if self.preset_overrides:
+            tag += "-p" + config_hash(self.preset_overrides)[:8]
+        if any(self.boxes):  # parameters given: another fit, its own checkpoints
+            tag += "-known-" + "-".join(sorted(self.boxes[0]))
+        default_h = preset(crop).render_height
+        out = []
+        for i, obs in zip(self.indices, self.observations, strict=True):
+            # a scene observed from a raised camera is another fit: its own checkpoints
+            h = obs.preset.render_height
+            raised = f"-h{h:g}" if abs(h - default_h) > 1e-9 else ""
+            out.append(f"{crop}-{tag}-scene{i}{raised}")
+        return out
 
 
 def _seed_jobs(scenes: _Scenes, b: Budget, label: str):
-    """The (scene, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``
+    """The (position, seed, config, checkpoint path) jobs that fit every scene with ``b.fit``
     (given the parameters known in that scene), in scene order."""
-    cfg = b.fit
-    observations, boxes, ck = scenes.observations, scenes.boxes, scenes.checkpoint_dir
+    cfg, ck = b.fit, scenes.checkpoint_dir
     if ck is not None:
         ck.mkdir(parents=True, exist_ok=True)
-    tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
-    crop = observations[0].crop
-    if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
-        tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
-    # another loss or other statistics: another fit, its own checkpoints
-    if scenes.preset_overrides:
-        tag += "-p" + config_hash(scenes.preset_overrides)[:8]
-    if any(boxes):  # parameters given: another fit, its own checkpoints
-        tag += "-known-" + "-".join(sorted(boxes[0]))
-    default_h = preset(crop).render_height
-
-    def name(i: int, obs, s: int) -> str:
-        # a scene observed from a raised camera is another fit: its own checkpoints
-        h = obs.preset.render_height
-        raised = f"-h{h:g}" if abs(h - default_h) > 1e-9 else ""
-        return f"{obs.crop}-{tag}-scene{i}{raised}-seed{s}.json"
-
     return [
-        (i, s, replace(cfg, box=boxes[i]), ck / name(i, obs, s) if ck is not None else None)
-        for i, obs in enumerate(observations)
+        (k, s, replace(cfg, box=scenes.boxes[k]), ck / f"{stem}-seed{s}.json" if ck else None)
+        for k, stem in enumerate(scenes.stems(b, label))
         for s in range(cfg.n_seeds)
     ]
+
+
+def finished_scenes(scenes: _Scenes, budgets: list[Budget], labels: list[str]) -> list[int]:
+    """The numbers of the scenes whose seeds are all finished in ``scenes.checkpoint_dir``
+    under every one of the methods (``labels[j]`` fitted with ``budgets[j]``)."""
+    done = set(scenes.indices)
+    for b, label in zip(budgets, labels, strict=True):
+        for k, stem in enumerate(scenes.stems(b, label)):
+            for s in range(b.fit.n_seeds):
+                path = scenes.checkpoint_dir / f"{stem}-seed{s}.json"
+                if not (path.is_file() and _finished(path)):
+                    done.discard(scenes.indices[k])
+                    break
+    return sorted(done)
+
+
+def _finished(path: Path) -> bool:
+    try:
+        return bool(json.loads(path.read_text()).get("complete", True))
+    except (OSError, ValueError):
+        return False  # being written, or cut short: not finished
+
+
+def _answers_path(scenes: _Scenes, stem: str, crop: str, rows) -> Path | None:
+    """Where a scene's answers under ``rows`` ((row, FitConfig) pairs) are kept, or None
+    without a checkpoint folder. Named by the scene's seeds (``stem``) and a hash of every
+    row's resolved settings, the package version and ``ANSWERS_VERSION``."""
+    if scenes.checkpoint_dir is None:
+        return None
+    from cropcraft_core import __version__
+
+    key = {
+        "rows": [[row, c.resolved(crop).to_dict()] for row, c in rows],
+        "version": [__version__, ANSWERS_VERSION],
+    }
+    return scenes.checkpoint_dir / "answers" / f"{stem}-{config_hash(key)[:12]}.json"
+
+
+def _read_answers(path: Path | None) -> dict | None:
+    if path is None or not path.is_file():
+        return None
+    try:
+        return {row: (p, float(sec)) for row, (p, sec) in json.loads(path.read_text()).items()}
+    except (OSError, ValueError, TypeError):
+        return None  # unreadable: combine again (and write it anew)
+
+
+def _write_answers(path: Path | None, answers: dict) -> None:
+    """Atomically: a temporary file in the same folder, then a rename."""
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({row: [p, sec] for row, (p, sec) in answers.items()}, default=float))
+    os.replace(tmp, path)
 
 
 def _combine_job(args) -> tuple[int, dict]:
@@ -340,23 +460,35 @@ def _fit_and_combine(
     per_scene: dict[int, list] = {i: [] for i in range(len(scenes.observations))}
     seconds = dict.fromkeys(per_scene, 0.0)
     answers: dict[int, dict] = {}
+    stems = scenes.stems(b, label)
+    kept = {}  # position -> where its answers are kept
 
     def seed_in(i: int, r, sec: float):
         per_scene[i].append(r)
         seconds[i] += sec
         if len(per_scene[i]) < n_seeds:
             return None
-        log(f"  {label} scene {i}: {n_seeds} seeds in {seconds[i]:.0f} s")
+        n = scenes.indices[i]
+        log(f"  {label} scene {n}: {n_seeds} seeds in {seconds[i]:.0f} s")
         scene_rows = [(row, replace(c, box=scenes.boxes[i])) for row, c in rows]
+        kept[i] = _answers_path(scenes, stems[i], crop, scene_rows)
+        got = _read_answers(kept[i])
+        if got is not None:
+            log(f"  {label} scene {n}: answers read from {kept[i].name}")
+            answers[i] = got
+            return None
         return (i, crop, scene_rows, per_scene[i], seconds[i])
+
+    def combined(i: int, answer: dict) -> None:
+        answers[i] = answer
+        _write_answers(kept[i], answer)
 
     jobs = _seed_jobs(scenes, b, label)
     if ex is None:
         for job in jobs:
             ready = seed_in(*_seed_job(job))
             if ready is not None:
-                i, answer = _combine_job(ready)
-                answers[i] = answer
+                combined(*_combine_job(ready))
         return answers
     queued_seeds, queued_combines = iter(jobs), []
     pending: dict = {}
@@ -380,8 +512,7 @@ def _fit_and_combine(
                 if ready is not None:
                     queued_combines.append(ready)
             else:
-                i, answer = fut.result()
-                answers[i] = answer
+                combined(*fut.result())
 
 
 def _predict_mlp(observations, quick: bool):
@@ -400,8 +531,10 @@ def _predict_mlp(observations, quick: bool):
 def print_table(res: dict) -> None:
     crop = res["crop"]
     b = res.get("budget", {})
+    idx = res.get("scene_indices")
+    some = f" (numbers {idx})" if idx is not None and idx != list(range(len(idx))) else ""
     print(
-        f"\nSynthetic accuracy, {crop}, {res['scenes']} scenes"
+        f"\nSynthetic accuracy, {crop}, {res['scenes']} scenes{some}"
         f"{' (quick budget)' if res['quick'] else ''}: {b.get('n_seeds')} seeds x "
         f"{b.get('n_evals')} evaluations ({b.get('n_initial')} initial), row camera at "
         f"{b.get('image_scale')} x 994x738"
@@ -485,7 +618,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
     )
-    ap.add_argument("--checkpoint-dir", help="resumable per-seed checkpoints (rerun continues)")
+    ap.add_argument(
+        "--checkpoint-dir",
+        help="resumable per-seed checkpoints and each scene's answers (a rerun continues)",
+    )
+    ap.add_argument(
+        "--finished-only",
+        action="store_true",
+        help="fit nothing: score the scenes whose seeds are all finished in --checkpoint-dir",
+    )
     ap.add_argument(
         "--runner",
         help="run as the Prefect benchmark flow, one task per seed, on threads, dask (a local "
@@ -523,7 +664,11 @@ def main(argv: list[str] | None = None) -> int:
         "gp_output": a.gp_output,
         "local_share": a.local_share,
     }
+    if a.finished_only and not a.checkpoint_dir:
+        raise SystemExit("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")
     if a.runner:
+        if a.finished_only:
+            raise SystemExit("bench accuracy: --finished-only is not available with --runner")
         if preset_overrides or a.known:
             raise SystemExit("bench accuracy: --preset and --known are not available with --runner")
         res = _run_flow(a, methods, overrides)
@@ -542,6 +687,7 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint_dir=a.checkpoint_dir,
         preset_overrides=preset_overrides,
         known=tuple(a.known),
+        finished_only=a.finished_only,
     )
     print_table(res)
     if a.json:

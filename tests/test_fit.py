@@ -1,5 +1,7 @@
 """The fitting layer on real synthetic observations (real generator, renderer, histograms, GP)."""
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -274,7 +276,7 @@ def test_accuracy_bench_with_changed_loss_weights_keeps_its_own_checkpoints(tmp_
     a = run("maize", ["bo"], True, 1, **kw)
     weights = _parse_preset("maize", ["lambda_lateral=0.25"])
     b = run("maize", ["bo"], True, 1, preset_overrides=weights, **kw)
-    names = sorted(p.name for p in tmp_path.iterdir())
+    names = sorted(p.name for p in tmp_path.glob("*-seed*.json"))
     assert len(names) == 2 and sum("-p" in n for n in names) == 1
     # the same optimiser seed draws the same first points; the loss on them is another one
     plain, weighted = (json.loads((tmp_path / n).read_text()) for n in sorted(names, key=len))
@@ -301,7 +303,7 @@ def test_accuracy_bench_gives_known_parameters_their_true_value_in_checkpoints_o
     kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
     plain = run("maize", ["bo"], True, 1, **kw)
     known = run("maize", ["bo"], True, 1, known=("num_nodes",), **kw)
-    names = sorted(p.name for p in tmp_path.iterdir())
+    names = sorted(p.name for p in tmp_path.glob("*-seed*.json"))
     assert len(names) == 2 and sum("-known-num_nodes-" in n for n in names) == 1
     true_nodes = known["truths"][0]["params"]["num_nodes"]
     for row, r in known["methods"].items():
@@ -320,8 +322,9 @@ def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_p
     budget = {"n_seeds": 2, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
     kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
     pooled = run("maize", ["bo"], True, 2, workers=2, **kw)
+    shutil.rmtree(tmp_path / "answers")  # combine in this process, not read the pool's answers
     local = run("maize", ["bo"], True, 2, workers=1, **kw)
-    assert len(list(tmp_path.iterdir())) == 4
+    assert len(list(tmp_path.glob("*-seed*.json"))) == 4
     rows = ["bo", "bo-median", "bo-mean", "bo-guarded", "bo-unpolished"]
     assert list(pooled["methods"]) == list(local["methods"]) == rows
     for row in rows:
@@ -332,6 +335,43 @@ def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_p
     # the plain re-scoring's answer): its time is the seeds' plus the re-scoring, not the polish
     sec = {row: pooled["methods"][row]["seconds_per_scene"] for row in rows}
     assert sec["bo-median"] < sec["bo-unpolished"] < sec["bo"]
+
+
+def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes_alone(tmp_path):
+    """With ``--checkpoint-dir`` a scene's answers under every row are kept beside its seeds, so
+    a resumed run reads them instead of combining again (the same table); ``--finished-only``
+    fits nothing and scores just the scenes whose seeds are all finished, by their own numbers
+    (their canopy seeds), as the whole run scored them."""
+    from benchmarks.bench_accuracy import run
+
+    budget = {"n_seeds": 2, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
+    kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path}
+    logs: list[str] = []
+    first = run("maize", ["bo"], True, 2, log=logs.append, **kw)
+    kept = sorted((tmp_path / "answers").glob("*.json"))
+    assert [p.name.split("-scene")[1].split("-")[0] for p in kept] == ["0", "1"]
+    assert not any("answers read" in line for line in logs)
+
+    logs.clear()
+    again = run("maize", ["bo"], True, 2, log=logs.append, **kw)
+    assert sum("answers read" in line for line in logs) == 2
+    assert again["methods"] == first["methods"]
+    assert first["scene_indices"] == again["scene_indices"] == [0, 1]
+
+    # scene 0 loses a seed: only scene 1 is finished, and nothing is fitted to finish scene 0
+    next(tmp_path.glob("*-scene0-seed1.json")).unlink()
+    part = run("maize", ["bo"], True, 2, log=print, finished_only=True, **kw)
+    assert part["scene_indices"] == [1] and part["scenes"] == 1
+    assert not list(tmp_path.glob("*-scene0-seed1.json"))
+    for row, r in part["methods"].items():
+        assert r["predictions"] == first["methods"][row]["predictions"][1:], row
+    assert part["truths"] == first["truths"][1:]
+
+    next(tmp_path.glob("*-scene1-seed0.json")).write_text('{"complete": false}')
+    with pytest.raises(ConfigError, match="no scene has all its seeds finished in"):
+        run("maize", ["bo"], True, 2, log=print, finished_only=True, **kw)
+    with pytest.raises(ConfigError, match="--finished-only reads the seeds in --checkpoint-dir"):
+        run("maize", ["bo"], True, 2, finished_only=True, overrides=kw["overrides"])
 
 
 def test_known_parameters_are_fixed_and_the_rest_searched_inside_their_box():
