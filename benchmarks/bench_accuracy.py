@@ -407,16 +407,22 @@ def _finished(path: Path) -> bool:
         return False  # being written, or cut short: not finished
 
 
-def _answers_path(scenes: _Scenes, stem: str, crop: str, rows) -> Path | None:
-    """Where a scene's answers under ``rows`` ((row, FitConfig) pairs) are kept, or None
-    without a checkpoint folder. Named by the scene's seeds (``stem``) and a hash of every
-    row's resolved settings, the package version and ``ANSWERS_VERSION``."""
+def _answers_path(scenes: _Scenes, stem: str, crop: str, rows, results) -> Path | None:
+    """Where a scene's answers under ``rows`` ((row, FitConfig) pairs) from its seeds'
+    ``results`` are kept, or None without a checkpoint folder. Named by the scene's seeds
+    (``stem``) and a hash of every row's resolved settings, each seed's reported point and loss
+    (seeds fitted again differently, e.g. by changed code, are another key), the package version
+    and ``ANSWERS_VERSION``."""
     if scenes.checkpoint_dir is None:
         return None
     from cropcraft_core import __version__
 
     key = {
         "rows": [[row, c.resolved(crop).to_dict()] for row, c in rows],
+        "seeds": [
+            [r.seed, np.asarray(r.reported_x).tolist(), repr(float(r.best_y))]
+            for r in sorted(results, key=lambda r: r.seed)
+        ],
         "version": [__version__, ANSWERS_VERSION],
     }
     return scenes.checkpoint_dir / "answers" / f"{stem}-{config_hash(key)[:12]}.json"
@@ -471,7 +477,7 @@ def _fit_and_combine(
         n = scenes.indices[i]
         log(f"  {label} scene {n}: {n_seeds} seeds in {seconds[i]:.0f} s")
         scene_rows = [(row, replace(c, box=scenes.boxes[i])) for row, c in rows]
-        kept[i] = _answers_path(scenes, stems[i], crop, scene_rows)
+        kept[i] = _answers_path(scenes, stems[i], crop, scene_rows, per_scene[i])
         got = _read_answers(kept[i])
         if got is not None:
             log(f"  {label} scene {n}: answers read from {kept[i].name}")

@@ -358,6 +358,20 @@ def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes
     assert again["methods"] == first["methods"]
     assert first["scene_indices"] == again["scene_indices"] == [0, 1]
 
+    # the kept answers are named by the seeds too: seeds that came out otherwise are not theirs
+    from dataclasses import replace
+
+    from benchmarks.bench_accuracy import _answers_path, _Scenes, rules, scene_observation
+
+    scenes = _Scenes([scene_observation("maize", 0, 0.25)[1]], [{}], checkpoint_dir=tmp_path)
+    seeds = [SeedResult.load(p) for p in sorted(tmp_path.glob("*-scene0-seed*.json"))]
+    cfg = FitConfig(**{**FitConfig().to_dict(), **budget, "polish_evals": 4})
+    rows = rules("maize", "bo", cfg)
+    stem = kept[0].name.rsplit("-", 1)[0]
+    assert _answers_path(scenes, stem, "maize", rows, seeds) == kept[0]
+    other = [seeds[0], replace(seeds[1], best_y=seeds[1].best_y * 2)]
+    assert _answers_path(scenes, stem, "maize", rows, other) != kept[0]
+
     # scene 0 loses a seed: only scene 1 is finished, and nothing is fitted to finish scene 0
     next(tmp_path.glob("*-scene0-seed1.json")).unlink()
     part = run("maize", ["bo"], True, 2, log=print, finished_only=True, **kw)
