@@ -45,6 +45,7 @@ import numpy as np
 from benchmarks.workers import SHARED, pool
 from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
+from cropcraft_core.export.atomic import atomic_write_text
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import COMBINE_RULES, combine
 from cropcraft_core.fit.forward import ForwardModel
@@ -246,13 +247,16 @@ def run(
         checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
         preset_overrides=preset_overrides,
     )
-    if finished_only and scene_set.checkpoint_dir is None:
-        raise ConfigError("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")
     if finished_only:
+        if scene_set.checkpoint_dir is None:
+            raise ConfigError("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")
         keep = finished_scenes(
             scene_set,
-            [budget(quick, scenes, m, crn, overrides, scale) for _, m, crn in runs if m != "mlp"],
-            [label for label, m, _ in runs if m != "mlp"],
+            [
+                (label, budget(quick, scenes, m, crn, overrides, scale))
+                for label, m, crn in runs
+                if m != "mlp"
+            ],
         )
         if not keep:
             raise ConfigError(
@@ -386,17 +390,15 @@ def _seed_jobs(scenes: _Scenes, b: Budget, label: str):
     ]
 
 
-def finished_scenes(scenes: _Scenes, budgets: list[Budget], labels: list[str]) -> list[int]:
-    """The numbers of the scenes whose seeds are all finished in ``scenes.checkpoint_dir``
-    under every one of the methods (``labels[j]`` fitted with ``budgets[j]``)."""
+def finished_scenes(scenes: _Scenes, methods: list[tuple[str, Budget]]) -> list[int]:
+    """The numbers of the scenes whose seed checkpoints (:func:`_seed_jobs`) are all finished
+    in ``scenes.checkpoint_dir`` under every one of ``methods`` ((label, budget) pairs)."""
     done = set(scenes.indices)
-    for b, label in zip(budgets, labels, strict=True):
-        for k, stem in enumerate(scenes.stems(b, label)):
-            for s in range(b.fit.n_seeds):
-                path = scenes.checkpoint_dir / f"{stem}-seed{s}.json"
-                if not (path.is_file() and _finished(path)):
-                    done.discard(scenes.indices[k])
-                    break
+    for label, b in methods:
+        for k, _, _, path in _seed_jobs(scenes, b, label):
+            n = scenes.indices[k]
+            if n in done and not (path.is_file() and _finished(path)):
+                done.discard(n)
     return sorted(done)
 
 
@@ -438,13 +440,9 @@ def _read_answers(path: Path | None) -> dict | None:
 
 
 def _write_answers(path: Path | None, answers: dict) -> None:
-    """Atomically: a temporary file in the same folder, then a rename."""
-    if path is None:
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({row: [p, sec] for row, (p, sec) in answers.items()}, default=float))
-    os.replace(tmp, path)
+    if path is not None:
+        text = json.dumps({row: [p, sec] for row, (p, sec) in answers.items()}, default=float)
+        atomic_write_text(path, text)
 
 
 def _combine_job(args) -> tuple[int, dict]:
