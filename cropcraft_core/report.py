@@ -119,6 +119,32 @@ figure{display:inline-block;margin:.3em 1em .3em 0}figcaption{font-size:.85em;co
 """
 
 
+def _rows_html(rows: Mapping[str, Any]) -> str:
+    """The table of the answers fitted over each observed row, and their spread."""
+    from cropcraft_core.metrics.rows import ROW_TRAITS
+
+    out = [
+        f"<h2>The answer over {len(rows['rows'])} rows</h2>",
+        "<p class='small'>Each row observed and fitted alone. Row 0 is the row fit's best row, "
+        "the scene's answer above; +k / −k the k-th row to its right / left. The spread is how "
+        "much the answer depends on the row observed.</p><table><tr><th>row</th>"
+        "<th>offset (m)</th>",
+    ]
+    out += [f"<th>{html.escape(t)}</th>" for t in ROW_TRAITS]
+    out.append("</tr>")
+    for r in rows["rows"]:
+        out.append(f"<tr><td>{int(r['index']):+d}</td><td class='num'>{_fmt(r['offset_m'])}</td>")
+        out += [f"<td class='num'>{_fmt(r['traits'].get(t))}</td>" for t in ROW_TRAITS]
+        out.append("</tr>")
+    spread = rows.get("spread") or {}
+    for stat in ("mean", "sd", "min", "max"):
+        out.append(f"<tr><th>{stat}</th><td></td>")
+        out += [f"<td class='num'>{_fmt((spread.get(t) or {}).get(stat))}</td>" for t in ROW_TRAITS]
+        out.append("</tr>")
+    out.append("</table>")
+    return "".join(out)
+
+
 def scene_report_html(
     scene: str,
     *,
@@ -130,6 +156,7 @@ def scene_report_html(
     fit: Mapping[str, Any] | None = None,
     timings: Mapping[str, float] | None = None,
     info: Mapping[str, Any] | None = None,
+    rows: Mapping[str, Any] | None = None,
 ) -> str:
     """The HTML page of one scene.
 
@@ -138,7 +165,8 @@ def scene_report_html(
     empty (shown on the observed map's colour scale). preview_png: the mesh preview.
     metrics: ``metrics.json`` (values plus ``definitions`` {name: {unit, method}}).
     fit: ``fit.json`` (``params``, ``params_std``, ``seed_params``, ``seed_losses``, ``method``).
-    timings: seconds per stage. info: other key facts (shown as a table).
+    timings: seconds per stage. info: other key facts (shown as a table). rows: ``rows.json``
+    (``cropcraft_core.metrics.rows.compare_rows``: the answer fitted over each observed row).
     """
     metrics = dict(metrics or {})
     defs = metrics.get("definitions") or {}
@@ -236,6 +264,9 @@ def scene_report_html(
         if losses:
             cells = " ".join(_fmt(float(v)) for v in losses)
             parts.append(f"<p class='small'>best loss per seed: {cells}</p>")
+
+    if rows and rows.get("rows"):
+        parts.append(_rows_html(rows))
 
     if timings:
         total = sum(float(v) for v in timings.values())

@@ -75,11 +75,17 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "polish_starts": 1,  # "reevaluate": refine the lowest re-scored candidate(s) ...
         "polish_evals": 60,  # ... by Nelder-Mead on the same canopies (0: none)
     },
+    # the best row's neighbours, each observed and fitted as the best row (0: the paper's one
+    # row); a neighbour whose view lacks surface over more than max_no_surface is left out
+    "rows": {"neighbours": 0, "max_no_surface": 0.18},
     "generate": {"seed": 0},
     "metrics": {"gap_fraction": True, "seed": 0},
     "export": {},
     "report": {"n_thumbnails": 6, "thumbnail_px": 192},
 }
+
+#: The most neighbour rows fitted on each side of the best row (``rows.neighbours``).
+MAX_NEIGHBOUR_ROWS = 4
 
 #: Sections whose keys are free-form (checked by the core function that uses them).
 _OPEN_SECTIONS = {"layout", "surfaces"}
@@ -179,6 +185,15 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError("give poses.camera_height or poses.camera_distance, not both")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
+    n = cfg["rows"]["neighbours"]
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= MAX_NEIGHBOUR_ROWS:
+        raise ConfigError(
+            f"rows.neighbours must be a whole number of rows on each side, 0 to "
+            f"{MAX_NEIGHBOUR_ROWS}, got {n!r}"
+        )
+    x = cfg["rows"]["max_no_surface"]
+    if not isinstance(x, int | float) or isinstance(x, bool) or not 0 < x <= 1:
+        raise ConfigError(f"rows.max_no_surface must be a fraction in (0, 1], got {x!r}")
     return cfg
 
 
@@ -229,8 +244,16 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "surfaces": surfaces,
         "rowfit": {**cfg["rowfit"], **layout},
         "observe": dict(cfg["observe"]),
+        # every row is observed alike: the observe stage's settings, and the row spacing
+        "observe_rows": {
+            **cfg["observe"],
+            "max_side": cfg["rows"]["neighbours"],
+            "max_no_surface": cfg["rows"]["max_no_surface"],
+            **layout,
+        },
         "fit_seed": {**seed_fit, **layout},
         "aggregate": {**agg, **layout},
+        "rows": {"seed": cfg["generate"]["seed"], **layout},
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
@@ -440,24 +463,45 @@ class _CacheWalk:
         except Exception:  # unreadable record: treat as a miss, the flow recomputes
             raise _Miss(key) from None
 
-    def run(self, stage: str, upstream: dict, **_: Any) -> dict:
-        key = stage_key(stage, self.req.scene.prefix, self.req.stages[stage], upstream)
+    def run(self, stage: str, upstream: dict, row: int | None = None, **_: Any) -> dict:
+        cfg = self.req.stages[stage]
+        key = stage_key(stage, self.req.scene.prefix, cfg, upstream, {"row": row})
         rec = self._read(key)
         if _overwritten(self.written, rec):
             raise _Miss(key)
-        self.states[stage] = "Cached"
+        self.states[_state_name(stage, row)] = "Cached"
         return rec
 
-    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
-        out = {}
+    def map_seeds(
+        self, jobs: Mapping[int | None, dict], seeds: list[int]
+    ) -> dict[int | None, dict[str, dict]]:
+        out: dict[int | None, dict[str, dict]] = {}
         cfg = self.req.stages["fit_seed"]
-        for s in seeds:
-            key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, {"seed": s})
-            out[f"seed-{s}"] = self._read(key)
-            if _overwritten(self.written, out[f"seed-{s}"]):
-                raise _Miss(key)
-            self.states[f"fit_seed-{s}"] = "Cached"
+        for row, upstream in jobs.items():
+            out[row] = {}
+            for s in seeds:
+                extra = {"seed": s, "row": row}
+                key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, extra)
+                rec = out[row][f"seed-{s}"] = self._read(key)
+                if _overwritten(self.written, rec):
+                    raise _Miss(key)
+                self.states[_state_name(f"fit_seed-{s}", row)] = "Cached"
         return out
+
+
+def _state_name(stage: str, row: int | None) -> str:
+    """A run's name in ``states``: the stage, or ``stage@row_p1`` for a neighbour row's."""
+    if row is None:
+        return stage
+    from cropcraft_core.rowfit import row_label
+
+    return f"{stage}@{row_label(row)}"
+
+
+def _manifest_stage(stage: str, row: int | None) -> str:
+    """The manifest record a run reports to: its stage's, or ``rows`` for a neighbour row's
+    seeds and answer (the best row's records stay those of the scene's answer)."""
+    return stage if row is None else "rows"
 
 
 class _PrefectRun:
@@ -476,13 +520,21 @@ class _PrefectRun:
         task = get_task(stage).with_options(result_storage=self.storage)
         return task.with_options(refresh_cache=True) if refresh else task
 
-    def _record(self, stage: str, upstream: dict, rec: dict | None, error: Any = None) -> None:
+    def _record(
+        self,
+        stage: str,
+        upstream: dict,
+        rec: dict | None,
+        error: Any = None,
+        row: int | None = None,
+    ) -> None:
         scene = self.req.scene
         chash = config_hash(self.req.stages[stage])
+        name = _manifest_stage(stage, row)
         if error is not None:  # rec: what the failed attempt left written (see _left_behind)
             self.store.update_stage(
                 scene,
-                stage,
+                name,
                 status="failed",
                 config_hash=chash,
                 error=error,
@@ -492,7 +544,7 @@ class _PrefectRun:
         assert rec is not None
         self.store.update_stage(
             scene,
-            stage,
+            name,
             status="done",
             config_hash=chash,
             inputs=_flatten(upstream),
@@ -511,63 +563,95 @@ class _PrefectRun:
         fut.wait()
         return fut
 
-    def run(self, stage: str, upstream: dict, **kwargs: Any) -> dict:
+    def run(self, stage: str, upstream: dict, row: int | None = None, **kwargs: Any) -> dict:
+        if row is not None:
+            kwargs["row"] = row
+        name = _state_name(stage, row)
         fut = self._submit(stage, upstream, **kwargs)
         try:
             rec = fut.result()
             cached = fut.state.name == "Cached"
             if cached and _overwritten(_written(self.store, self.req.scene), rec):
-                self.log.info("%s: cached, but its artefacts were since overwritten", stage)
+                self.log.info("%s: cached, but its artefacts were since overwritten", name)
                 fut = self._submit(stage, upstream, refresh=True, **kwargs)
                 rec = fut.result()
         except Exception as exc:
-            self.states[stage] = fut.state.name
+            self.states[name] = fut.state.name
             left = _left_behind(self.store, self.req.scene, stage)
-            self._record(stage, upstream, {"hashes": left}, exc)
+            self._record(stage, upstream, {"hashes": left}, exc, row)
             raise
-        self.states[stage] = fut.state.name
-        self._record(stage, upstream, rec)
-        self.log.info("%s: %s (%.1f s)", stage, fut.state.name, rec["seconds"])
+        self.states[name] = fut.state.name
+        self._record(stage, upstream, rec, row=row)
+        self.log.info("%s: %s (%.1f s)", name, fut.state.name, rec["seconds"])
         return rec
 
-    def _map_seeds(self, upstream: dict, seeds: list[int], refresh: bool = False) -> Any:
+    def _map_seeds(
+        self, upstream: dict, seeds: list[int], row: int | None, refresh: bool = False
+    ) -> dict[int, Any]:
+        """Submit ``seeds`` of one row's fit (not waited for)."""
         futures = self._task("fit_seed", refresh).map(
             store_root=unmapped(self.req.store_root),
             scene=unmapped(self.req.scene.prefix),
             config=unmapped(self.req.stages["fit_seed"]),
             upstream=unmapped(upstream),
             seed=seeds,
+            row=unmapped(row),
         )
-        futures.wait()
         return dict(zip(seeds, futures, strict=True))
 
-    def map_seeds(self, upstream: dict, seeds: list[int]) -> dict[str, dict]:
-        futures = self._map_seeds(upstream, seeds)
+    def map_seeds(
+        self, jobs: Mapping[int | None, dict], seeds: list[int]
+    ) -> dict[int | None, dict[str, dict]]:
+        """Every row's seeds (``jobs``: row → its fit's upstream, None the best row), all
+        submitted before any is waited for, so that a Dask cluster runs them side by side."""
+        futures = {row: self._map_seeds(up, seeds, row) for row, up in jobs.items()}
+        for futs in futures.values():
+            for fut in futs.values():
+                fut.wait()
         written = _written(self.store, self.req.scene)
-        stale = []
-        for s, fut in futures.items():
-            if fut.state.name == "Cached" and _overwritten(written, fut.result()):
-                stale.append(s)
-        if stale:
-            self.log.info("fit seeds %s: cached, but their artefacts were since overwritten", stale)
-            futures.update(self._map_seeds(upstream, stale, refresh=True))
-        out, failed = {}, []
-        for s, fut in futures.items():
-            self.states[f"fit_seed-{s}"] = fut.state.name
-            try:
-                out[f"seed-{s}"] = fut.result()
-            except Exception as exc:
-                failed.append((s, exc))
-        if failed:
-            msg = "; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failed)
-            self._record("fit_seed", upstream, {"hashes": _flatten(out)}, msg)
+        for row, futs in futures.items():
+            stale = [
+                s
+                for s, fut in futs.items()
+                if fut.state.name == "Cached" and _overwritten(written, fut.result())
+            ]
+            if stale:
+                self.log.info(
+                    "fit seeds %s of %s: cached, but their artefacts were since overwritten",
+                    stale,
+                    "the best row" if row is None else _state_name("row", row),
+                )
+                again = self._map_seeds(jobs[row], stale, row, refresh=True)
+                for fut in again.values():
+                    fut.wait()
+                futs.update(again)
+        out: dict[int | None, dict[str, dict]] = {}
+        errors = []
+        for row, futs in futures.items():
+            out[row], failed = {}, []
+            for s, fut in futs.items():
+                self.states[_state_name(f"fit_seed-{s}", row)] = fut.state.name
+                try:
+                    out[row][f"seed-{s}"] = fut.result()
+                except Exception as exc:
+                    failed.append((s, exc))
+            done = {"hashes": _flatten(out[row])}
+            if failed:
+                where = "" if row is None else f" of {_state_name('row', row)}"
+                msg = "; ".join(f"seed {s}{where}: {type(e).__name__}: {e}" for s, e in failed)
+                self._record("fit_seed", jobs[row], done, msg, row)
+                errors.append((len(failed), msg))
+            else:
+                seconds = sum(r["seconds"] for r in out[row].values())
+                self._record("fit_seed", jobs[row], {**done, "seconds": seconds}, row=row)
+        if errors:
+            n = sum(k for k, _ in errors)
+            msg = "; ".join(m for _, m in errors)
             raise CropCraftError(
-                f"{len(failed)} of {len(seeds)} fit seeds failed for {self.req.scene} ({msg}); "
+                f"{n} of {len(seeds) * len(jobs)} fit seeds failed for {self.req.scene} ({msg}); "
                 "the other seeds are saved: rerun the same command to compute only what is "
                 "missing"
             )
-        seconds = sum(r["seconds"] for r in out.values())
-        self._record("fit_seed", upstream, {"hashes": _flatten(out), "seconds": seconds})
         return out
 
 
@@ -582,9 +666,26 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
     r["rowfit"] = ex.run("rowfit", {"surfaces": r["surfaces"], "poses": r["poses"]})
     r["observe"] = ex.run("observe", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]})
+    jobs: dict[int | None, dict] = {None: {"observe": r["observe"]}}
+    if req.config["rows"]["neighbours"]:
+        from tasks.observe import row_observation_record
+
+        r["observe_rows"] = ex.run(
+            "observe_rows", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]}
+        )
+        for k in r["observe_rows"]["summary"]["kept"]:
+            jobs[int(k)] = {"observe": row_observation_record(r["observe_rows"], k)}
     seeds = list(range(int(req.config["fit"]["n_seeds"])))
-    seed_recs = ex.map_seeds({"observe": r["observe"]}, seeds)
+    row_seeds = ex.map_seeds(jobs, seeds)
+    seed_recs = row_seeds[None]
     r["aggregate"] = ex.run("aggregate", {"observe": r["observe"], **dict(seed_recs)})
+    if "observe_rows" in r:
+        answers = {"aggregate": r["aggregate"]}
+        for k in jobs:
+            if k is not None:
+                up = {**jobs[k], **row_seeds[k]}
+                answers[f"aggregate@{k}"] = ex.run("aggregate", up, row=k)
+        r["rows"] = ex.run("rows", {"observe_rows": r["observe_rows"], **answers})
     r["generate"] = ex.run("generate", {"aggregate": r["aggregate"]})
     r["metrics"] = ex.run("metrics", {"generate": r["generate"]})
     r["export"] = ex.run(
@@ -611,6 +712,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
             "warning": None if seen is None else coverage_warning(seen),
         },
         "metrics": records["metrics"]["summary"],
+        # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
+        "rows": records["rows"]["summary"] if "rows" in records else None,
         "params": records["aggregate"]["summary"]["params"],
         "params_std": records["aggregate"]["summary"]["params_std"],
         "report": store.url(records["report"]["artefacts"]["report"]),

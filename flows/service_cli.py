@@ -63,6 +63,14 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             "tripod marks): sets the metric scale of SfM poses; = --set "
             'poses.camera_distance=\'["A","B",M]\'',
         )
+        p.add_argument(
+            "--neighbour-rows",
+            type=int,
+            metavar="N",
+            help="also observe and fit up to N rows on each side of the best row and report "
+            "each row's answer and their spread (costs one fit per row; = --set "
+            "rows.neighbours=N)",
+        )
 
 
 def add_param_option(p: argparse.ArgumentParser) -> None:
@@ -106,6 +114,8 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
         out[f"fit.box.{name}"] = value
     if getattr(args, "camera_height", None) is not None:
         out["poses.camera_height"] = float(args.camera_height)
+    if getattr(args, "neighbour_rows", None) is not None:
+        out["rows.neighbours"] = int(args.neighbour_rows)
     if getattr(args, "camera_distance", None) is not None:
         a, b, metres = args.camera_distance
         try:
@@ -152,10 +162,10 @@ def progress_bar(enabled: bool = True):
     from tqdm import tqdm
 
     lock = threading.Lock()
-    state: dict[int, tuple[int, int]] = {}
+    state: dict[int | str, tuple[int, int]] = {}
     bar = tqdm(total=0, unit="eval", desc="fit (BO evaluations)", dynamic_ncols=True)
 
-    def sink(scene: str, seed: int, done: int, total: int) -> None:
+    def sink(scene: str, seed: int | str, done: int, total: int) -> None:
         with lock:
             state[seed] = (done, total)
             bar.total = sum(t for _, t in state.values())
@@ -184,8 +194,29 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
     _print_coverage(out)
+    _print_rows(out)
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
+
+
+def _print_rows(out: Mapping[str, Any]) -> None:
+    """Each fitted row's LAI and main-stem nodes, and the LAI's spread over the rows."""
+    rows = out.get("rows")
+    if not rows:
+        return
+    lai, nodes = rows["lai"], rows["node_count"]
+    cells = "  ".join(
+        f"{int(k):+d}: {lai[k]:.3g} ({nodes[k]:.3g} nodes)"
+        for k in sorted(lai, key=int)
+        if lai[k] is not None and nodes[k] is not None
+    )
+    s = rows["lai_spread"]
+    print(f"LAI by row (0 = best row, the answer)  {cells}")
+    if s.get("mean") is not None:
+        print(
+            f"LAI over {rows['n_rows']} rows: mean {s['mean']:.3g}, sd {s['sd']:.3g}, "
+            f"range {s['min']:.3g} to {s['max']:.3g}"
+        )
 
 
 def _print_coverage(out: Mapping[str, Any]) -> None:
@@ -277,18 +308,22 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
             states, _ = cache_walk(req)
         except Exception:  # inputs moved: report the manifest only
             states = {}
+    neighbours = ((manifest.config if manifest else {}).get("rows") or {}).get("neighbours", 0)
     rows = []
     for stage in STAGES:
         rec = manifest.stages.get(stage) if manifest else None
         if stage == "fit_seed":
-            n = sum(1 for k in states if k.startswith("fit_seed-"))
+            n = sum(1 for k in states if k.startswith("fit_seed-") and "@" not in k)
             cached = f"{n} seeds" if n else "no"
         else:
             cached = "yes" if states.get(stage) == "Cached" else "no"
+        status = rec.status if rec else "pending"
+        if rec is None and stage in ("observe_rows", "rows") and not neighbours:
+            status = "off"  # the scene is fitted over its best row only (rows.neighbours = 0)
         rows.append(
             {
                 "stage": stage,
-                "status": rec.status if rec else "pending",
+                "status": status,
                 "cached": cached,
                 "seconds": rec.seconds if rec else None,
                 "error": rec.error if rec else None,
@@ -300,11 +335,11 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
 def cmd_status(args: argparse.Namespace) -> int:
     """``cropcraft status SITE/CROP/DATE``: what is done, cached and failed."""
     rows = scene_status(args.store, args.scene)
-    print(f"{'stage':<10} {'status':<8} {'cached':<9} {'seconds':>8}  error")
+    print(f"{'stage':<12} {'status':<8} {'cached':<9} {'seconds':>8}  error")
     for r in rows:
         sec = f"{r['seconds']:.1f}" if r["seconds"] is not None else "-"
         err = (r["error"] or "")[:100]
-        print(f"{r['stage']:<10} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
+        print(f"{r['stage']:<12} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
     return 0
 
 

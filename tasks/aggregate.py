@@ -20,15 +20,30 @@ from tasks.common import (
 from tasks.fit_seed import fit_config
 
 
-@stage_task("aggregate")
+def _run_name() -> str:
+    """``aggregate`` (the best row), ``aggregate@row_p1`` (a neighbour row)."""
+    from prefect.runtime import task_run
+
+    from cropcraft_core.rowfit import row_label
+
+    row = task_run.parameters.get("row")
+    return "aggregate" + ("" if row is None else f"@{row_label(row)}")
+
+
+@stage_task("aggregate", task_run_name=_run_name)
 def aggregate(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    row: int | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream``
     (re-scored against ``upstream["observe"]``'s observation where the rule needs it); stores
     ``FitResult.to_dict()`` as ``{scene}/fit/fit.json`` (params, params_std, per-seed params and
     losses, the re-scored candidates under ``extra.selection``; ``seconds`` = the seeds' summed
-    optimisation time plus the re-scoring)."""
+    optimisation time plus the re-scoring); for a neighbour ``row``, its seeds' answer as
+    ``{scene}/fit/row_p1/fit.json``."""
     from cropcraft_core.fit import combine
     from cropcraft_core.optimize import SeedResult
     from tasks.fit_seed import layout_of
@@ -48,7 +63,7 @@ def aggregate(
         seconds = sum(float(r["seconds"]) for r in seeds)
         obs = load_observation(store, upstream) if cfg.reevaluates(crop) else None
         fit = combine(crop, results, cfg, seconds, obs, layout_of(crop, config))
-        key = artefact(scene, "aggregate", "fit.json")
+        key = artefact(scene, "aggregate", "fit.json", row=row)
         digest = store.put_json(key, fit.to_dict())
     return make_record(
         "aggregate",
@@ -59,6 +74,7 @@ def aggregate(
             "params": fit.params,
             "params_std": fit.params_std,
             "n_seeds": len(results),
+            "row": row,
             "chosen": fit.extra.get("guard", fit.extra.get("selection", {})).get(
                 "chosen", cfg.combine_rule(crop)
             ),

@@ -39,15 +39,19 @@ from prefect import task
 from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.store import SceneKey, SceneStore, canonical_json, config_hash, sha256_bytes
 
-#: Pipeline stages in order (``fit_seed`` is mapped over optimiser seeds).
+#: Pipeline stages in order (``fit_seed`` is mapped over optimiser seeds; ``observe_rows`` and
+#: ``rows`` run only when the scene is also fitted over the best row's neighbours, and then
+#: ``fit_seed`` and ``aggregate`` run once per neighbour too).
 STAGES = (
     "ingest",
     "poses",
     "surfaces",
     "rowfit",
     "observe",
+    "observe_rows",
     "fit_seed",
     "aggregate",
+    "rows",
     "generate",
     "metrics",
     "export",
@@ -83,8 +87,10 @@ STAGE_FOLDERS: dict[str, str] = {
     "surfaces": "surfaces",
     "rowfit": "rowfit",
     "observe": "observe",
+    "observe_rows": "observe",
     "fit_seed": "fit",
     "aggregate": "fit",
+    "rows": "rows",
     "generate": "generate",
     "metrics": "metrics",
     "export": "export",
@@ -142,7 +148,8 @@ def stage_key(
 def cache_key_fn(context: Any, parameters: dict[str, Any]) -> str:
     """Prefect ``cache_key_fn``: :func:`stage_key` from the task's name and parameters.
 
-    Parameters named ``scene``, ``config``, ``upstream`` and ``seed`` make the identity; every
+    Parameters named ``scene``, ``config``, ``upstream``, ``seed`` and ``row`` make the identity
+    (``seed`` and ``row`` only when given, so a best-row seed keys as before rows existed); every
     other parameter (the store root, source URIs) is deliberately not part of it: the same
     inputs in another place give the same results.
     """
@@ -151,7 +158,7 @@ def cache_key_fn(context: Any, parameters: dict[str, Any]) -> str:
         parameters["scene"],
         parameters.get("config"),
         parameters.get("upstream"),
-        {"seed": parameters.get("seed")},
+        {"seed": parameters.get("seed"), "row": parameters.get("row")},
     )
 
 
@@ -182,8 +189,10 @@ TASK_OBJECTS: dict[str, tuple[str, str]] = {
     "surfaces": ("tasks.surfaces", "surfaces"),
     "rowfit": ("tasks.rowfit", "rowfit"),
     "observe": ("tasks.observe", "observe"),
+    "observe_rows": ("tasks.observe", "observe_rows"),
     "fit_seed": ("tasks.fit_seed", "fit_seed_task"),
     "aggregate": ("tasks.aggregate", "aggregate"),
+    "rows": ("tasks.rows", "rows"),
     "generate": ("tasks.generate", "generate"),
     "metrics": ("tasks.metrics", "metrics"),
     "export": ("tasks.export", "export"),
@@ -234,9 +243,14 @@ def load_observation(store: SceneStore, upstream: Mapping[str, Any]):
     return Observation.load(io.BytesIO(store.get_bytes(key_of(upstream["observe"], "observation"))))
 
 
-def artefact(scene: str, stage: str, name: str) -> str:
-    """Store key of an artefact of ``stage`` (``{scene}/{folder}/{name}``)."""
-    return f"{scene}/{STAGE_FOLDERS[stage]}/{name}"
+def artefact(scene: str, stage: str, name: str, row: int | None = None) -> str:
+    """Store key of an artefact of ``stage`` (``{scene}/{folder}/{name}``); for a neighbour row
+    ``row`` (±k, see ``cropcraft_core.rowfit.neighbours``) ``{scene}/{folder}/row_p1/{name}``."""
+    if row is None:
+        return f"{scene}/{STAGE_FOLDERS[stage]}/{name}"
+    from cropcraft_core.rowfit.neighbours import row_label
+
+    return f"{scene}/{STAGE_FOLDERS[stage]}/{row_label(row)}/{name}"
 
 
 def make_record(
@@ -348,11 +362,12 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
 # --------------------------------------------------------------------------- progress
 
 _progress_lock = threading.Lock()
-_progress_sink: Callable[[str, int, int, int], None] | None = None
+_progress_sink: Callable[[str, int | str, int, int], None] | None = None
 
 
-def set_progress_sink(sink: Callable[[str, int, int, int], None] | None) -> None:
-    """Install ``sink(scene, seed, done, total)``, called as optimiser evaluations finish.
+def set_progress_sink(sink: Callable[[str, int | str, int, int], None] | None) -> None:
+    """Install ``sink(scene, seed, done, total)``, called as optimiser evaluations finish;
+    ``seed`` is the optimiser seed, or ``"row_p1/3"`` for seed 3 of a neighbour row's fit.
 
     Only tasks running in this process report (threads runner); on Dask workers progress goes
     to the Prefect log instead.
@@ -362,7 +377,7 @@ def set_progress_sink(sink: Callable[[str, int, int, int], None] | None) -> None
         _progress_sink = sink
 
 
-def report_progress(scene: str, seed: int, done: int, total: int) -> None:
+def report_progress(scene: str, seed: int | str, done: int, total: int) -> None:
     """Forward one progress tick to the installed sink (no-op without one)."""
     sink = _progress_sink
     if sink is not None:

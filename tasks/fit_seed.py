@@ -36,13 +36,31 @@ def layout_of(crop: str, config: dict[str, Any]):
     return default_layout(crop, **dict(config.get("layout") or {}))
 
 
-@stage_task("fit_seed", task_run_name="fit_seed-{seed}")
+def _run_name() -> str:
+    """``fit_seed-3`` (the best row), ``fit_seed-3@row_p1`` (a neighbour row)."""
+    from prefect.runtime import task_run
+
+    from cropcraft_core.rowfit import row_label
+
+    p = task_run.parameters
+    row = p.get("row")
+    return f"fit_seed-{p.get('seed')}" + ("" if row is None else f"@{row_label(row)}")
+
+
+@stage_task("fit_seed", task_run_name=_run_name)
 def fit_seed_task(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any], seed: int
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    seed: int,
+    row: int | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.fit.fit_seed` for optimiser ``seed`` against the scene's
-    observation; stores the :class:`~cropcraft_core.optimize.SeedResult` as
-    ``{scene}/fit/seed-{seed}.npz``.
+    observation (``upstream["observe"]``); stores the
+    :class:`~cropcraft_core.optimize.SeedResult` as ``{scene}/fit/seed-{seed}.npz``, or for a
+    neighbour ``row`` (its observation from ``observe_rows``) as
+    ``{scene}/fit/row_p1/seed-{seed}.npz``.
 
     A local checkpoint (``$CROPCRAFT_WORK/checkpoints``, named by the cache key) lets a seed
     killed halfway continue where it stopped on the same machine; it is removed on success.
@@ -53,28 +71,36 @@ def fit_seed_task(
     store = open_store(store_root)
     cfg = fit_config(config)
     crop = scene.split("/")[1]
-    digest = stage_key("fit_seed", scene, config, upstream, {"seed": seed}).rsplit("/", 1)[-1]
+    digest = stage_key("fit_seed", scene, config, upstream, {"seed": seed, "row": row})
+    digest = digest.rsplit("/", 1)[-1]
     ckpt = checkpoint_dir() / f"{digest}.json"
     total = cfg.n_evals
     step = max(1, total // 10)
+    if row is None:
+        tag: int | str = int(seed)
+    else:
+        from cropcraft_core.rowfit import row_label
+
+        tag = f"{row_label(row)}/{int(seed)}"
 
     def callback(i: int, x: Any, y: float) -> None:
         done = i + 1
-        report_progress(scene, seed, done, total)
+        report_progress(scene, tag, done, total)
         if done % step == 0 or done == total:
-            log.info("seed %d: %d/%d evaluations, loss %.4g", seed, done, total, y)
+            log.info("seed %s: %d/%d evaluations, loss %.4g", tag, done, total, y)
 
     with Timer() as t:
         obs = load_observation(store, upstream)
         result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
-        report_progress(scene, seed, total, total)  # a local search may converge early
-        key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz")
+        report_progress(scene, tag, total, total)  # a local search may converge early
+        key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)
         with workdir("seed") as tmp:
             path = result.save(tmp / "seed.npz")
             digest_out = store.put_file(path, key)
     ckpt.unlink(missing_ok=True)
     summary = {
         "seed": int(seed),
+        "row": row,
         "best_loss": float(result.best_y),
         "n_evals": int(result.n_evals),
         "seconds_objective": float(result.seconds_objective),

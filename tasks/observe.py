@@ -70,3 +70,102 @@ def observe(
         },
         t.seconds,
     )
+
+
+@stage_task("observe_rows")
+def observe_rows(
+    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+) -> dict[str, Any]:
+    """Observations over the best row's neighbours
+    (:func:`cropcraft_core.rowfit.neighbours.neighbour_row_views`: the row camera moved by ±k
+    planting row spacings, or onto a fitted row there), each rendered and built as the
+    ``observe`` stage's; a neighbour whose view has more than ``max_no_surface`` without a
+    fully supported surface lies (partly) outside the reconstruction and is left out. Stores
+    ``{scene}/observe/row_p1/observation.npz`` etc.; the record's artefacts are
+    ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
+    no_surface_fraction, foreground_fraction).
+
+    config: ``max_side`` (neighbours tried on each side), ``max_no_surface``, ``image_scale``
+    and ``preset`` (the observe stage's, so every row is observed alike) and ``layout`` (its
+    row spacing).
+    """
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.observe import Observation, no_surface_fraction
+    from cropcraft_core.rowfit import Row, camera_to_scene, neighbour_row_views
+    from tasks.fit_seed import layout_of
+
+    _surfaces_api()
+    from cropcraft_core.surfaces import load_surfaces
+
+    store = open_store(store_root)
+    crop = scene.split("/")[1]
+    with Timer() as t:
+        rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
+        scale = float(config.get("image_scale", 1.0))
+        limit = float(config.get("max_no_surface", 0.18))
+        rows = [
+            Row(np.asarray(r["direction"], float), np.asarray(r["point"], float), r["n_inliers"])
+            for r in rf["rows"]
+        ]
+        views = neighbour_row_views(
+            PinholeCamera.from_dict(rf["camera"]),
+            rows,
+            layout_of(crop, config).row_spacing,
+            int(config.get("max_side", 2)),
+        )
+        artefacts, hashes, listed = {}, {}, []
+        with store.open_local(key_of(upstream["surfaces"], "model")) as model_dir:
+            backend = load_surfaces(model_dir)
+            for view in views:
+                cam_scene = camera_to_scene(view.camera, rf["world_from_scene"], rf["scale"])
+                unseen = no_surface_fraction(backend.render_supported(cam_scene.scaled(scale)))
+                entry = {
+                    "index": view.index,
+                    "offset_m": view.offset_m,
+                    "snapped": view.snapped,
+                    "no_surface_fraction": unseen,
+                    "kept": bool(unseen <= limit),
+                }
+                listed.append(entry)
+                if not entry["kept"]:
+                    continue
+                obs = Observation.from_surfaces(
+                    crop,
+                    backend.render,
+                    view.camera,
+                    cam_scene,
+                    float(rf["scale"]),
+                    float(rf["render_height"]),
+                    image_scale=scale,
+                    preset_overrides=config.get("preset"),
+                    meta={"scene": scene, "no_surface_fraction": unseen, "row": view.to_dict()},
+                )
+                entry["foreground_fraction"] = float(np.mean(obs.mask))
+                buf = io.BytesIO()
+                obs.save(buf)
+                key = artefact(scene, "observe_rows", "observation.npz", row=view.index)
+                hashes[key] = store.put_bytes(key, buf.getvalue())
+                artefacts[f"observation@{view.index}"] = key
+    return make_record(
+        "observe_rows",
+        scene,
+        artefacts,
+        hashes,
+        {"rows": listed, "kept": [e["index"] for e in listed if e["kept"]]},
+        t.seconds,
+    )
+
+
+def row_observation_record(rec: dict[str, Any], index: int) -> dict[str, Any]:
+    """The part of an ``observe_rows`` record that row ``index``'s fit reads, shaped as an
+    ``observe`` record (``artefacts["observation"]`` and its one hash), so that a row's seeds
+    key on their own observation only."""
+    key = key_of(rec, f"observation@{int(index)}")
+    return {
+        "stage": "observe_rows",
+        "scene": rec["scene"],
+        "artefacts": {"observation": key},
+        "hashes": {key: rec["hashes"][key]},
+        "summary": {"row": int(index)},
+        "seconds": 0.0,
+    }

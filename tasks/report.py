@@ -99,6 +99,13 @@ def report(
             "scale (m per unit)": rf.get("scale"),
             "scale source": rf.get("scale_source"),
         }
+        if "observe_rows" in upstream:
+            listed = upstream["observe_rows"]["summary"]["rows"]
+            info["neighbour rows fitted"] = (
+                f"{sum(e['kept'] for e in listed)} of {len(listed)} tried (the others lie "
+                "outside the reconstruction)"
+            )
+        table = store.get_json(key_of(upstream["rows"], "rows")) if "rows" in upstream else None
         info = {k: v for k, v in info.items() if v is not None}
         page = scene_report_html(
             scene,
@@ -110,6 +117,7 @@ def report(
             fit=fit,
             timings=_timings(upstream),
             info=info,
+            rows=table,
         )
         key = artefact(scene, "report", "report.html")
         digest = store.put_bytes(key, page.encode("utf-8"))

@@ -791,6 +791,69 @@ def test_benchmark_flow_names_a_method_it_cannot_map(prefect_harness, tmp_path):
         run_benchmark("threads", crop="maize", methods=["bo", "mlp"], store=str(tmp_path))
 
 
+def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached(
+    base_run, scene_dir
+):
+    """``rows.neighbours`` observes the rows beside the best one and fits each alone: the best
+    row's observation, seeds and answer stay cached (the scene's answer is unchanged); every
+    kept neighbour gets its own observation, seeds and answer under ``row_p1/`` keys; the rows
+    stage lays the answers side by side, row 0's traits being the scene's own metrics; a
+    neighbour whose view lies outside the reconstruction is listed and left out."""
+    from flows.service_cli import scene_status
+
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    # the test scene's reconstruction is small and its best row lies off its centre (the
+    # best row's own view lacks surface over 42 %): at this limit the rows on one side are
+    # kept, the others lie outside it
+    limit = 0.6
+    overrides = {**OVERRIDES, "rows.neighbours": 2, "rows.max_no_surface": limit}
+    out = _run("plotA", base_run["store"], scene_dir, overrides)
+    executed = set(_executed(out["states"]))
+    listed = {e["index"]: e for e in store.get_json(f"{scene}/rows/rows.json")["rows"]}
+    kept = sorted(k for k in listed if k != 0)
+    tried = {e["index"]: e for e in store.get_json(f"{scene}/rows/rows.json")["tried"]}
+    assert sorted(tried) == [-2, -1, 1, 2]
+    assert kept and {int(k) for k in out["rows"]["left_out"]} == set(tried) - set(kept)
+    assert all(tried[k]["no_surface_fraction"] <= limit for k in kept)
+    assert all(v > limit for v in out["rows"]["left_out"].values())
+    labels = {k: ("row_p" if k > 0 else "row_m") + str(abs(k)) for k in kept}
+    assert executed == {
+        "observe_rows",
+        "rows",
+        "report",
+        *(f"fit_seed-{s}@{labels[k]}" for k in kept for s in range(N_SEEDS)),
+        *(f"aggregate@{labels[k]}" for k in kept),
+    }
+    assert out["params"] == base_run["first"]["params"]
+    rows = out["rows"]
+    assert rows["n_rows"] == len(kept) + 1 and set(rows["lai"]) == {"0", *map(str, kept)}
+    assert rows["lai"]["0"] == pytest.approx(out["metrics"]["lai"], rel=1e-9)
+    # each neighbour: its own observation (the camera moved across the rows), seeds, answer
+    best = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
+    for k in kept:
+        obs = Observation.load(
+            io.BytesIO(store.get_bytes(f"{scene}/observe/{labels[k]}/observation.npz"))
+        )
+        shift = obs.camera.cam_to_world[:3, 3] - best.camera.cam_to_world[:3, 3]
+        assert shift @ best.camera.cam_to_world[:3, 1] == pytest.approx(listed[k]["offset_m"])
+        assert abs(listed[k]["offset_m"]) == pytest.approx(0.76 * abs(k), abs=0.25 * 0.76)
+        assert obs.meta["row"]["index"] == k
+        fit = store.get_json(f"{scene}/fit/{labels[k]}/fit.json")
+        assert fit["params"] == listed[k]["params"]
+        for s in range(N_SEEDS):
+            assert store.isfile(f"{scene}/fit/{labels[k]}/seed-{s}.npz")
+    html = store.get_bytes(f"{scene}/report/report.html").decode()
+    assert f"The answer over {len(kept) + 1} rows" in html
+    status = {r["stage"]: r["status"] for r in scene_status(str(base_run["store"]), scene)}
+    assert status["observe_rows"] == status["rows"] == status["aggregate"] == "done"
+    # unchanged: answered from the records, rows included
+    hit = _cached(base_run["store"], scene_dir, overrides)
+    assert hit is not None and hit["rows"] == rows
+    with pytest.raises(ConfigError, match="rows.neighbours"):
+        _cached(base_run["store"], scene_dir, {**OVERRIDES, "rows.neighbours": -1})
+
+
 def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, scene_dir, tmp_path):
     """``known.json`` beside a date's photos (the nodes counted in the field that day) fixes
     those parameters for that date's fit: the seeds are refitted with it, the answer carries

@@ -516,3 +516,44 @@ def test_evaluation_rejects_bad_input():
         rmse([1.0, 2.0], [1.0])
     with pytest.raises(InputError, match="true value is 0"):
         mean_abs_percent_error([1.0], [0.0])
+
+
+def test_rows_are_compared_by_the_traits_of_the_canopies_their_answers_build():
+    """compare_rows: each row's traits are canopy_metrics of the canopy its parameters build
+    with the scene's layout and seed (no gap fraction), rows in index order, and the spread
+    over the rows per trait and parameter; bad input is named."""
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.metrics.rows import ROW_TRAITS, compare_rows, spread
+    from cropcraft_core.procedural import generate_canopy
+
+    layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
+    small = {"num_nodes": 4.0, "leaf_length": 0.8}
+    big = {"num_nodes": 8.0, "leaf_length": 1.2}
+    out = compare_rows(
+        "soybean",
+        [
+            {"index": 1, "offset_m": 0.76, "params": big},
+            {"index": 0, "params": small, "params_std": {"num_nodes": 0.5}},
+        ],
+        layout,
+        seed=3,
+    )
+    assert [r["index"] for r in out["rows"]] == [0, 1] and out["n_rows"] == 2
+    assert out["rows"][0]["params_std"] == {"num_nodes": 0.5}
+    for r, p in zip(out["rows"], (small, big), strict=True):
+        m = canopy_metrics(generate_canopy("soybean", p, layout, seed=3), gap_fraction=False)
+        assert r["traits"] == {k: m[k] for k in ROW_TRAITS}
+    lai = [r["traits"]["lai"] for r in out["rows"]]
+    assert lai[1] > lai[0] > 0
+    s = out["spread"]["lai"]
+    assert (s["min"], s["max"]) == (lai[0], lai[1])
+    assert s["mean"] == pytest.approx(np.mean(lai)) and s["sd"] == pytest.approx(np.std(lai))
+    assert s["relative_range"] == pytest.approx((lai[1] - lai[0]) / np.mean(lai))
+    assert out["spread"]["param:num_nodes"]["max"] == 8.0
+    json.dumps(out)
+    assert spread([None, float("nan")])["mean"] is None
+    assert spread([0.0, 0.0])["relative_range"] is None
+    with pytest.raises(InputError, match="at least one"):
+        compare_rows("soybean", [], layout, 0)
+    with pytest.raises(InputError, match="repeat"):
+        compare_rows("soybean", [{"index": 0, "params": small}] * 2, layout, 0)

@@ -530,3 +530,50 @@ def test_registration_finds_how_far_a_model_sits_off_its_cameras():
     )
     assert row_fit_errors(fit, scene_from_true, lay).lateral_m > 0.03
     assert row_fit_errors(fit, refined, lay).lateral_m < 0.01
+
+
+def test_neighbour_row_cameras_move_across_the_rows_and_sit_over_a_fitted_row_nearby():
+    """The k-th neighbour's camera is the best row's moved by k spacings along its image y
+    (same height, heading and intrinsics), or onto a parallel fitted row within a quarter
+    spacing of that place; rows at an angle are no neighbours; a camera rolled by 180° counts
+    its own image y."""
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.rowfit import Row, neighbour_row_views, row_label
+
+    heading = np.radians(30.0)
+    d = np.array([np.cos(heading), np.sin(heading)])
+    right = np.array([d[1], -d[0]])  # image y of a look-down camera: right of the row
+    cam = PinholeCamera.look_down((0.3, -0.2), 1.0, tuple(d))
+    assert cam.cam_to_world[:2, 1] == pytest.approx(right)
+    c = np.array([0.3, -0.2])
+    along = 0.9 * d  # fitted rows' points lie elsewhere along them
+    rows = [
+        Row(d, c + 0.05 * d, 900),  # the best row itself
+        Row(d, c + 0.70 * right + along, 400),  # +1, planted 6 cm closer than the spacing
+        Row(d, c - 0.80 * right - along, 300),  # -1, 4 cm farther
+        Row(np.array([d[1], -d[0]]), c + 1.5 * right, 500),  # across the rows: ignored
+        Row(d, c + 1.20 * right, 100),  # 0.32 m from +2's place: too far to snap
+    ]
+    views = neighbour_row_views(cam, rows, 0.76, max_side=2)
+    assert [v.index for v in views] == [1, -1, 2, -2]
+    assert [v.label for v in views] == ["row_p1", "row_m1", "row_p2", "row_m2"]
+    assert [v.offset_m for v in views] == pytest.approx([0.70, -0.80, 1.52, -1.52])
+    assert [v.snapped for v in views] == [True, True, False, False]
+    for v in views:
+        m = v.camera.cam_to_world
+        assert m[:3, :3] == pytest.approx(cam.cam_to_world[:3, :3])
+        assert m[:2, 3] == pytest.approx(c + v.offset_m * right)
+        assert m[2, 3] == pytest.approx(1.0)
+        assert (v.camera.width, v.camera.fx, v.camera.cy) == (cam.width, cam.fx, cam.cy)
+    assert row_label(0) == "row_0" and row_label(-3) == "row_m3"
+    assert neighbour_row_views(cam, rows, 0.76, max_side=0) == []
+    # rolled by 180° (image x against the row's direction, image y to its left)
+    flip = cam.cam_to_world.copy()
+    flip[:3, 0] *= -1
+    flip[:3, 1] *= -1
+    rolled = PinholeCamera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, flip)
+    views = neighbour_row_views(rolled, rows, 0.76, max_side=1)
+    assert [v.offset_m for v in views] == pytest.approx([0.80, -0.70])
+    for bad in (0.0, -0.76, float("nan")):
+        with pytest.raises(ConfigError, match="row spacing"):
+            neighbour_row_views(cam, rows, bad)

@@ -60,6 +60,21 @@ class RowFitError(CropCraftError, ValueError):
     """Row fitting cannot proceed: too few points, no ground found or no rows found."""
 
 
+def camera_to_scene(
+    camera: PinholeCamera, world_from_scene: np.ndarray, scale: float
+) -> PinholeCamera:
+    """A world-frame camera with a rigid ``cam_to_world`` in the *scene* frame (positions in
+    scene units, so a depth rendered from it is in scene units: × ``scale`` for metres)."""
+    m = np.linalg.inv(np.asarray(world_from_scene, float)) @ camera.cam_to_world
+    r = m[:3, :3] * float(scale)  # undo the similarity's scale on the axes
+    u, _, vt = np.linalg.svd(r)
+    rigid = np.eye(4)
+    rigid[:3, :3] = u @ vt
+    rigid[:3, 3] = m[:3, 3]
+    c = camera
+    return PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, rigid)
+
+
 # --------------------------------------------------------------------------- results
 @dataclass(frozen=True, eq=False)
 class Row:
@@ -157,14 +172,7 @@ class RowFit:
         """The row camera with a rigid ``cam_to_world`` in the *scene* frame, for rendering the
         NeRF. Its position is in scene units, so a depth it renders is in scene units too:
         multiply by ``scale`` for metres."""
-        m = self.scene_from_world @ self.camera.cam_to_world
-        r = m[:3, :3] * self.scale  # undo the similarity's scale on the axes
-        u, _, vt = np.linalg.svd(r)
-        rigid = np.eye(4)
-        rigid[:3, :3] = u @ vt
-        rigid[:3, 3] = m[:3, 3]
-        c = self.camera
-        return PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, rigid)
+        return camera_to_scene(self.camera, self.world_from_scene, self.scale)
 
     def row_frame_from_world(self) -> np.ndarray:
         """(4, 4) rigid world → row frame: origin on the ground below the camera, x along the
