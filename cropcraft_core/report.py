@@ -51,6 +51,11 @@ SEASON_COLUMNS = (
     # not a trait: the share of the row camera's view the reconstruction left empty (a flag on
     # the date's LAI; ``observe.coverage_warning``)
     ("no_surface_fraction", "row_view_no_surface_fraction"),
+    # where the date was also fitted over its neighbour rows (``rows.neighbours``): how many
+    # rows, and the lowest and highest of their LAI answers (the date's LAI is row 0's)
+    ("n_rows_fitted", "rows_fitted"),
+    ("lai_rows_min", "lai_rows_min_m2_m2"),
+    ("lai_rows_max", "lai_rows_max_m2_m2"),
 )
 
 
@@ -335,6 +340,18 @@ def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes
 
     fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
     axes[0].plot(dates, col("lai_m2_m2"), "o-", label="LAI (leaf area / ground area)")
+    lo, hi = col("lai_rows_min_m2_m2"), col("lai_rows_max_m2_m2")
+    if np.isfinite(lo).any():
+        has = np.isfinite(lo) & np.isfinite(hi)
+        axes[0].vlines(
+            [d for d, h in zip(dates, has, strict=True) if h],
+            lo[has],
+            hi[has],
+            colors="grey",
+            linewidth=4,
+            alpha=0.5,
+            label="LAI over the rows fitted",
+        )
     if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
         axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")
     axes[0].set_ylabel("LAI (m² m⁻²)")

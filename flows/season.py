@@ -32,10 +32,29 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
+def _rows(store: SceneStore, key: str, params: dict | None) -> dict[str, Any]:
+    """The date's LAI over the rows it was fitted on (``rows.json``): ``n_rows_fitted``,
+    ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when its row 0 is not the
+    date's current answer (a later run fitted the best row alone, with other settings)."""
+    if params is None or not store.isfile(key):
+        return {}
+    table = store.get_json(key)
+    best = [r for r in table.get("rows", []) if r.get("index") == 0]
+    if not best or best[0].get("params") != params:
+        return {}
+    spread = table["spread"]["lai"]
+    return {
+        "n_rows_fitted": table["n_rows"],
+        "lai_rows_min": spread["min"],
+        "lai_rows_max": spread["max"],
+    }
+
+
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
     and ``summary.png``, with each date's share of the row view without a reconstructed
-    surface and the parameters its fit was given beside its traits. Returns the keys and the
+    surface, the parameters its fit was given and (where fitted over several rows) its LAI's
+    range over the rows beside its traits. Returns the keys and the
     rows."""
     from cropcraft_core.report import given_text, season_csv, season_plot_png, season_rows
 
@@ -49,6 +68,7 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
                 **store.get_json(key),
                 "parameters_given": given_text((fit.get("config") or {}).get("box")),
                 "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
+                **_rows(store, f"{d.scene.prefix}/rows/rows.json", fit.get("params")),
             }
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"

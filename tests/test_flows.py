@@ -181,8 +181,13 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
     assert row["parameters_given"] == ""  # the whole box was searched
     head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
-    assert head.split(",")[-1] == "row_view_no_surface_fraction"
-    assert line.startswith(DATE)
+    assert head.split(",")[-4:] == [
+        "row_view_no_surface_fraction",
+        "rows_fitted",
+        "lai_rows_min_m2_m2",
+        "lai_rows_max_m2_m2",
+    ]
+    assert line.startswith(DATE) and line.endswith(",,,")  # fitted over its best row alone
 
 
 def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
@@ -799,6 +804,7 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     kept neighbour gets its own observation, seeds and answer under ``row_p1/`` keys; the rows
     stage lays the answers side by side, row 0's traits being the scene's own metrics; a
     neighbour whose view lies outside the reconstruction is listed and left out."""
+    from flows.season import write_summary
     from flows.service_cli import scene_status
 
     store = SceneStore(str(base_run["store"]))
@@ -845,6 +851,10 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
             assert store.isfile(f"{scene}/fit/{labels[k]}/seed-{s}.npz")
     html = store.get_bytes(f"{scene}/report/report.html").decode()
     assert f"The answer over {len(kept) + 1} rows" in html
+    (season,) = write_summary(store, "plotA", CROP)["rows"]
+    assert season["rows_fitted"] == len(kept) + 1
+    assert season["lai_rows_min_m2_m2"] == min(v for v in rows["lai"].values())
+    assert season["lai_rows_max_m2_m2"] == max(v for v in rows["lai"].values())
     status = {r["stage"]: r["status"] for r in scene_status(str(base_run["store"]), scene)}
     assert status["observe_rows"] == status["rows"] == status["aggregate"] == "done"
     # unchanged: answered from the records, rows included
