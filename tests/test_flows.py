@@ -814,6 +814,7 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     # kept, the others lie outside it
     limit = 0.6
     overrides = {**OVERRIDES, "rows.neighbours": 2, "rows.max_no_surface": limit}
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
     out = _run("plotA", base_run["store"], scene_dir, overrides)
     executed = set(_executed(out["states"]))
     listed = {e["index"]: e for e in store.get_json(f"{scene}/rows/rows.json")["rows"]}
