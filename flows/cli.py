@@ -8,6 +8,7 @@ imported only by the sub-commands that need them.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -189,8 +190,19 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cfg = _fit_config(args)
     layout = _layout(args.crop, args)
     check_output_dir(args.out)
-    metrics = fit_geometry(args.geometry, args.crop, args.out, cfg, layout, seed=args.seed)
+    from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
+
+    n = args.neighbour_rows
+    if not 0 <= n <= MAX_NEIGHBOURS:
+        raise ConfigError(f"--neighbour-rows must be 0 to {MAX_NEIGHBOURS}, got {n}")
+    metrics = fit_geometry(
+        args.geometry, args.crop, args.out, cfg, layout, seed=args.seed, neighbours=n
+    )
     _print_summary(args.out, metrics)
+    if n:
+        table = json.loads((Path(args.out) / "rows.json").read_text())
+        cells = "  ".join(f"{r['index']:+d}: {r['traits']['lai']:.3g}" for r in table["rows"])
+        print(f"LAI by row (0 = best row, the answer above)  {cells}")
     return 0
 
 
@@ -293,6 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--plot", metavar="W,L", help="plot of the final canopy (m)")
     f.add_argument("--row-spacing", type=float, metavar="M", help="known planting row spacing")
     f.add_argument("--density", type=float, metavar="PLANTS_PER_M2")
+    f.add_argument(
+        "--neighbour-rows",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also fit up to N rows on each side of the best row that the geometry covers, "
+        "each alone, and write their answers and spread to rows.json (one fit per row)",
+    )
     f.set_defaults(func=cmd_fit)
 
     b = sub.add_parser("bench", help="benchmarks (speed and accuracy targets)")

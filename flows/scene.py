@@ -84,9 +84,6 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "report": {"n_thumbnails": 6, "thumbnail_px": 192},
 }
 
-#: The most neighbour rows fitted on each side of the best row (``rows.neighbours``).
-MAX_NEIGHBOUR_ROWS = 4
-
 #: Sections whose keys are free-form (checked by the core function that uses them).
 _OPEN_SECTIONS = {"layout", "surfaces"}
 _OPEN_KEYS = {"preset", "box"}
@@ -185,11 +182,13 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError("give poses.camera_height or poses.camera_distance, not both")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
+    from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
+
     n = cfg["rows"]["neighbours"]
-    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= MAX_NEIGHBOUR_ROWS:
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= MAX_NEIGHBOURS:
         raise ConfigError(
             f"rows.neighbours must be a whole number of rows on each side, 0 to "
-            f"{MAX_NEIGHBOUR_ROWS}, got {n!r}"
+            f"{MAX_NEIGHBOURS}, got {n!r}"
         )
     x = cfg["rows"]["max_no_surface"]
     if not isinstance(x, int | float) or isinstance(x, bool) or not 0 < x <= 1:

@@ -151,6 +151,34 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
     assert fit["fit"]["config"]["box"] == {"num_nodes": 7.0, "leaf_length": [0.8, 1.2]}
 
 
+def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_rows(
+    canopy_ply, tmp_path, capsys
+):
+    """``--neighbour-rows 1``: the rows either side of the best one that the geometry covers are
+    fitted alone and laid beside its answer in rows.json; the bundle stays the best row's; a
+    row beyond the scan is listed and left out."""
+    out = tmp_path / "rows"
+    argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(out)]
+    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--neighbour-rows", "2"]
+    assert main(argv) == 0
+    table = json.loads((out / "rows.json").read_text())
+    fit = json.loads((out / "fit.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
+    tried = {t["index"]: t for t in table["tried"]}
+    assert sorted(tried) == [-2, -1, 1, 2]
+    fitted = [r["index"] for r in table["rows"]]
+    assert fitted == sorted([0, *(k for k in tried if tried[k]["kept"])])
+    assert len(fitted) > 1
+    # the plot is 2.4 m wide and the best row one of its outer rows: two rows lie beyond it
+    assert sum(t["kept"] for t in tried.values()) == 2
+    assert all((t["outside_fraction"] > 0.18) != t["kept"] for t in tried.values())
+    best = next(r for r in table["rows"] if r["index"] == 0)
+    assert best["params"] == fit["fit"]["params"]
+    assert best["traits"]["lai"] == pytest.approx(metrics["lai"], rel=1e-9)
+    assert "LAI by row" in capsys.readouterr().out
+    assert main([*argv[:-1], "9"]) == 2
+
+
 def test_cli_poisson_baseline(canopy_ply, tmp_path):
     out = tmp_path / "poisson"
     assert (

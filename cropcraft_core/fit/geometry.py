@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cropcraft_core.errors import InputError
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry import CanopyMesh, Organ, PinholeCamera
 from cropcraft_core.observe import Observation, observation_mask, preset
 from cropcraft_core.render.raster import render_depth
@@ -124,14 +124,23 @@ def observe_geometry(
     # the paper's scene boxes are in NeRF units; a metric geometry is used whole
     rp = rowfit_preset(crop, box_center=None, box_size=None, row_spacing=row_spacing)
     rowfit = fit_ground_and_rows(geo.points, geo.colors, crop, preset=rp, rng=seed)
+    return _observe(geo, rowfit, crop, rowfit.camera), rowfit
+
+
+def _depth(geo: Geometry, rowfit, cam: PinholeCamera) -> np.ndarray:
+    """(H, W) depth of ``geo`` (in ``rowfit``'s scene frame) from the world camera ``cam``, NaN
+    where it sees nothing."""
     m = rowfit.world_from_scene
-    cam = rowfit.camera
-    p = preset(crop, render_height=float(rowfit.render_height))
     if geo.mesh is not None:
         v = geo.mesh.vertices @ m[:3, :3].T + m[:3, 3]
-        depth = render_depth(v, geo.mesh.faces, cam).depth
-    else:
-        depth = splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam)
+        return render_depth(v, geo.mesh.faces, cam).depth
+    return splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam)
+
+
+def _observe(geo: Geometry, rowfit, crop: str, cam: PinholeCamera, **meta) -> Observation:
+    """The observation of ``geo`` (in ``rowfit``'s scene frame) from the world camera ``cam``."""
+    p = preset(crop, render_height=float(rowfit.render_height))
+    depth = _depth(geo, rowfit, cam)
     mask = observation_mask(depth, None, cam, p)
     meta = {
         **geo.meta,
@@ -141,8 +150,64 @@ def observe_geometry(
             "render_height_m": float(rowfit.render_height),
             "scale_source": rowfit.scale_source,
         },
+        **meta,
     }
-    return Observation(crop, cam, depth, mask, preset=p, meta=meta), rowfit
+    return Observation(crop, cam, depth, mask, preset=p, meta=meta)
+
+
+def outside_fraction(geo: Geometry, rowfit, cam: PinholeCamera, cell_m: float = 0.1) -> float:
+    """The share of ``cam``'s view whose ground (z = 0 of ``rowfit``'s world frame) lies beyond
+    the geometry: where no point of ``geo`` falls within a cell of the ``cell_m`` grid (or its
+    8 neighbours). Gaps between leaves down to a bare ground count as inside, unlike a depth
+    map's empty pixels (a leaves-only mesh has nothing under them)."""
+    import cv2
+
+    m = rowfit.world_from_scene
+    xy = (geo.points @ m[:3, :3].T + m[:3, 3])[:, :2]
+    lo = xy.min(0)
+    ij = np.floor((xy - lo) / cell_m).astype(np.int64)
+    shape = tuple(ij.max(0) + 1)
+    grid = np.zeros(shape, np.uint8)
+    grid[ij[:, 0], ij[:, 1]] = 1
+    grid = cv2.dilate(grid, np.ones((3, 3), np.uint8)).astype(bool)
+    d = cam.scaled(1 / 16).ray_directions(normalized=False).reshape(-1, 3)
+    c = cam.center
+    down = d[:, 2] < 0
+    t = -c[2] / np.where(down, d[:, 2], -1.0)
+    q = np.floor((c[:2] + d[:, :2] * t[:, None] - lo) / cell_m).astype(np.int64)
+    inside = down & np.all((q >= 0) & (q < np.array(shape)), axis=1)
+    seen = np.zeros(len(q), bool)
+    seen[inside] = grid[q[inside, 0], q[inside, 1]]
+    return float(1.0 - seen.mean())
+
+
+def neighbour_observations(
+    path: str | Path,
+    crop: str,
+    rowfit,
+    row_spacing: float,
+    neighbours: int,
+    max_no_surface: float = 0.18,
+    n_points: int = 200_000,
+    seed: int = 0,
+) -> tuple[dict[int, Observation], list[dict]]:
+    """Observations of ``path`` over the best row's neighbours (``rowfit`` from
+    :func:`observe_geometry`; ``cropcraft_core.rowfit.neighbours``): ``({index: observation},
+    tried)``, a neighbour left out where more than ``max_no_surface`` of its view's ground
+    lies beyond the geometry (:func:`outside_fraction`); ``tried`` lists every one
+    considered."""
+    from cropcraft_core.rowfit import neighbour_row_views
+
+    geo = load_geometry(path, n_points, seed)
+    kept: dict[int, Observation] = {}
+    tried = []
+    for view in neighbour_row_views(rowfit.camera, rowfit.rows, row_spacing, neighbours):
+        unseen = outside_fraction(geo, rowfit, view.camera)
+        ok = bool(unseen <= max_no_surface)
+        tried.append({**view.to_dict(), "outside_fraction": unseen, "kept": ok})
+        if ok:
+            kept[view.index] = _observe(geo, rowfit, crop, view.camera, row=view.to_dict())
+    return kept, tried
 
 
 def poisson_baseline(points: np.ndarray, crop: str, depth: int = 8) -> CanopyMesh:
@@ -193,9 +258,14 @@ def fit_geometry(
     config=None,
     layout=None,
     seed: int = 0,
+    neighbours: int = 0,
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
-    write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``."""
+    write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
+    also fit up to that many rows on each side of the best row that the geometry covers
+    (:func:`neighbour_observations`), each alone, and write their answers side by side with
+    their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
+    stays the best row's."""
     import json
 
     from cropcraft_core.bundle import check_output_dir, write_bundle
@@ -210,9 +280,25 @@ def fit_geometry(
     layout = layout or default_layout(crop)
     cfg = config or FitConfig()
     if cfg.method == "poisson":
+        if neighbours:
+            raise ConfigError("neighbour rows are fitted by the model fits, not by poisson")
         return _poisson_to_files(path, crop, out, seed)
     obs, rowfit = observe_geometry(path, crop, seed=seed, row_spacing=layout.row_spacing)
     res = fit_observation(obs, cfg, layout=layout)
+    if neighbours:
+        from cropcraft_core.metrics.rows import compare_rows
+
+        others, tried = neighbour_observations(
+            path, crop, rowfit, layout.row_spacing, neighbours, seed=seed
+        )
+        answers = [{"index": 0, "params": res.params, "params_std": res.params_std}]
+        for k, o in others.items():
+            r = fit_observation(o, cfg, layout=layout)
+            off = next(t["offset_m"] for t in tried if t["index"] == k)
+            answers.append(
+                {"index": k, "offset_m": off, "params": r.params, "params_std": r.params_std}
+            )
+        table = {**compare_rows(crop, answers, layout, seed), "tried": tried}
     canopy = generate_canopy(crop, res.params, layout, seed=seed)
     metrics = write_bundle(canopy, out, extra={"fit": res.to_dict(), "observation": obs.meta})
     predicted = ForwardModel(obs, layout).depth(res.params, seed)
@@ -221,6 +307,8 @@ def fit_geometry(
     )
     record = {"fit": res.to_dict(), "rowfit": rowfit.to_dict(), "observation": obs.meta}
     atomic_write_text(out / "fit.json", json.dumps(record, indent=2, default=float) + "\n")
+    if neighbours:
+        atomic_write_text(out / "rows.json", json.dumps(table, indent=2, default=float) + "\n")
     return metrics
 
 

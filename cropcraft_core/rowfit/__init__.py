@@ -13,10 +13,16 @@ from cropcraft_core.rowfit.fit import (
     voxel_downsample,
 )
 from cropcraft_core.rowfit.lab import srgb_to_lab
-from cropcraft_core.rowfit.neighbours import RowView, neighbour_row_views, row_label
+from cropcraft_core.rowfit.neighbours import (
+    MAX_NEIGHBOURS,
+    RowView,
+    neighbour_row_views,
+    row_label,
+)
 from cropcraft_core.rowfit.presets import RowFitPreset, preset
 
 __all__ = [
+    "MAX_NEIGHBOURS",
     "SCALE_SOURCES",
     "Row",
     "RowFit",

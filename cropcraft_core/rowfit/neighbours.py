@@ -24,6 +24,10 @@ from cropcraft_core.errors import ConfigError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.rowfit.fit import Row, camera_to_scene
 
+#: The most neighbours fitted on each side of the best row (a 2 m plot holds 2–3 rows; a fit
+#: per row is the cost).
+MAX_NEIGHBOURS = 4
+
 
 @dataclass(frozen=True, eq=False)
 class RowView:
@@ -127,4 +131,4 @@ def neighbour_row_views(
     return out
 
 
-__all__ = ["RowView", "camera_to_scene", "neighbour_row_views", "row_label"]
+__all__ = ["MAX_NEIGHBOURS", "RowView", "camera_to_scene", "neighbour_row_views", "row_label"]
