@@ -245,10 +245,12 @@ def scene_report_html(
         seeds = fit.get("seed_params") or []
         losses = fit.get("seed_losses") or []
         box = (fit.get("config") or {}).get("box") or {}
+        over = "rows" if (fit.get("extra") or {}).get("answer") == "mean" else "seeds"
+        count = "" if over == "rows" else f", {len(seeds)} seeds"
         parts.append(
-            f"<h2>Fitted parameters ({html.escape(str(fit.get('method', '')))}, "
-            f"{len(seeds)} seeds)</h2><table><tr><th>parameter</th><th>answer</th>"
-            "<th>SD over seeds</th><th>min</th><th>max</th></tr>"
+            f"<h2>Fitted parameters ({html.escape(str(fit.get('method', '')))}{count})</h2>"
+            "<table><tr><th>parameter</th><th>answer</th>"
+            f"<th>SD over {over}</th><th>min</th><th>max</th></tr>"
         )
         for name, value in params.items():
             col = [float(s[name]) for s in seeds if name in s]

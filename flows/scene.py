@@ -77,7 +77,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     # the best row's neighbours, each observed and fitted as the best row (0: the paper's one
     # row); a neighbour whose view lacks surface over more than max_no_surface is left out
-    "rows": {"neighbours": 0, "max_no_surface": 0.18},
+    # answer: "mean" (every parameter's mean over the rows' answers) or "best" (the best
+    # row's, the others reported beside it); see cropcraft_core.metrics.rows.ROW_ANSWERS
+    "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "mean"},
     "generate": {"seed": 0},
     "metrics": {"gap_fraction": True, "seed": 0},
     "export": {},
@@ -190,6 +192,12 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             f"rows.neighbours must be a whole number of rows on each side, 0 to "
             f"{MAX_NEIGHBOURS}, got {n!r}"
         )
+    from cropcraft_core.metrics.rows import ROW_ANSWERS
+
+    if cfg["rows"]["answer"] not in ROW_ANSWERS:
+        raise ConfigError(
+            f"rows.answer must be one of {', '.join(ROW_ANSWERS)}, got {cfg['rows']['answer']!r}"
+        )
     x = cfg["rows"]["max_no_surface"]
     if not isinstance(x, int | float) or isinstance(x, bool) or not 0 < x <= 1:
         raise ConfigError(f"rows.max_no_surface must be a fraction in (0, 1], got {x!r}")
@@ -252,7 +260,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         },
         "fit_seed": {**seed_fit, **layout},
         "aggregate": {**agg, **layout},
-        "rows": {"seed": cfg["generate"]["seed"], **layout},
+        "rows": {"seed": cfg["generate"]["seed"], "answer": cfg["rows"]["answer"], **layout},
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
@@ -685,12 +693,15 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
                 up = {**jobs[k], **row_seeds[k]}
                 answers[f"aggregate@{k}"] = ex.run("aggregate", up, row=k)
         r["rows"] = ex.run("rows", {"observe_rows": r["observe_rows"], **answers})
-    r["generate"] = ex.run("generate", {"aggregate": r["aggregate"]})
+    # the scene's answer: the best row's, or the rows' combined (rows.answer)
+    answer = r["rows"] if "fit" in r.get("rows", {}).get("artefacts", {}) else r["aggregate"]
+    r["generate"] = ex.run("generate", {"aggregate": answer})
     r["metrics"] = ex.run("metrics", {"generate": r["generate"]})
     r["export"] = ex.run(
-        "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": r["aggregate"]}
+        "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": answer}
     )
-    r["report"] = ex.run("report", {k: r[k] for k in r if k != "fit_seed"} | dict(seed_recs))
+    up = {k: r[k] for k in r if k != "fit_seed"} | {"aggregate": answer} | dict(seed_recs)
+    r["report"] = ex.run("report", up)
     r["fit_seeds"] = seed_recs
     return r
 
@@ -701,6 +712,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
     from cropcraft_core.observe import coverage_warning
 
     seen = records["observe"]["summary"].get("no_surface_fraction")  # older records: None
+    rows = records.get("rows")
+    answer = rows if rows is not None and "params" in rows["summary"] else records["aggregate"]
     return {
         "scene": req.scene.prefix,
         "store": req.store_root,
@@ -713,8 +726,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,
-        "params": records["aggregate"]["summary"]["params"],
-        "params_std": records["aggregate"]["summary"]["params_std"],
+        "params": answer["summary"]["params"],
+        "params_std": answer["summary"]["params_std"],
         "report": store.url(records["report"]["artefacts"]["report"]),
         "bundle": store.url(records["export"]["artefacts"]["bundle"]),
         "seconds": {k: v["seconds"] for k, v in records.items() if k != "fit_seeds"},

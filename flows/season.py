@@ -3,6 +3,7 @@ subflow, then a season summary (LAI, leaf angle, height by date: CSV and a PNG p
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from prefect import flow, get_run_logger
@@ -32,15 +33,18 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
-def _rows(store: SceneStore, key: str, params: dict | None) -> dict[str, Any]:
-    """The date's LAI over the rows it was fitted on (``rows.json``): ``n_rows_fitted``,
-    ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when its row 0 is not the
-    date's current answer (a later run fitted the best row alone, with other settings)."""
-    if params is None or not store.isfile(key):
+def _rows(store: SceneStore, prefix: str) -> dict[str, Any]:
+    """The date's LAI over the rows it was fitted on (``rows/rows.json``): ``n_rows_fitted``,
+    ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when the answer it records is
+    not the date's current canopy (``generate/canopy.json``: a later run answered otherwise)."""
+    key, recipe = f"{prefix}/rows/rows.json", f"{prefix}/generate/canopy.json"
+    if not (store.isfile(key) and store.isfile(recipe)):
         return {}
     table = store.get_json(key)
-    best = [r for r in table.get("rows", []) if r.get("index") == 0]
-    if not best or best[0].get("params") != params:
+    answer, params = table.get("answer_params") or {}, store.get_json(recipe)["params"]
+    if set(answer) != set(params) or any(
+        not math.isclose(float(answer[k]), float(params[k]), rel_tol=1e-9) for k in answer
+    ):
         return {}
     spread = table["spread"]["lai"]
     return {
@@ -68,7 +72,7 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
                 **store.get_json(key),
                 "parameters_given": given_text((fit.get("config") or {}).get("box")),
                 "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
-                **_rows(store, f"{d.scene.prefix}/rows/rows.json", fit.get("params")),
+                **_rows(store, d.scene.prefix),
             }
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"

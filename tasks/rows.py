@@ -17,21 +17,24 @@ def rows(
     offsets from ``upstream["observe_rows"]``); stores ``{scene}/rows/rows.json`` (with
     ``tried``: every neighbour considered, its view's no-surface share and whether it was kept).
 
-    config: ``layout`` (planting) and ``seed`` (the canopy seed: the generate stage's, so that
-    the best row's traits are the scene's own).
+    config: ``layout`` (planting), ``seed`` (the canopy seed: the generate stage's, so that
+    the best row's traits are its canopy's) and ``answer`` (``ROW_ANSWERS``): other than
+    ``best``, the scene's answer is :func:`~cropcraft_core.metrics.rows.rows_answer`'s, stored
+    as ``{scene}/rows/fit.json`` (artefact ``fit``, shaped as the aggregate stage's) for the
+    stages after it.
     """
-    from cropcraft_core.metrics.rows import compare_rows
+    from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
     store = open_store(store_root)
     crop = scene.split("/")[1]
     tried = upstream["observe_rows"]["summary"]["rows"]
     offsets = {int(e["index"]): e["offset_m"] for e in tried}
     with Timer() as t:
-        fitted = []
+        fitted, fits = [], {}
         for name, rec in upstream.items():
             if name == "aggregate" or name.startswith("aggregate@"):
                 index = 0 if name == "aggregate" else int(name.split("@", 1)[1])
-                fit = store.get_json(key_of(rec, "fit"))
+                fit = fits[index] = store.get_json(key_of(rec, "fit"))
                 fitted.append(
                     {
                         "index": index,
@@ -42,8 +45,15 @@ def rows(
                 )
         table = compare_rows(crop, fitted, layout_of(crop, config), int(config.get("seed", 0)))
         table["tried"] = tried  # every neighbour considered, with its view's coverage
+        how = str(config.get("answer", "best"))
+        table["answer"] = how
+        answer = rows_answer(fits, how)
+        table["answer_params"] = answer["params"]  # the scene's answer, for the season summary
         key = artefact(scene, "rows", "rows.json")
-        digest = store.put_json(key, table)
+        arts, hashes = {"rows": key}, {key: store.put_json(key, table)}
+        if how != "best":  # the scene's answer from the rows' answers, as aggregate's fit.json
+            fkey = artefact(scene, "rows", "fit.json")
+            arts["fit"], hashes[fkey] = fkey, store.put_json(fkey, answer)
     lai = table["spread"]["lai"]
     summary = {
         "n_rows": table["n_rows"],
@@ -52,5 +62,8 @@ def rows(
         "node_count": {str(r["index"]): r["traits"]["node_count"] for r in table["rows"]},
         # neighbours whose view lies (partly) outside the reconstruction: no-surface share
         "left_out": {str(e["index"]): e["no_surface_fraction"] for e in tried if not e["kept"]},
+        "answer": how,
     }
-    return make_record("rows", scene, {"rows": key}, {key: digest}, summary, t.seconds)
+    if "fit" in arts:
+        summary.update(params=answer["params"], params_std=answer["params_std"])
+    return make_record("rows", scene, arts, hashes, summary, t.seconds)

@@ -800,10 +800,11 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     base_run, scene_dir
 ):
     """``rows.neighbours`` observes the rows beside the best one and fits each alone: the best
-    row's observation, seeds and answer stay cached (the scene's answer is unchanged); every
-    kept neighbour gets its own observation, seeds and answer under ``row_p1/`` keys; the rows
-    stage lays the answers side by side, row 0's traits being the scene's own metrics; a
-    neighbour whose view lies outside the reconstruction is listed and left out."""
+    row's observation, seeds and answer stay cached; every kept neighbour gets its own
+    observation, seeds and answer under ``row_p1/`` keys; the rows stage lays the answers side
+    by side; a neighbour whose view lies outside the reconstruction is listed and left out.
+    ``rows.answer=best`` keeps the best row's answer as the scene's (row 0's traits are the
+    scene's metrics), ``mean`` answers with the rows' mean, refitting nothing."""
     from flows.season import write_summary
     from flows.service_cli import scene_status
 
@@ -813,7 +814,12 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     # best row's own view lacks surface over 42 %): at this limit the rows on one side are
     # kept, the others lie outside it
     limit = 0.6
-    overrides = {**OVERRIDES, "rows.neighbours": 2, "rows.max_no_surface": limit}
+    overrides = {
+        **OVERRIDES,
+        "rows.neighbours": 2,
+        "rows.max_no_surface": limit,
+        "rows.answer": "best",
+    }
     _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
     out = _run("plotA", base_run["store"], scene_dir, overrides)
     executed = set(_executed(out["states"]))
@@ -863,6 +869,29 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     assert hit is not None and hit["rows"] == rows
     with pytest.raises(ConfigError, match="rows.neighbours"):
         _cached(base_run["store"], scene_dir, {**OVERRIDES, "rows.neighbours": -1})
+    with pytest.raises(ConfigError, match="rows.answer"):
+        _cached(base_run["store"], scene_dir, {**overrides, "rows.answer": "median"})
+
+    # the scene's answer from every row's: the rows' answers are reused, only what follows the
+    # answer is recomputed; the best row's own answer stays where it was
+    out = _run("plotA", base_run["store"], scene_dir, {**overrides, "rows.answer": "mean"})
+    assert _executed(out["states"]) == ["export", "generate", "metrics", "report", "rows"]
+    answers = [listed[k]["params"] for k in sorted(listed)]
+    for name, value in out["params"].items():
+        assert value == pytest.approx(np.mean([a[name] for a in answers]), rel=1e-12)
+        assert out["params_std"][name] == pytest.approx(np.std([a[name] for a in answers]))
+    assert store.get_json(f"{scene}/fit/fit.json")["params"] == base_run["first"]["params"]
+    assert store.get_json(f"{scene}/generate/canopy.json")["params"] == out["params"]
+    html = store.get_bytes(f"{scene}/report/report.html").decode()
+    assert f"mean of {len(kept) + 1} rows" in html and "SD over rows" in html
+    (season,) = write_summary(store, "plotA", CROP)["rows"]
+    assert season["rows_fitted"] == len(kept) + 1
+    assert season["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
+    # the best row alone again: its answer, and the season no longer claims the rows
+    out = _run("plotA", base_run["store"], scene_dir)
+    assert out["params"] == base_run["first"]["params"] and out["rows"] is None
+    (season,) = write_summary(store, "plotA", CROP)["rows"]
+    assert season["rows_fitted"] is None
 
 
 def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, scene_dir, tmp_path):

@@ -557,3 +557,34 @@ def test_rows_are_compared_by_the_traits_of_the_canopies_their_answers_build():
         compare_rows("soybean", [], layout, 0)
     with pytest.raises(InputError, match="repeat"):
         compare_rows("soybean", [{"index": 0, "params": small}] * 2, layout, 0)
+
+
+def test_a_scene_fitted_over_several_rows_answers_with_their_mean_or_its_best_rows():
+    """rows_answer: every parameter's mean over the rows' answers and their spread (a
+    fit.json shape the later stages read), or the best row's fit unchanged; named errors."""
+    from cropcraft_core.metrics.rows import rows_answer
+
+    def fit(n, leaf):
+        return {
+            "crop": "soybean",
+            "method": "bo",
+            "params": {"num_nodes": n, "leaf_length": leaf},
+            "params_std": {"num_nodes": 0.1, "leaf_length": 0.1},
+            "seed_params": [],
+            "seed_losses": [0.1],
+            "seconds": 2.0,
+            "config": {"n_seeds": 10},
+        }
+
+    fits = {1: fit(8.0, 1.2), 0: fit(4.0, 0.8), -1: fit(6.0, 1.0)}
+    a = rows_answer(fits, "mean")
+    assert a["params"] == pytest.approx({"num_nodes": 6.0, "leaf_length": 1.0})
+    assert a["params_std"]["num_nodes"] == pytest.approx(np.std([4.0, 6.0, 8.0]))
+    assert [p["num_nodes"] for p in a["seed_params"]] == [6.0, 4.0, 8.0]  # rows -1, 0, +1
+    assert a["method"] == "bo, mean of 3 rows" and a["config"] == {"n_seeds": 10}
+    assert a["seconds"] == 6.0 and a["extra"]["rows"]["1"]["num_nodes"] == 8.0
+    assert rows_answer(fits, "best") == fits[0]
+    with pytest.raises(InputError, match="unknown row answer"):
+        rows_answer(fits, "median")
+    with pytest.raises(InputError, match="best row"):
+        rows_answer({1: fits[1]}, "mean")

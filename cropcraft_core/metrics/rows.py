@@ -99,4 +99,42 @@ def compare_rows(
     }
 
 
-__all__ = ["ROW_TRAITS", "compare_rows", "row_traits", "spread"]
+#: How a scene fitted over several rows gets its one answer: ``best`` keeps the row fit's best
+#: row's (the paper's one row; the others are reported beside it), ``mean`` takes every
+#: parameter's mean over the rows' answers (the plot's rows standing for it equally).
+ROW_ANSWERS = ("best", "mean")
+
+
+def rows_answer(fits: Mapping[int, Mapping[str, Any]], how: str = "mean") -> dict[str, Any]:
+    """One ``fit.json`` (``FitResult.to_dict()`` shape) from the fits of several rows.
+
+    fits: ``{row index: that row's fit.json}``, 0 the best row. ``how="mean"``: ``params`` the
+    per-parameter mean of the rows' answers, ``params_std`` their spread over the rows (ddof 0),
+    ``seed_params`` the rows' answers (row order: index), ``seed_losses`` empty (the rows' losses
+    are on different observations), ``config`` the best row's, ``extra["rows"]`` each row's
+    answer by index. ``how="best"``: the best row's fit unchanged.
+    """
+    if how not in ROW_ANSWERS:
+        raise InputError(f"unknown row answer {how!r}: one of {', '.join(ROW_ANSWERS)}")
+    if 0 not in fits:
+        raise InputError("the rows' fits must include the best row (index 0)")
+    best = dict(fits[0])
+    if how == "best":
+        return best
+    order = sorted(int(k) for k in fits)
+    P = [{k: float(v) for k, v in fits[i]["params"].items()} for i in order]
+    names = list(best["params"])
+    return {
+        "crop": best.get("crop"),
+        "method": f"{best.get('method', 'bo')}, mean of {len(order)} rows",
+        "params": {n: float(np.mean([p[n] for p in P])) for n in names},
+        "params_std": {n: float(np.std([p[n] for p in P])) for n in names},
+        "seed_params": P,
+        "seed_losses": [],
+        "seconds": float(sum(float(fits[i].get("seconds", 0.0)) for i in order)),
+        "config": best.get("config", {}),
+        "extra": {"rows": {str(i): p for i, p in zip(order, P, strict=True)}, "answer": how},
+    }
+
+
+__all__ = ["ROW_ANSWERS", "ROW_TRAITS", "compare_rows", "row_traits", "rows_answer", "spread"]
