@@ -196,13 +196,20 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if not 0 <= n <= MAX_NEIGHBOURS:
         raise ConfigError(f"--neighbour-rows must be 0 to {MAX_NEIGHBOURS}, got {n}")
     metrics = fit_geometry(
-        args.geometry, args.crop, args.out, cfg, layout, seed=args.seed, neighbours=n
+        args.geometry,
+        args.crop,
+        args.out,
+        cfg,
+        layout,
+        seed=args.seed,
+        neighbours=n,
+        row_answer=args.rows_answer,
     )
     _print_summary(args.out, metrics)
     if n:
         table = json.loads((Path(args.out) / "rows.json").read_text())
         cells = "  ".join(f"{r['index']:+d}: {r['traits']['lai']:.3g}" for r in table["rows"])
-        print(f"LAI by row (0 = best row, the answer above)  {cells}")
+        print(f"LAI by row (0 = the best row; answer: {table['answer']})  {cells}")
     return 0
 
 
@@ -312,6 +319,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="also fit up to N rows on each side of the best row that the geometry covers, "
         "each alone, and write their answers and spread to rows.json (one fit per row)",
+    )
+    from cropcraft_core.metrics.rows import ROW_ANSWERS
+
+    f.add_argument(
+        "--rows-answer",
+        choices=list(ROW_ANSWERS),
+        default="mean",
+        help="with --neighbour-rows: the answer is every parameter's mean over the rows' "
+        "answers (mean, default) or the best row's (best)",
     )
     f.set_defaults(func=cmd_fit)
 

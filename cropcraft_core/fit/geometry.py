@@ -259,13 +259,15 @@ def fit_geometry(
     layout=None,
     seed: int = 0,
     neighbours: int = 0,
+    row_answer: str = "mean",
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
     write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
     also fit up to that many rows on each side of the best row that the geometry covers
     (:func:`neighbour_observations`), each alone, and write their answers side by side with
     their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
-    stays the best row's."""
+    is then ``row_answer``'s (``rows_answer``: the rows' mean, or the best row's), and
+    ``fit.json`` keeps the best row's own fit as ``best_row_fit``."""
     import json
 
     from cropcraft_core.bundle import check_output_dir, write_bundle
@@ -285,27 +287,34 @@ def fit_geometry(
         return _poisson_to_files(path, crop, out, seed)
     obs, rowfit = observe_geometry(path, crop, seed=seed, row_spacing=layout.row_spacing)
     res = fit_observation(obs, cfg, layout=layout)
+    answer = res.to_dict()
     if neighbours:
-        from cropcraft_core.metrics.rows import compare_rows
+        from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
         others, tried = neighbour_observations(
             path, crop, rowfit, layout.row_spacing, neighbours, seed=seed
         )
         answers = [{"index": 0, "params": res.params, "params_std": res.params_std}]
+        fits = {0: res.to_dict()}
         for k, o in others.items():
             r = fit_observation(o, cfg, layout=layout)
+            fits[k] = r.to_dict()
             off = next(t["offset_m"] for t in tried if t["index"] == k)
             answers.append(
                 {"index": k, "offset_m": off, "params": r.params, "params_std": r.params_std}
             )
+        answer = rows_answer(fits, row_answer)
         table = {**compare_rows(crop, answers, layout, seed), "tried": tried}
-    canopy = generate_canopy(crop, res.params, layout, seed=seed)
-    metrics = write_bundle(canopy, out, extra={"fit": res.to_dict(), "observation": obs.meta})
-    predicted = ForwardModel(obs, layout).depth(res.params, seed)
+        table.update(answer=row_answer, answer_params=answer["params"])
+    canopy = generate_canopy(crop, answer["params"], layout, seed=seed)
+    metrics = write_bundle(canopy, out, extra={"fit": answer, "observation": obs.meta})
+    predicted = ForwardModel(obs, layout).depth(answer["params"], seed)
     save_png(
         out / "compare.png", compare_image(obs.depth, predicted, float(obs.preset.render_height))
     )
-    record = {"fit": res.to_dict(), "rowfit": rowfit.to_dict(), "observation": obs.meta}
+    record = {"fit": answer, "rowfit": rowfit.to_dict(), "observation": obs.meta}
+    if neighbours:
+        record["best_row_fit"] = res.to_dict()
     atomic_write_text(out / "fit.json", json.dumps(record, indent=2, default=float) + "\n")
     if neighbours:
         atomic_write_text(out / "rows.json", json.dumps(table, indent=2, default=float) + "\n")
