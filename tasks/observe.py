@@ -12,6 +12,48 @@ from tasks.common import Timer, artefact, key_of, make_record, open_store, stage
 from tasks.surfaces import _surfaces_api
 
 
+def _observe(
+    backend: Any,
+    crop: str,
+    scene: str,
+    rf: dict[str, Any],
+    config: dict[str, Any],
+    camera: Any,
+    camera_in_scene: Any,
+    limit: float | None = None,
+    **meta: Any,
+) -> tuple[Any, float]:
+    """``(observation, no_surface_fraction)`` of the surfaces ``backend`` from the world
+    ``camera`` (``camera_in_scene``: the same in the surfaces' frame): the share of its view
+    without a fully supported surface (before a fill), then ``Observation.from_surfaces`` at
+    the stage's ``image_scale`` and ``preset``; the observation is None when that share is over
+    ``limit``."""
+    from cropcraft_core.observe import Observation, no_surface_fraction
+
+    scale = float(config.get("image_scale", 1.0))
+    unseen = no_surface_fraction(backend.render_supported(camera_in_scene.scaled(scale)))
+    if limit is not None and unseen > limit:
+        return None, unseen
+    obs = Observation.from_surfaces(
+        crop,
+        backend.render,
+        camera,
+        camera_in_scene,
+        float(rf["scale"]),
+        float(rf["render_height"]),
+        image_scale=scale,
+        preset_overrides=config.get("preset"),
+        meta={"scene": scene, "no_surface_fraction": unseen, **meta},
+    )
+    return obs, unseen
+
+
+def _npz(obs: Any) -> bytes:
+    buf = io.BytesIO()
+    obs.save(buf)
+    return buf.getvalue()
+
+
 @stage_task("observe")
 def observe(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
@@ -27,7 +69,6 @@ def observe(
     ``preset`` (ObservePreset overrides). Depth is converted to metres with the row fit's scale.
     """
     from cropcraft_core.geometry.camera import PinholeCamera
-    from cropcraft_core.observe import Observation, no_surface_fraction
 
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
@@ -36,27 +77,18 @@ def observe(
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
-        scale = float(config.get("image_scale", 1.0))
-        cam_scene = PinholeCamera.from_dict(rf["camera_in_scene"])
         with store.open_local(key_of(upstream["surfaces"], "model")) as model_dir:
-            backend = load_surfaces(model_dir)
-            # coverage: the share of the view without a fully supported surface (before a fill)
-            unseen = no_surface_fraction(backend.render_supported(cam_scene.scaled(scale)))
-            obs = Observation.from_surfaces(
+            obs, unseen = _observe(
+                load_surfaces(model_dir),
                 crop,
-                backend.render,
+                scene,
+                rf,
+                config,
                 PinholeCamera.from_dict(rf["camera"]),
-                cam_scene,
-                float(rf["scale"]),
-                float(rf["render_height"]),
-                image_scale=scale,
-                preset_overrides=config.get("preset"),
-                meta={"scene": scene, "no_surface_fraction": unseen},
+                PinholeCamera.from_dict(rf["camera_in_scene"]),
             )
-        buf = io.BytesIO()
-        obs.save(buf)
         key = artefact(scene, "observe", "observation.npz")
-        digest = store.put_bytes(key, buf.getvalue())
+        digest = store.put_bytes(key, _npz(obs))
     return make_record(
         "observe",
         scene,
@@ -90,7 +122,6 @@ def observe_rows(
     row spacing).
     """
     from cropcraft_core.geometry.camera import PinholeCamera
-    from cropcraft_core.observe import Observation, no_surface_fraction
     from cropcraft_core.rowfit import Row, camera_to_scene, neighbour_row_views
     from tasks.fit_seed import layout_of
 
@@ -101,7 +132,6 @@ def observe_rows(
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
-        scale = float(config.get("image_scale", 1.0))
         limit = float(config.get("max_no_surface", 0.18))
         rows = [
             Row(np.asarray(r["direction"], float), np.asarray(r["point"], float), r["n_inliers"])
@@ -118,33 +148,30 @@ def observe_rows(
             backend = load_surfaces(model_dir)
             for view in views:
                 cam_scene = camera_to_scene(view.camera, rf["world_from_scene"], rf["scale"])
-                unseen = no_surface_fraction(backend.render_supported(cam_scene.scaled(scale)))
+                obs, unseen = _observe(
+                    backend,
+                    crop,
+                    scene,
+                    rf,
+                    config,
+                    view.camera,
+                    cam_scene,
+                    limit,
+                    row=view.to_dict(),
+                )
                 entry = {
                     "index": view.index,
                     "offset_m": view.offset_m,
                     "snapped": view.snapped,
                     "no_surface_fraction": unseen,
-                    "kept": bool(unseen <= limit),
+                    "kept": obs is not None,
                 }
                 listed.append(entry)
-                if not entry["kept"]:
+                if obs is None:
                     continue
-                obs = Observation.from_surfaces(
-                    crop,
-                    backend.render,
-                    view.camera,
-                    cam_scene,
-                    float(rf["scale"]),
-                    float(rf["render_height"]),
-                    image_scale=scale,
-                    preset_overrides=config.get("preset"),
-                    meta={"scene": scene, "no_surface_fraction": unseen, "row": view.to_dict()},
-                )
                 entry["foreground_fraction"] = float(np.mean(obs.mask))
-                buf = io.BytesIO()
-                obs.save(buf)
                 key = artefact(scene, "observe_rows", "observation.npz", row=view.index)
-                hashes[key] = store.put_bytes(key, buf.getvalue())
+                hashes[key] = store.put_bytes(key, _npz(obs))
                 artefacts[f"observation@{view.index}"] = key
     return make_record(
         "observe_rows",
