@@ -220,6 +220,7 @@ BENCHMARKS = {
     "fit-speed": "benchmarks.bench_fit_speed",
     "optimizer": "benchmarks.bench_optimizer",
     "pipeline": "benchmarks.bench_pipeline",
+    "rows": "benchmarks.bench_rows",
     "surfaces": "benchmarks.bench_surfaces",
     "nerfacto": "benchmarks.bench_nerfacto",
 }

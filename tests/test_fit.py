@@ -1,5 +1,6 @@
 """The fitting layer on real synthetic observations (real generator, renderer, histograms, GP)."""
 
+import json
 import shutil
 
 import numpy as np
@@ -476,3 +477,50 @@ def test_pipeline_bench_combines_one_fits_seeds_by_every_rule(tmp_path):
     ]
     again, spread_again = fit_rules(obs, "3x10", tmp_path / "seeds", **small)
     assert again == answers and spread_again == spread
+
+
+def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_path, monkeypatch):
+    """bench rows: each scene fitted over its centre row and the rows either side of it; the
+    rows' mean answer is the canopy of every parameter's mean over the rows' answers; a rerun
+    over the same checkpoints reads each row's kept answers instead of fitting again."""
+    import benchmarks.bench_pipeline as bp
+    from benchmarks.bench_rows import ANSWERS, row_observation, run
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.procedural import generate_canopy
+
+    kw = dict(scenes=1, neighbours=1, scale=0.25, budget="2x8", workers=1, log=lambda *_: None)
+    kw["fit_options"] = {"reevaluate_canopies": 2, "polish_evals": 4}
+    res = run("soybean", first=3, checkpoint_dir=str(tmp_path), **kw)
+    assert res["scenes"] == [3] and res["rows"] == [-1, 0, 1]
+    assert set(res["table"]["bo"]) == set(ANSWERS)
+    # the moved cameras look at other plants of the same canopy
+    centre = row_observation("soybean", 3, 0, 0.25)[1]
+    side = row_observation("soybean", 3, 1, 0.25)[1]
+    shift = side.camera.cam_to_world[:3, 3] - centre.camera.cam_to_world[:3, 3]
+    assert shift == pytest.approx([0.0, default_layout("soybean").row_spacing, 0.0])
+    assert not np.array_equal(np.nan_to_num(side.depth), np.nan_to_num(centre.depth))
+    answers = {
+        k: json.loads(
+            next((tmp_path / f"scene3-row{k:+d}").glob("answers-2x8-*.json")).read_text()
+        )["bo"]
+        for k in (-1, 0, 1)
+    }
+    mean = {n: float(np.mean([a[n] for a in answers.values()])) for n in answers[0]}
+    lai = canopy_metrics(
+        generate_canopy("soybean", mean, default_layout("soybean"), seed=100_003),
+        gap_fraction=False,
+    )["lai"]
+    t = res["truth_lai"][0]
+    assert res["table"]["bo"]["rows' mean"]["LAIPE"] == pytest.approx(abs(lai / t - 1))
+    by_row = next(s for s in res["per_scene"] if s["rule"] == "bo")["lai_by_row"]
+    assert res["table"]["bo"]["mean of rows' LAI"]["LAIPE"] == pytest.approx(
+        abs(np.mean(list(by_row.values())) / t - 1)
+    )
+
+    def refit(*_a, **_k):
+        raise AssertionError("a kept row was fitted again")
+
+    monkeypatch.setattr(bp, "fit_rules", refit)
+    again = run("soybean", first=3, checkpoint_dir=str(tmp_path), **kw)
+    assert again["table"] == res["table"]
