@@ -211,7 +211,9 @@ def _print_rows(out: Mapping[str, Any]) -> None:
         if lai[k] is not None and nodes[k] is not None
     )
     s = rows["lai_spread"]
-    print(f"LAI by row (0 = best row, the answer)  {cells}")
+    how = rows.get("answer", "best")
+    answer = "the best row's" if how == "best" else f"the {how} of the rows' answers"
+    print(f"LAI by row (0 = the best row; the answer is {answer})  {cells}")
     if s.get("mean") is not None:
         print(
             f"LAI over {rows['n_rows']} rows: mean {s['mean']:.3g}, sd {s['sd']:.3g}, "

@@ -352,3 +352,24 @@ def test_nerfacto_probe_plane_is_the_same_ground_in_every_view(tmp_path):
         np.testing.assert_allclose(ground[..., 2], 0.0, atol=1e-6)
         want = np.clip(plane_texture(ground[..., 0], ground[..., 1]), 0, 1) * 255
         assert np.abs(photo - want).max() <= 0.51
+
+
+def test_run_summary_prints_each_rows_lai_and_their_spread(capsys):
+    """``cropcraft run``'s summary of a scene fitted over three rows: each row's LAI and nodes,
+    which answer the scene took, and the LAI's spread over the rows."""
+    from flows.service_cli import _print_rows
+
+    rows = {
+        "n_rows": 3,
+        "lai": {"1": 1.4, "-1": 1.1, "0": 1.2},
+        "node_count": {"1": 9.0, "-1": 7.5, "0": 8.0},
+        "lai_spread": {"mean": 1.2333, "sd": 0.1247, "min": 1.1, "max": 1.4},
+        "answer": "mean",
+    }
+    _print_rows({"rows": rows})
+    out = capsys.readouterr().out
+    assert "-1: 1.1 (7.5 nodes)  +0: 1.2 (8 nodes)  +1: 1.4 (9 nodes)" in out
+    assert "the answer is the mean of the rows' answers" in out
+    assert "LAI over 3 rows: mean 1.23, sd 0.125, range 1.1 to 1.4" in out
+    _print_rows({"rows": None})
+    assert capsys.readouterr().out == ""
