@@ -76,7 +76,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "polish_evals": 60,  # ... by Nelder-Mead on the same canopies (0: none)
     },
     # the best row's neighbours, each observed and fitted as the best row (0: the paper's one
-    # row); a neighbour whose view lacks surface over more than max_no_surface is left out
+    # row); a neighbour whose view lacks surface over more than max_no_surface and more than
+    # the best row's own view is left out
     # answer: "mean" (every parameter's mean over the rows' answers) or "best" (the best
     # row's, the others reported beside it); see cropcraft_core.metrics.rows.ROW_ANSWERS
     "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "mean"},
@@ -677,9 +678,8 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     if req.config["rows"]["neighbours"]:
         from tasks.observe import row_observation_record
 
-        r["observe_rows"] = ex.run(
-            "observe_rows", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]}
-        )
+        up = {"surfaces": r["surfaces"], "rowfit": r["rowfit"], "observe": r["observe"]}
+        r["observe_rows"] = ex.run("observe_rows", up)
         for k in r["observe_rows"]["summary"]["kept"]:
             jobs[int(k)] = {"observe": row_observation_record(r["observe_rows"], k)}
     seeds = list(range(int(req.config["fit"]["n_seeds"])))

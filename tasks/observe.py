@@ -112,7 +112,9 @@ def observe_rows(
     (:func:`cropcraft_core.rowfit.neighbours.neighbour_row_views`: the row camera moved by ±k
     planting row spacings, or onto a fitted row there), each rendered and built as the
     ``observe`` stage's; a neighbour whose view has more than ``max_no_surface`` without a
-    fully supported surface lies (partly) outside the reconstruction and is left out. Stores
+    fully supported surface, and more than the best row's own view (the ``observe``
+    record's ``no_surface_fraction``), lies (partly) outside the reconstruction and is left
+    out. Stores
     ``{scene}/observe/row_p1/observation.npz`` etc.; the record's artefacts are
     ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
     no_surface_fraction, foreground_fraction).
@@ -132,7 +134,10 @@ def observe_rows(
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
-        limit = float(config.get("max_no_surface", 0.18))
+        # a neighbour no worse covered than the best row itself (whose answer is kept anyway)
+        # is kept too
+        best = upstream["observe"]["summary"].get("no_surface_fraction") or 0.0
+        limit = max(float(config.get("max_no_surface", 0.18)), float(best))
         rows = [
             Row(np.asarray(r["direction"], float), np.asarray(r["point"], float), r["n_inliers"])
             for r in rf["rows"]
