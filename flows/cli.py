@@ -326,9 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument(
         "--rows-answer",
         choices=list(ROW_ANSWERS),
-        default="mean",
-        help="with --neighbour-rows: the answer is every parameter's mean over the rows' "
-        "answers (mean, default) or the best row's (best)",
+        default="best",
+        help="with --neighbour-rows: the answer is the best row's (best, default) or every "
+        "parameter's mean over the rows' answers (mean)",
     )
     f.set_defaults(func=cmd_fit)
 

@@ -159,7 +159,8 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     a row beyond the scan is listed and left out."""
     out = tmp_path / "rows"
     argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(out)]
-    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--neighbour-rows", "2"]
+    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--rows-answer", "mean"]
+    argv += ["--neighbour-rows", "2"]
     assert main(argv) == 0
     table = json.loads((out / "rows.json").read_text())
     fit = json.loads((out / "fit.json").read_text())

@@ -259,14 +259,14 @@ def fit_geometry(
     layout=None,
     seed: int = 0,
     neighbours: int = 0,
-    row_answer: str = "mean",
+    row_answer: str = "best",
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
     write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
     also fit up to that many rows on each side of the best row that the geometry covers
     (:func:`neighbour_observations`), each alone, and write their answers side by side with
     their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
-    is then ``row_answer``'s (``rows_answer``: the rows' mean, or the best row's), and
+    is then ``row_answer``'s (``rows_answer``: the best row's, or the rows' mean), and
     ``fit.json`` keeps the best row's own fit as ``best_row_fit``."""
     import json
 
