@@ -110,17 +110,18 @@ def splat_depth(points: np.ndarray, camera: PinholeCamera, radius_px: int = 2) -
 
 
 def observe_geometry(
-    path: str | Path,
+    source: str | Path | Geometry,
     crop: str,
     n_points: int = 200_000,
     seed: int = 0,
     row_spacing: float | None = None,
 ) -> tuple[Observation, object]:
-    """Row-fit ``path`` and render its observation. Returns (observation, row fit)."""
+    """Row-fit ``source`` (a path, or a :class:`Geometry` already loaded) and render its
+    observation. Returns (observation, row fit)."""
     from cropcraft_core.rowfit import fit_ground_and_rows
     from cropcraft_core.rowfit import preset as rowfit_preset
 
-    geo = load_geometry(path, n_points, seed)
+    geo = source if isinstance(source, Geometry) else load_geometry(source, n_points, seed)
     # the paper's scene boxes are in NeRF units; a metric geometry is used whole
     rp = rowfit_preset(crop, box_center=None, box_size=None, row_spacing=row_spacing)
     rowfit = fit_ground_and_rows(geo.points, geo.colors, crop, preset=rp, rng=seed)
@@ -182,23 +183,20 @@ def outside_fraction(geo: Geometry, rowfit, cam: PinholeCamera, cell_m: float = 
 
 
 def neighbour_observations(
-    path: str | Path,
+    geo: Geometry,
     crop: str,
     rowfit,
     row_spacing: float,
     neighbours: int,
     max_no_surface: float = 0.18,
-    n_points: int = 200_000,
-    seed: int = 0,
 ) -> tuple[dict[int, Observation], list[dict]]:
-    """Observations of ``path`` over the best row's neighbours (``rowfit`` from
+    """Observations of ``geo`` over the best row's neighbours (``rowfit`` from
     :func:`observe_geometry`; ``cropcraft_core.rowfit.neighbours``): ``({index: observation},
     tried)``, a neighbour left out where more than ``max_no_surface`` of its view's ground
     lies beyond the geometry (:func:`outside_fraction`); ``tried`` lists every one
     considered."""
     from cropcraft_core.rowfit import neighbour_row_views
 
-    geo = load_geometry(path, n_points, seed)
     kept: dict[int, Observation] = {}
     tried = []
     for view in neighbour_row_views(rowfit.camera, rowfit.rows, row_spacing, neighbours):
@@ -285,15 +283,14 @@ def fit_geometry(
         if neighbours:
             raise ConfigError("neighbour rows are fitted by the model fits, not by poisson")
         return _poisson_to_files(path, crop, out, seed)
-    obs, rowfit = observe_geometry(path, crop, seed=seed, row_spacing=layout.row_spacing)
+    geo = load_geometry(path, seed=seed)
+    obs, rowfit = observe_geometry(geo, crop, seed=seed, row_spacing=layout.row_spacing)
     res = fit_observation(obs, cfg, layout=layout)
     answer = res.to_dict()
     if neighbours:
         from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
-        others, tried = neighbour_observations(
-            path, crop, rowfit, layout.row_spacing, neighbours, seed=seed
-        )
+        others, tried = neighbour_observations(geo, crop, rowfit, layout.row_spacing, neighbours)
         answers = [{"index": 0, "params": res.params, "params_std": res.params_std}]
         fits = {0: res.to_dict()}
         for k, o in others.items():
