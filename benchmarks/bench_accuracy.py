@@ -27,7 +27,10 @@ the scene's seeds and the rows' settings), so a resumed run does not combine a f
 again (about two minutes a soybean scene at the full-resolution row camera); delete that folder,
 or bump ``ANSWERS_VERSION`` with a change to a combining rule's code, to recompute them.
 ``--finished-only`` fits nothing: it scores the scenes whose seeds are all finished in
-``--checkpoint-dir`` (a long run's table so far, read while it runs).
+``--checkpoint-dir`` (a long run's table so far, read while it runs). ``--first K`` fits and
+scores only scenes K onwards of ``--scenes`` (each by its own number, truth and seeds): the
+part of a run that one machine or session could not finish, whose per-scene results
+(``--json``) join those of the earlier part.
 """
 
 from __future__ import annotations
@@ -216,19 +219,24 @@ def run(
     preset_overrides: dict | None = None,
     known: tuple[str, ...] = (),
     finished_only: bool = False,
+    first: int = 0,
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
     seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
     ``preset_overrides``: observation preset changes (loss weights, bins) for every scene;
     ``known``: parameters every fit is given at the scene's true value; ``finished_only``: fit
     nothing, score only the scenes whose seeds are all finished in ``checkpoint_dir`` for every
-    method (``scene_indices`` in the result says which)."""
+    method (``scene_indices`` in the result says which); ``first``: fit and score only scenes
+    ``first`` onwards of the ``scenes`` (a run split over machines; every scene keeps its own
+    truth, so the parts' per-scene results join)."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
     b0 = budget(quick, scenes, "bo", overrides=overrides, scale=scale)
+    if not 0 <= first < b0.scenes:
+        raise ConfigError(f"bench accuracy: --first {first} is not one of the {b0.scenes} scenes")
     truths, observations = [], []
-    for i in range(b0.scenes):
+    for i in range(first, b0.scenes):
         truth, obs = scene_observation(crop, i, b0.scale, preset_overrides)
         truths.append(truth)
         observations.append(obs)
@@ -246,6 +254,7 @@ def run(
         boxes=[{n: t["params"][n] for n in known} for t in truths],
         checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
         preset_overrides=preset_overrides,
+        indices=tuple(range(first, b0.scenes)),
     )
     if finished_only:
         if scene_set.checkpoint_dir is None:
@@ -264,7 +273,8 @@ def run(
             )
         log(f"  finished in {checkpoint_dir}: {len(keep)} of {len(observations)} scenes {keep}")
         scene_set = scene_set.subset(keep)
-        observations, truths = scene_set.observations, [truths[i] for i in keep]
+        observations = scene_set.observations
+        truths = [truths[i - first] for i in keep]
         out["scenes"] = len(keep)
     out["scene_indices"] = list(scene_set.indices)
     boxes = scene_set.boxes
@@ -602,6 +612,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
     ap.add_argument("--scenes", type=int)
+    ap.add_argument(
+        "--first",
+        type=int,
+        default=0,
+        help="fit only scenes FIRST.. of --scenes (to split a run over machines or sessions)",
+    )
     ap.add_argument("--methods", default="bo,trust-region,random,mlp")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--crn-ablation", action="store_true")
@@ -673,8 +689,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.runner:
         if a.finished_only:
             raise SystemExit("bench accuracy: --finished-only is not available with --runner")
-        if preset_overrides or a.known:
-            raise SystemExit("bench accuracy: --preset and --known are not available with --runner")
+        if preset_overrides or a.known or a.first:
+            raise SystemExit(
+                "bench accuracy: --preset, --known and --first are not available with --runner"
+            )
         res = _run_flow(a, methods, overrides)
         print_table(res)
         print(f"stored: {res['url']}")
@@ -692,6 +710,7 @@ def main(argv: list[str] | None = None) -> int:
         preset_overrides=preset_overrides,
         known=tuple(a.known),
         finished_only=a.finished_only,
+        first=a.first,
     )
     print_table(res)
     if a.json:

@@ -340,7 +340,8 @@ def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_p
 
 def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes_alone(tmp_path):
     """With ``--checkpoint-dir`` a scene's answers under every row are kept beside its seeds, so
-    a resumed run reads them instead of combining again (the same table); ``--finished-only``
+    a resumed run reads them instead of combining again (the same table); ``--first`` runs the
+    later scenes alone; ``--finished-only``
     fits nothing and scores just the scenes whose seeds are all finished, by their own numbers
     (their canopy seeds), as the whole run scored them."""
     from benchmarks.bench_accuracy import run
@@ -358,6 +359,17 @@ def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes
     assert sum("answers read" in line for line in logs) == 2
     assert again["methods"] == first["methods"]
     assert first["scene_indices"] == again["scene_indices"] == [0, 1]
+
+    # --first 1: scene 1 alone, by its own number (its truth, its kept seeds and answers), as
+    # the whole run scored it, so the parts of a run split over sessions join
+    logs.clear()
+    tail = run("maize", ["bo"], True, 2, log=logs.append, first=1, **kw)
+    assert tail["scene_indices"] == [1] and tail["truths"] == first["truths"][1:]
+    assert sum("answers read" in line for line in logs) == 1
+    for row, r in tail["methods"].items():
+        assert r["predictions"] == first["methods"][row]["predictions"][1:], row
+    with pytest.raises(ConfigError, match="--first 2 is not one of the 2 scenes"):
+        run("maize", ["bo"], True, 2, first=2, **kw)
 
     # the kept answers are named by the seeds too: seeds that came out otherwise are not theirs
     from dataclasses import replace
