@@ -314,11 +314,9 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     rows = []
     for stage in STAGES:
         rec = manifest.stages.get(stage) if manifest else None
-        if stage == "fit_seed":  # the best row's seeds, then the neighbour rows' ("10+20")
-            seeds = [k for k in states if k.startswith("fit_seed-") and states[k] == "Cached"]
-            n = sum("@" not in k for k in seeds)
-            others = len(seeds) - n
-            cached = (f"{n}+{others} seeds" if others else f"{n} seeds") if seeds else "no"
+        if stage == "fit_seed":
+            n = sum(1 for k in states if k.startswith("fit_seed-") and "@" not in k)
+            cached = f"{n} seeds" if n else "no"
         else:
             cached = "yes" if states.get(stage) == "Cached" else "no"
         status = rec.status if rec else "pending"
