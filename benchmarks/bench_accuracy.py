@@ -235,8 +235,9 @@ def run(
     b0 = budget(quick, scenes, "bo", overrides=overrides, scale=scale)
     if not 0 <= first < b0.scenes:
         raise ConfigError(f"bench accuracy: --first {first} is not one of the {b0.scenes} scenes")
+    numbers = tuple(range(first, b0.scenes))  # the scenes fitted, by their own numbers
     truths, observations = [], []
-    for i in range(first, b0.scenes):
+    for i in numbers:
         truth, obs = scene_observation(crop, i, b0.scale, preset_overrides)
         truths.append(truth)
         observations.append(obs)
@@ -254,7 +255,7 @@ def run(
         boxes=[{n: t["params"][n] for n in known} for t in truths],
         checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
         preset_overrides=preset_overrides,
-        indices=tuple(range(first, b0.scenes)),
+        indices=numbers,
     )
     if finished_only:
         if scene_set.checkpoint_dir is None:
