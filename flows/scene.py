@@ -81,7 +81,11 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # answer: "best" (the best row's, the others reported beside it) or "mean" (every
     # parameter's mean over the rows' answers: not better on 12 benchmark scenes, RESULTS
     # #rows-34); see cropcraft_core.metrics.rows.ROW_ANSWERS
-    "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "best"},
+    # snap: None places the k-th neighbour's camera k row spacings from the best row's (on the
+    # row pattern); a fraction in (0, 0.5) moves it onto a fitted row within that fraction of
+    # a spacing (plots not planted evenly; the fitted side rows are plain RANSAC lines, 7 cm
+    # off on the demo's canopy through SfM: cropcraft_core.rowfit.neighbours)
+    "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "best", "snap": None},
     "generate": {"seed": 0},
     "metrics": {"gap_fraction": True, "seed": 0},
     "export": {},
@@ -203,6 +207,14 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     x = cfg["rows"]["max_no_surface"]
     if not isinstance(x, int | float) or isinstance(x, bool) or not 0 < x <= 1:
         raise ConfigError(f"rows.max_no_surface must be a fraction in (0, 1], got {x!r}")
+    snap = cfg["rows"]["snap"]
+    if snap is not None and (
+        not isinstance(snap, int | float) or isinstance(snap, bool) or not 0 < snap < 0.5
+    ):
+        raise ConfigError(
+            f"rows.snap must be null (cameras k row spacings apart) or a fraction of a row "
+            f"spacing in (0, 0.5), got {snap!r}"
+        )
     return cfg
 
 
@@ -258,6 +270,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             **cfg["observe"],
             "max_side": cfg["rows"]["neighbours"],
             "max_no_surface": cfg["rows"]["max_no_surface"],
+            "snap_fraction": cfg["rows"]["snap"],
             **layout,
         },
         "fit_seed": {**seed_fit, **layout},

@@ -119,7 +119,9 @@ def observe_rows(
     ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
     no_surface_fraction, foreground_fraction).
 
-    config: ``max_side`` (neighbours tried on each side), ``max_no_surface``, ``image_scale``
+    config: ``max_side`` (neighbours tried on each side), ``max_no_surface``,
+    ``snap_fraction`` (None: k row spacings from the best row; else onto a fitted row within
+    that fraction of a spacing), ``image_scale``
     and ``preset`` (the observe stage's, so every row is observed alike) and ``layout`` (its
     row spacing).
     """
@@ -147,6 +149,7 @@ def observe_rows(
             rows,
             layout_of(crop, config).row_spacing,
             int(config.get("max_side", 2)),
+            snap_fraction=config.get("snap_fraction"),
         )
         artefacts, hashes, listed = {}, {}, []
         with store.open_local(key_of(upstream["surfaces"], "model")) as model_dir:

@@ -845,7 +845,9 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
         )
         shift = obs.camera.cam_to_world[:3, 3] - best.camera.cam_to_world[:3, 3]
         assert shift @ best.camera.cam_to_world[:3, 1] == pytest.approx(listed[k]["offset_m"])
-        assert abs(listed[k]["offset_m"]) == pytest.approx(0.76 * abs(k), abs=0.25 * 0.76)
+        # k row spacings from the best row (rows.snap: null), not on a fitted RANSAC line
+        assert listed[k]["offset_m"] == pytest.approx(0.76 * k, abs=1e-9)
+        assert tried[k]["snapped"] is False
         assert obs.meta["row"]["index"] == k
         fit = store.get_json(f"{scene}/fit/{labels[k]}/fit.json")
         assert fit["params"] == listed[k]["params"]
@@ -866,6 +868,9 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
         _cached(base_run["store"], scene_dir, {**OVERRIDES, "rows.neighbours": -1})
     with pytest.raises(ConfigError, match="rows.answer"):
         _cached(base_run["store"], scene_dir, {**overrides, "rows.answer": "median"})
+    for bad in (0.5, 0, "near", True):
+        with pytest.raises(ConfigError, match="rows.snap"):
+            _cached(base_run["store"], scene_dir, {**overrides, "rows.snap": bad})
 
     # the scene's answer from every row's: the rows' answers are reused, only what follows the
     # answer is recomputed; the best row's own answer stays where it was

@@ -534,9 +534,9 @@ def test_registration_finds_how_far_a_model_sits_off_its_cameras():
 
 def test_neighbour_row_cameras_move_across_the_rows_and_sit_over_a_fitted_row_nearby():
     """The k-th neighbour's camera is the best row's moved by k spacings along its image y
-    (same height, heading and intrinsics), or onto a parallel fitted row within a quarter
-    spacing of that place; rows at an angle are no neighbours; a camera rolled by 180° counts
-    its own image y."""
+    (same height, heading and intrinsics); with ``snap_fraction`` it sits on a parallel fitted
+    row within that fraction of a spacing of that place instead; rows at an angle are no
+    neighbours; a camera rolled by 180° counts its own image y."""
     from cropcraft_core.geometry.camera import PinholeCamera
     from cropcraft_core.rowfit import Row, neighbour_row_views, row_label
 
@@ -554,7 +554,11 @@ def test_neighbour_row_cameras_move_across_the_rows_and_sit_over_a_fitted_row_ne
         Row(np.array([d[1], -d[0]]), c + 1.5 * right, 500),  # across the rows: ignored
         Row(d, c + 1.20 * right, 100),  # 0.32 m from +2's place: too far to snap
     ]
-    views = neighbour_row_views(cam, rows, 0.76, max_side=2)
+    # by default on the row pattern: k spacings, whatever lines the row fit found there
+    plain = neighbour_row_views(cam, rows, 0.76, max_side=2)
+    assert [v.offset_m for v in plain] == pytest.approx([0.76, -0.76, 1.52, -1.52])
+    assert not any(v.snapped for v in plain)
+    views = neighbour_row_views(cam, rows, 0.76, max_side=2, snap_fraction=0.25)
     assert [v.index for v in views] == [1, -1, 2, -2]
     assert [v.label for v in views] == ["row_p1", "row_m1", "row_p2", "row_m2"]
     assert [v.offset_m for v in views] == pytest.approx([0.70, -0.80, 1.52, -1.52])
@@ -572,8 +576,11 @@ def test_neighbour_row_cameras_move_across_the_rows_and_sit_over_a_fitted_row_ne
     flip[:3, 0] *= -1
     flip[:3, 1] *= -1
     rolled = PinholeCamera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, flip)
-    views = neighbour_row_views(rolled, rows, 0.76, max_side=1)
+    views = neighbour_row_views(rolled, rows, 0.76, max_side=1, snap_fraction=0.25)
     assert [v.offset_m for v in views] == pytest.approx([0.80, -0.70])
     for bad in (0.0, -0.76, float("nan")):
         with pytest.raises(ConfigError, match="row spacing"):
             neighbour_row_views(cam, rows, bad)
+    for bad in (0.0, 0.5, -0.1):
+        with pytest.raises(ConfigError, match="snap_fraction"):
+            neighbour_row_views(cam, rows, 0.76, snap_fraction=bad)
