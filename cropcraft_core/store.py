@@ -420,6 +420,10 @@ class Manifest(BaseModel):
     date: str
     inputs: dict[str, str] = Field(default_factory=dict)
     """Scene inputs (images, imported poses): {name or key: sha256}."""
+    sources: dict[str, str | None] = Field(default_factory=dict)
+    """Where the last run read its inputs: ``{"images": URL or path, "poses": ...}`` as it was
+    given (None: the scene's inbox in the store), so ``cropcraft status`` can check the cache
+    for photos that never went to the inbox."""
     config: dict[str, Any] = Field(default_factory=dict)
     """The resolved scene config, as canonical JSON data."""
     config_hash: str = ""
@@ -1091,8 +1095,10 @@ class SceneStore:
         config: Any,
         *,
         version: str | None = None,
+        sources: Mapping[str, str | None] | None = None,
     ) -> Manifest:
-        """Create (or refresh) a scene's manifest from its inputs and resolved config.
+        """Create (or refresh) a scene's manifest from its inputs and resolved config;
+        ``sources``: where the inputs were read (:attr:`Manifest.sources`).
 
         ``config`` is stored as canonical JSON data with its :func:`config_hash`. If a manifest
         already exists with the same inputs and config hash, its stage records are kept;
@@ -1115,6 +1121,7 @@ class SceneStore:
                 config=data,
                 config_hash=chash,
                 code_version=version or code_version(),
+                sources=dict(sources or {}),
             )
             if old is not None:
                 manifest.created = old.created

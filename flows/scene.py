@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -387,6 +388,14 @@ def prepare(
     if poses_uri:
         inputs["poses"] = fingerprint(str(poses_uri), what="poses")
     return SceneRequest(scene, st.root, str(uri), poses_uri and str(poses_uri), cfg, inputs)
+
+
+def _located(uri: str | None) -> str | None:
+    """A run's ``images`` / ``poses`` argument as the manifest keeps it: a local path made
+    absolute (``cropcraft status`` may run from another folder), a URL as given."""
+    if uri is None or "://" in str(uri):
+        return None if uri is None else str(uri)
+    return os.path.abspath(str(uri))
 
 
 def result_storage(store_root: str) -> Any:
@@ -804,6 +813,7 @@ def reconstruct_scene(
         req.scene,
         {f"{k}:{n}": v for k, fp in req.inputs.items() for n, v in fp.items()},
         req.config,
+        sources={"images": _located(images), "poses": _located(poses)},
     )
     ex = _PrefectRun(req, result_storage(req.store_root))
     records = _wire(ex, req)

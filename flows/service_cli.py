@@ -289,8 +289,9 @@ def cmd_season(args: argparse.Namespace) -> int:
 
 def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list[dict[str, Any]]:
     """Per stage: manifest status (done/failed/running/pending), whether its result for the
-    scene's inbox photos and its recorded config (or ``overrides``) is cached, its time and
-    error."""
+    photos the last run read (``Manifest.sources``: the inbox, a folder or a URL) and its
+    recorded config (or ``overrides``) is cached (``fit_seed``: how many seeds, the best
+    row's and then the neighbour rows', e.g. ``10+20 seeds``), its time and error."""
     from cropcraft_core.errors import InputError
     from cropcraft_core.store import SceneStore
     from flows.scene import cache_walk, prepare
@@ -306,7 +307,16 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     if manifest is not None:
         try:
             recorded = overrides if overrides is not None else manifest.config
-            req = prepare(scene.site, scene.crop, scene.date, None, None, recorded, store_uri)
+            src = manifest.sources  # where the last run read its photos (None: the inbox)
+            req = prepare(
+                scene.site,
+                scene.crop,
+                scene.date,
+                src.get("images"),
+                src.get("poses"),
+                recorded,
+                store_uri,
+            )
             states, _ = cache_walk(req)
         except Exception:  # inputs moved: report the manifest only
             states = {}
@@ -314,9 +324,11 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     rows = []
     for stage in STAGES:
         rec = manifest.stages.get(stage) if manifest else None
-        if stage == "fit_seed":
-            n = sum(1 for k in states if k.startswith("fit_seed-") and "@" not in k)
-            cached = f"{n} seeds" if n else "no"
+        if stage == "fit_seed":  # the best row's seeds, then the neighbour rows' ("10+20")
+            seeds = [k for k, v in states.items() if k.startswith("fit_seed-") and v == "Cached"]
+            n = sum("@" not in k for k in seeds)
+            others = len(seeds) - n
+            cached = (f"{n}+{others} seeds" if others else f"{n} seeds") if seeds else "no"
         else:
             cached = "yes" if states.get(stage) == "Cached" else "no"
         status = rec.status if rec else "pending"

@@ -859,8 +859,14 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     assert season["rows_fitted"] == len(kept) + 1
     assert season["lai_rows_min_m2_m2"] == min(v for v in rows["lai"].values())
     assert season["lai_rows_max_m2_m2"] == max(v for v in rows["lai"].values())
-    status = {r["stage"]: r["status"] for r in scene_status(str(base_run["store"]), scene)}
+    listing = {r["stage"]: r for r in scene_status(str(base_run["store"]), scene)}
+    status = {stage: r["status"] for stage, r in listing.items()}
     assert status["observe_rows"] == status["rows"] == status["aggregate"] == "done"
+    # the photos came from a folder, not the inbox: the manifest says where, so status walks
+    # the cache for them; the best row's seeds, then the neighbour rows'
+    assert store.load_manifest(SceneKey.parse(scene)).sources["images"] == str(scene_dir / "images")
+    assert listing["observe_rows"]["cached"] == listing["rows"]["cached"] == "yes"
+    assert listing["fit_seed"]["cached"] == f"{N_SEEDS}+{N_SEEDS * len(kept)} seeds"
     # unchanged: answered from the records, rows included
     hit = _cached(base_run["store"], scene_dir, overrides)
     assert hit is not None and hit["rows"] == rows

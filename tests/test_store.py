@@ -211,12 +211,14 @@ def test_manifest_roundtrip_and_stage_updates(store):
     img = artefact_key(SCENE, "images", "a.jpg")
     inputs = {img: store.put_bytes(img, b"jpeg")}
     config = {"crop": "soybean", "seeds": 10, "fit": {"iters": 50, "lr": 0.1}}
-    m = store.init_manifest(SCENE, inputs, config)
+    sources = {"images": "s3://field/plotA/photos", "poses": None}
+    m = store.init_manifest(SCENE, inputs, config, sources=sources)
     assert m.config_hash == config_hash(config) == config_hash({"fit": config["fit"], **config})
     assert m.code_version.startswith(__version__)
     loaded = store.load_manifest(SCENE)
     assert loaded == m
     assert loaded.inputs == inputs and loaded.config == config and loaded.scene == SCENE
+    assert loaded.sources == sources  # where the run read them, for cropcraft status
 
     cameras = artefact_key(SCENE, "sfm", "cameras.json")
     store.update_stage(SCENE, "sfm", status="running", config_hash="c1", inputs=inputs)
