@@ -295,15 +295,19 @@ def fit_geometry(
         from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
         others, tried = neighbour_observations(geo, crop, rowfit, layout.row_spacing, neighbours)
-        answers = [{"index": 0, "params": res.params, "params_std": res.params_std}]
-        fits = {0: res.to_dict()}
+        fits = {0: res.to_dict()}  # every row's fit.json, by row index
         for k, o in others.items():
-            r = fit_observation(o, cfg, layout=layout)
-            fits[k] = r.to_dict()
-            off = next(t["offset_m"] for t in tried if t["index"] == k)
-            answers.append(
-                {"index": k, "offset_m": off, "params": r.params, "params_std": r.params_std}
-            )
+            fits[k] = fit_observation(o, cfg, layout=layout).to_dict()
+        offsets = {0: 0.0, **{t["index"]: t["offset_m"] for t in tried}}
+        answers = [
+            {
+                "index": k,
+                "offset_m": offsets[k],
+                "params": f["params"],
+                "params_std": f["params_std"],
+            }
+            for k, f in fits.items()
+        ]
         answer = rows_answer(fits, row_answer)
         table = {**compare_rows(crop, answers, layout, seed), "tried": tried}
         table.update(answer=row_answer, answer_params=answer["params"])
