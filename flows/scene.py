@@ -393,9 +393,9 @@ def prepare(
 def _located(uri: str | None) -> str | None:
     """A run's ``images`` / ``poses`` argument as the manifest keeps it: a local path made
     absolute (``cropcraft status`` may run from another folder), a URL as given."""
-    if uri is None or "://" in str(uri):
-        return None if uri is None else str(uri)
-    return os.path.abspath(str(uri))
+    if uri is None:
+        return None
+    return str(uri) if "://" in str(uri) else os.path.abspath(str(uri))
 
 
 def result_storage(store_root: str) -> Any:
