@@ -110,10 +110,11 @@ def observe_rows(
 ) -> dict[str, Any]:
     """Observations over the best row's neighbours
     (:func:`cropcraft_core.rowfit.neighbours.neighbour_row_views`: the row camera moved by ±k
-    planting row spacings, or onto a fitted row there), each rendered and built as the
-    ``observe`` stage's; a neighbour whose view has more than ``max_no_surface`` without a
-    fully supported surface, and more than the best row's own view (the ``observe``
-    record's ``no_surface_fraction``), lies (partly) outside the reconstruction and is left
+    planting row spacings, or with ``snap_fraction`` onto a fitted row there), each rendered
+    and built as the ``observe`` stage's; a neighbour whose view has more than
+    ``max_no_surface`` without a fully supported surface, and more than the best row's own
+    view (the ``observe`` record's ``no_surface_fraction``), lies (partly) outside the
+    reconstruction and is left
     out. Stores
     ``{scene}/observe/row_p1/observation.npz`` etc.; the record's artefacts are
     ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
