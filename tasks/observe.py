@@ -114,9 +114,8 @@ def observe_rows(
     and built as the ``observe`` stage's; a neighbour whose view has more than
     ``max_no_surface`` without a fully supported surface, and more than the best row's own
     view (the ``observe`` record's ``no_surface_fraction``), lies (partly) outside the
-    reconstruction and is left
-    out. Stores
-    ``{scene}/observe/row_p1/observation.npz`` etc.; the record's artefacts are
+    reconstruction and is left out. Stores ``{scene}/observe/row_p1/observation.npz`` etc.;
+    the record's artefacts are
     ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
     no_surface_fraction, foreground_fraction).
 
