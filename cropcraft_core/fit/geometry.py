@@ -189,21 +189,18 @@ def neighbour_observations(
     row_spacing: float,
     neighbours: int,
     max_no_surface: float = 0.18,
-    snap_fraction: float | None = None,
 ) -> tuple[dict[int, Observation], list[dict]]:
     """Observations of ``geo`` over the best row's neighbours (``rowfit`` from
     :func:`observe_geometry`; ``cropcraft_core.rowfit.neighbours``): ``({index: observation},
     tried)``, a neighbour left out where more than ``max_no_surface`` of its view's ground
     lies beyond the geometry (:func:`outside_fraction`); ``tried`` lists every one
-    considered. ``snap_fraction``: see :func:`~cropcraft_core.rowfit.neighbour_row_views`."""
+    considered. The cameras sit k row spacings from the best row's (no snapping onto fitted
+    rows: :func:`~cropcraft_core.rowfit.neighbour_row_views`)."""
     from cropcraft_core.rowfit import neighbour_row_views
 
     kept: dict[int, Observation] = {}
     tried = []
-    views = neighbour_row_views(
-        rowfit.camera, rowfit.rows, row_spacing, neighbours, snap_fraction=snap_fraction
-    )
-    for view in views:
+    for view in neighbour_row_views(rowfit.camera, rowfit.rows, row_spacing, neighbours):
         unseen = outside_fraction(geo, rowfit, view.camera)
         ok = bool(unseen <= max_no_surface)
         tried.append({**view.to_dict(), "outside_fraction": unseen, "kept": ok})
