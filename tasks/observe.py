@@ -115,9 +115,8 @@ def observe_rows(
     ``max_no_surface`` without a fully supported surface, and more than the best row's own
     view (the ``observe`` record's ``no_surface_fraction``), lies (partly) outside the
     reconstruction and is left out. Stores ``{scene}/observe/row_p1/observation.npz`` etc.;
-    the record's artefacts are
-    ``observation@{index}`` and its summary lists every candidate row (index, offset, kept,
-    no_surface_fraction, foreground_fraction).
+    the record's artefacts are ``observation@{index}`` and its summary lists every candidate
+    row (index, offset, kept, no_surface_fraction, foreground_fraction).
 
     config: ``max_side`` (neighbours tried on each side), ``max_no_surface``,
     ``snap_fraction`` (None: k row spacings from the best row; else onto a fitted row within
