@@ -36,20 +36,21 @@ METHODS = ("bo", "trust-region", "random", "mlp")
 COMBINE_RULES = ("median", "mean", "reevaluate", "guarded")
 #: The rules that re-score candidates on fresh canopies (and so need the observation).
 RESCORING_RULES = ("reevaluate", "guarded")
-# Measured on the benchmark's stored seeds (fit/select.py): re-scoring improved maize's LAIE,
-# LAIPE and NCPE with each of three sets of re-scoring canopies; on dense soybean the loss
-# hardly constrains LAI and the winner jumped with the canopies. Soybean takes the per-parameter
-# median of the seeds' best points: a seed or two stranded at a valley's far end pull the mean
-# off (first 18 benchmark scenes: median LAIPE 0.059 against the mean's 0.091, NDPE 0.115
-# against 0.135, NCPE 0.218 against 0.256, LAIE 0.588 against 0.534; better on 6 of 7 columns
-# on the first 13 scenes, LAIE the exception, and on all 7 on the next 5). Since session 31 the
-# median is guarded (``select.guard``): where re-scoring's polished winner beats the median's own
-# polished floor by two standard errors on 32 fresh canopies, the winner is taken. On all 30
-# benchmark scenes (half-resolution row camera, the same seeds) it took the winner on 11 and read
-# LAIPE 0.116 against the median's 0.128, median LAIPE 0.080 / 0.097, NCPE 0.236 / 0.265, AME
-# 10.2 / 10.7 deg, but LAIE 0.485 / 0.430 and NDPE 0.145 / 0.135 (two closed canopies read 5-14
-# points lower); through SfM, the demo's canopy (tsdf) +16.2 % against +29.8 %
-# (benchmarks/RESULTS.md, *Combining the seeds*).
+# Measured on the benchmark's stored seeds (fit/select.py): re-scoring improved maize's LAIE, LAIPE
+# and NCPE with each of three sets of re-scoring canopies, and on 12 fresh maize scenes (30-41,
+# session 37) it read LAIE 0.180 / NDPE 0.034 against the median's 0.485 / 0.054, though the median
+# had won scenes 18-29 (benchmarks/RESULTS.md, *Synthetic accuracy: maize*). On dense soybean the
+# loss hardly constrains LAI and the winner jumped with the canopies. Soybean takes the
+# per-parameter median of the seeds' best points: a seed or two stranded at a valley's far end pull
+# the mean off (first 18 benchmark scenes: median LAIPE 0.059 against the mean's 0.091, NDPE 0.115
+# against 0.135, NCPE 0.218 against 0.256, LAIE 0.588 against 0.534; better on 6 of 7 columns on the
+# first 13 scenes, LAIE the exception, and on all 7 on the next 5). Since session 31 the median is
+# guarded (``select.guard``): where re-scoring's polished winner beats the median's own polished
+# floor by two standard errors on 32 fresh canopies, the winner is taken. On all 30 benchmark scenes
+# (half-resolution row camera, the same seeds) it took the winner on 11 and read LAIPE 0.116 against
+# the median's 0.128, median LAIPE 0.080 / 0.097, NCPE 0.236 / 0.265, AME 10.2 / 10.7 deg, but LAIE
+# 0.485 / 0.430 and NDPE 0.145 / 0.135 (two closed canopies read 5-14 points lower); through SfM,
+# the demo's canopy (tsdf) +16.2 % against +29.8 % (benchmarks/RESULTS.md, *Combining the seeds*).
 DEFAULT_COMBINE = {"soybean": "guarded", "maize": "reevaluate"}
 # With the node count given (a value in ``FitConfig.box``, not a range), soybean's seeds no
 # longer spread along the valley of fewer, longer internodes with bigger leaves that the median
