@@ -5,9 +5,9 @@ scene's photos with their true poses, samples its point cloud, fits the rows (me
 are), makes the row camera's observation, renders a few of the photos' own views and scores them
 against the scene's true per-view depth (``depth/*.npy``), and writes what the other half needs
 into ``--out``: ``observation.npz``, ``row.json`` (the row camera in the truth frame and its
-direction / lateral / height errors, timings, per-view scores), ``points.npz``,
-``ns-train.log``. It needs neither Open3D nor the truth mesh, which a GPU worker image may
-lack.
+direction / lateral / height errors, timings, the pace ns-train logged, per-view scores),
+``points.npz``, ``ns-train.log``. It needs neither Open3D nor the truth mesh, which a GPU
+worker image may lack.
 
 ``compare`` (any host with the project installed): the same figures ``bench pipeline --poses
 truth`` prints for the CPU backends, from the kept files: the depth histogram's L1 against the
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from pathlib import Path
 
@@ -46,6 +47,67 @@ def view_scores(depth: np.ndarray, true: np.ndarray) -> dict:
         "median_ratio": float(np.median(depth[both] / true[both])) if err.size else float("nan"),
         "within": float((err < WITHIN_M).mean()) if err.size else 0.0,
         "holes": float((seen & ~np.isfinite(depth)).sum() / max(int(seen.sum()), 1)),
+    }
+
+
+#: ANSI escapes (colours, cursor moves) in a log nerfstudio's rich console wrote
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+#: nerfstudio's duration units (``writer.py``'s "2 d, 11 h, 44 m, 33 s, 12.000 ms")
+_UNIT_S = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0, "ms": 1e-3}
+_RATE = {"": 1.0, "K": 1e3, "M": 1e6, "G": 1e9}
+
+
+def _duration_s(text: str) -> float | None:
+    """Seconds of a nerfstudio duration ("1 s, 338.214 ms", "52.000 ms"), None if not one."""
+    parts = [p.split() for p in text.split(",")]
+    if not all(len(p) == 2 and p[1] in _UNIT_S for p in parts):
+        return None
+    try:
+        return sum(float(v) * _UNIT_S[u] for v, u in parts)
+    except ValueError:
+        return None
+
+
+def _rate(text: str) -> float | None:
+    """A nerfstudio rate ("42.61 K", "12.47 M") as a number, None if not one."""
+    v, _, unit = text.strip().partition(" ")
+    try:
+        return float(v) * _RATE[unit.strip()]
+    except (ValueError, KeyError):
+        return None
+
+
+def train_pace(log: str) -> dict:
+    """The training pace ``ns-train``'s console table reports (its "Train Iter (time)" column:
+    the mean of its recent steps, printed every few steps; "Train Rays / Sec"), from its log:
+    how many rows were read, the last step, and the medians over the rows (the first rows hold
+    CUDA's warm-up, the median passes over them). Columns are found by the table's header, so
+    a viewer's extra column does not shift them (a cell that fills its 20 characters runs into
+    the next, as the warm-up row's ETA does: neither is read). The writer reprints its last
+    rows each time (cursor up, in a terminal), so a log holds each row several times: a step
+    counts once.
+    {} when the log has no such table."""
+    rows, cols = {}, None
+    for raw in log.splitlines():
+        line = _ANSI.sub("", raw).rstrip()
+        if "Train Iter (time)" in line:
+            cols = [c.strip() for c in re.split(r"\s{2,}", line.strip())]
+            continue
+        m = re.match(r"\s*(\d+) \(\s*[\d.]+%\)\s{2,}(.*)$", line)
+        if cols is None or m is None:
+            continue
+        cells = dict(zip(cols[1:], re.split(r"\s{2,}", m.group(2).strip()), strict=False))
+        it = _duration_s(cells.get("Train Iter (time)", ""))
+        if it is not None:
+            rows[int(m.group(1))] = (it, _rate(cells.get("Train Rays / Sec", "")))
+    if not rows:
+        return {}
+    rays = [r for _, r in rows.values() if r is not None]
+    return {
+        "rows": len(rows),
+        "last_step": max(rows),
+        "median_iter_ms": 1e3 * float(np.median([t for t, _ in rows.values()])),
+        "median_rays_per_s": float(np.median(rays)) if rays else None,
     }
 
 
@@ -97,8 +159,11 @@ def train(a: argparse.Namespace) -> dict:
     backend.fit(images, poses.cameras, box)
     sec["train"] = time.perf_counter() - t
     log = out / "work" / "ns-train.log"
+    pace = {}
     if log.exists():
-        (out / "ns-train.log").write_text(log.read_text()[-200_000:])
+        text = log.read_text(errors="replace")
+        (out / "ns-train.log").write_text(text[-200_000:])
+        pace = train_pace(text)
 
     def keep() -> dict:  # row.json as it stands: each stage adds to it
         (out / "row.json").write_text(json.dumps(rec, indent=1, default=float))
@@ -112,6 +177,7 @@ def train(a: argparse.Namespace) -> dict:
         "nerf_args": list(a.nerf_arg),
         "seconds": sec,
         "surfaces_timings": backend.timings,
+        "pace": pace,
     }
 
     # the photos' own views first: they judge the radiance field even where no rows are found
@@ -179,6 +245,7 @@ def compare(a: argparse.Namespace) -> dict:
     keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
     keys += ("views_mean",)
     out = {k: rec[k] for k in keys}
+    out["pace"] = rec.get("pace", {})  # train halves from before session 38 lack it
     if "row_errors" in rec:  # train halves from before it was recorded lack it
         out["row_errors"] = rec["row_errors"]
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
@@ -227,6 +294,22 @@ def print_compare(out: dict) -> None:
             f"{far:.3f} (nerfstudio's frame)" if far is not None else "nerfstudio's"
         )
     print(head)
+    pace = out.get("pace") or {}
+    if pace:
+        # what the steps' own pace leaves of the training wall time: start-up, checkpoints
+        steps_s = pace["last_step"] * pace["median_iter_ms"] / 1e3
+        rays = pace.get("median_rays_per_s")
+        print(
+            f"  training pace: {pace['median_iter_ms']:.1f} ms per iteration"
+            + (f" ({rays / 1e3:.1f} K rays/s)" if rays else "")
+            + f", median of {pace['rows']} logged rows to step {pace['last_step']}"
+            + (
+                f"; {t['nerf_train'] - steps_s:.0f} s of the {t['nerf_train']:.0f} s "
+                "training outside the steps"
+                if "nerf_train" in t
+                else ""
+            )
+        )
     v, pts = out["views_mean"], out.get("points", {})
     print(
         f"  the photos' own views: median depth ratio {v['median_ratio']:.3f}, error "

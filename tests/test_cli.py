@@ -273,7 +273,10 @@ def test_nerfacto_compare_prints_its_figures_against_the_targets(capsys):
     out = {
         "backend": "nerfacto",
         "scene_dir": "SA",
-        "surfaces_timings": {"nerf_iterations_done": 1001, "nerf_far_plane": 3.5},
+        "surfaces_timings": {"nerf_iterations_done": 1001, "nerf_far_plane": 3.5,
+                             "nerf_train": 483.0},
+        "pace": {"rows": 500, "last_step": 5000, "median_iter_ms": 96.0,
+                 "median_rays_per_s": 42_670.0},
         "views_mean": {"median_ratio": 0.998, "median_abs_err_m": 0.018, "within": 0.53,
                        "holes": 0.0},
         "points": {"n": 100, "within": 0.92, "median_dist_m": 0.0058},
@@ -288,9 +291,54 @@ def test_nerfacto_compare_prints_its_figures_against_the_targets(capsys):
     print_compare(out)
     text = capsys.readouterr().out
     assert "1001 iterations, far plane 3.500" in text and "92.0 % of 100 points" in text
+    # 5,000 steps at 96 ms are 480 s of the 483 s
+    assert (
+        "training pace: 96.0 ms per iteration (42.7 K rays/s), median of 500 logged rows to "
+        "step 5000; 3 s of the 483 s training outside the steps"
+    ) in text
     rows = [line for line in text.splitlines() if line.strip().endswith(("yes", "NO"))]
     assert [r.split()[-1] for r in rows] == ["yes", "NO", "yes", "yes", "NO"], rows
     assert "lai 0.922 (true 1.26)" in text and "miss: reconstruction" in text
+
+
+def test_nerfacto_benchmark_reads_the_training_pace_from_the_log():
+    """``bench nerfacto train``'s pace, from an ``ns-train`` log as nerfstudio's local writer
+    leaves it in a file (fixed 20-character columns, its last rows reprinted after cursor-up
+    escapes, the header again, a warm-up row): each step counted once, the medians by hand;
+    a viewer's extra column does not shift the reading, and a log without the table gives {}."""
+    from benchmarks.bench_nerfacto import train_pace
+
+    def row(*cells):
+        return "".join(f"{c:<20} " if i else f"{c:<20}" for i, c in enumerate(cells))
+
+    head = row("Step (% Done)", "Train Iter (time)", "ETA (time)", "Train Rays / Sec")
+    up = "\x1b[1A\x1b[2K" * 3
+    rows = [
+        row("0 (0.00%)", "14 s, 338.214 ms", "2 d, 11 h, 44 m, 33 s", "285.71"),
+        row("10 (0.20%)", "96.000 ms", "8 m, 0 s", "42.67 K"),
+        row("20 (0.40%)", "100.000 ms", "8 m, 19 s", "40.96 K"),
+        row("30 (0.60%)", "98.000 ms", "8 m, 9 s", "41.80 K"),
+    ]
+    log = "\n".join(
+        ["No Nerfstudio checkpoint to load, so training from scratch.", head, "-" * len(head)]
+        + rows[:2]
+        + [up + head, "-" * len(head), *rows[:3], up + head, "-" * len(head), *rows]
+        + ["Saving checkpoint at step 30"]
+    )
+    pace = train_pace(log)
+    assert pace["rows"] == 4 and pace["last_step"] == 30
+    # medians of 4: (98 + 100) / 2 ms (the warm-up row counts, the median passes it over);
+    # the warm-up row's ETA fills its column, so its rate runs into it and is not read
+    assert pace["median_iter_ms"] == pytest.approx(99.0)
+    assert pace["median_rays_per_s"] == pytest.approx(41_800)
+
+    viewer = row("Step (% Done)", "Vis Rays / Sec", "Train Iter (time)", "ETA (time)")
+    log = "\n".join([viewer, row("500 (2.50%)", "1.20 M", "52.000 ms", "17 m, 20 s")])
+    assert train_pace(log) == {
+        "rows": 1, "last_step": 500, "median_iter_ms": pytest.approx(52.0),
+        "median_rays_per_s": None,
+    }  # fmt: skip
+    assert train_pace("Traceback (most recent call last):\n  CUDA error") == {}
 
 
 def test_nerfacto_benchmark_scores_points_against_the_true_surfaces():
