@@ -85,8 +85,7 @@ def train_pace(log: str) -> dict:
     a viewer's extra column does not shift them (a cell that fills its 20 characters runs into
     the next, as the warm-up row's ETA does: neither is read). The writer reprints its last
     rows each time (cursor up, in a terminal), so a log holds each row several times: a step
-    counts once.
-    {} when the log has no such table."""
+    counts once. {} when the log has no such table."""
     rows, cols = {}, None
     for raw in log.splitlines():
         line = _ANSI.sub("", raw).rstrip()
