@@ -30,7 +30,9 @@ or bump ``ANSWERS_VERSION`` with a change to a combining rule's code, to recompu
 ``--checkpoint-dir`` (a long run's table so far, read while it runs). ``--first K`` fits and
 scores only scenes K onwards of ``--scenes`` (each by its own number, truth and seeds): the
 part of a run that one machine or session could not finish, whose per-scene results
-(``--json``) join those of the earlier part.
+(``--json``) join those of the earlier part; ``--only I,J,...`` fits and scores just those
+scenes (a probe of the scenes a change is about; their numbers, truths and seeds are the full
+run's).
 """
 
 from __future__ import annotations
@@ -220,6 +222,7 @@ def run(
     known: tuple[str, ...] = (),
     finished_only: bool = False,
     first: int = 0,
+    only: tuple[int, ...] = (),
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
     seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
@@ -228,7 +231,8 @@ def run(
     nothing, score only the scenes whose seeds are all finished in ``checkpoint_dir`` for every
     method (``scene_indices`` in the result says which); ``first``: fit and score only scenes
     ``first`` onwards of the ``scenes`` (a run split over machines; every scene keeps its own
-    truth, so the parts' per-scene results join)."""
+    truth, so the parts' per-scene results join); ``only``: fit and score just these scene
+    numbers of the ``scenes`` (a probe of the scenes a change is about)."""
     runs = [(m, m, True) for m in methods]
     if crn_ablation and "bo" in methods:
         runs.append(("bo-no-crn", "bo", False))
@@ -236,6 +240,13 @@ def run(
     if not 0 <= first < b0.scenes:
         raise ConfigError(f"bench accuracy: --first {first} is not one of the {b0.scenes} scenes")
     numbers = tuple(range(first, b0.scenes))  # the scenes fitted, by their own numbers
+    if only:
+        bad = sorted(set(only) - set(numbers))
+        if bad:
+            raise ConfigError(
+                f"bench accuracy: --only {bad[0]} is not one of scenes {first}..{b0.scenes - 1}"
+            )
+        numbers = tuple(sorted(set(only)))
     truths, observations = [], []
     for i in numbers:
         truth, obs = scene_observation(crop, i, b0.scale, preset_overrides)
@@ -275,7 +286,7 @@ def run(
         log(f"  finished in {checkpoint_dir}: {len(keep)} of {len(observations)} scenes {keep}")
         scene_set = scene_set.subset(keep)
         observations = scene_set.observations
-        truths = [truths[i - first] for i in keep]
+        truths = [truths[numbers.index(i)] for i in keep]
         out["scenes"] = len(keep)
     out["scene_indices"] = list(scene_set.indices)
     boxes = scene_set.boxes
@@ -609,6 +620,16 @@ def _parse_preset(crop: str, items: list[str]) -> dict:
     return out
 
 
+def _scene_list(text: str) -> tuple[int, ...]:
+    try:
+        out = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"scene numbers by commas, got {text!r}") from None
+    if not out or min(out) < 0:
+        raise argparse.ArgumentTypeError(f"scene numbers (0 or more) by commas, got {text!r}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
@@ -618,6 +639,13 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         help="fit only scenes FIRST.. of --scenes (to split a run over machines or sessions)",
+    )
+    ap.add_argument(
+        "--only",
+        type=_scene_list,
+        default=(),
+        metavar="I,J,...",
+        help="fit only these scene numbers of --scenes (e.g. the scenes a change is about)",
     )
     ap.add_argument("--methods", default="bo,trust-region,random,mlp")
     ap.add_argument("--quick", action="store_true")
@@ -690,9 +718,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.runner:
         if a.finished_only:
             raise SystemExit("bench accuracy: --finished-only is not available with --runner")
-        if preset_overrides or a.known or a.first:
+        if preset_overrides or a.known or a.first or a.only:
             raise SystemExit(
-                "bench accuracy: --preset, --known and --first are not available with --runner"
+                "bench accuracy: --preset, --known, --first and --only are not available with "
+                "--runner"
             )
         res = _run_flow(a, methods, overrides)
         print_table(res)
@@ -712,6 +741,7 @@ def main(argv: list[str] | None = None) -> int:
         known=tuple(a.known),
         finished_only=a.finished_only,
         first=a.first,
+        only=a.only,
     )
     print_table(res)
     if a.json:

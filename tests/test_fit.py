@@ -215,6 +215,13 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     p2 = predict_params(obs, cfg)  # from the cache: same network, same answer
     assert p1 == p2
     assert 1.0 <= p1["num_nodes"] <= 18.0
+    # an observation binned otherwise than the network's training pairs is refused by name
+    # before any training, not fed to the network as another input
+    canopy = generate_canopy("maize", {"num_nodes": 9.0}, default_layout("maize"), seed=11)
+    for kw, words in (({"depth_bins": 20}, "depth"), ({"depth_top_margin": 0.25}, "depth")):
+        other = observe_canopy(canopy, preset("maize", **{**SMALL, **kw}))
+        with pytest.raises(ConfigError, match=f"mlp baseline .* {words} histogram"):
+            predict_params(other, cfg)
 
 
 def test_bad_fit_config():
@@ -370,6 +377,12 @@ def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes
         assert r["predictions"] == first["methods"][row]["predictions"][1:], row
     with pytest.raises(ConfigError, match="--first 2 is not one of the 2 scenes"):
         run("maize", ["bo"], True, 2, first=2, **kw)
+    # --only 1: the same scene by its number, as --first 1 gave it; a number past the run's
+    # scenes is named
+    only = run("maize", ["bo"], True, 2, only=(1,), **kw)
+    assert only["scene_indices"] == [1] and only["methods"] == tail["methods"]
+    with pytest.raises(ConfigError, match="--only 5 is not one of scenes 0..1"):
+        run("maize", ["bo"], True, 2, only=(1, 5), **kw)
 
     # the kept answers are named by the seeds too: seeds that came out otherwise are not theirs
     from dataclasses import replace

@@ -118,6 +118,38 @@ def test_bad_presets_raise_config_error(crop, kw, words):
         preset(crop, **kw)
 
 
+def test_depth_range_over_the_canopy_is_resolved_by_the_observation(tmp_path):
+    # a 0.5 m maize "canopy" (a plane at z-depth 4.5 m under the 5 m camera) fills one of the
+    # paper's 0.3 m bins; with depth_top_margin 0.25 the bins start a quarter of the canopy's
+    # height above its top: [4.375, 5] m, 6.25 cm each, the plane in bin (4.5 - 4.375) / 0.0625
+    cam = MAIZE.row_camera().scaled(0.25)
+    p = preset("maize", depth_top_margin=0.25, image_width=cam.width, image_height=cam.height)
+    assert p.depth_range == (2.0, 5.0, 10)  # unresolved until it sees a canopy
+    o = Observation("maize", cam, plane(4.5, cam), full(cam), preset=p)
+    assert o.preset.depth_range == (4.375, 5.0, 10) and o.preset.loss.depth_top_margin is None
+    expected = np.zeros(10)
+    expected[2] = 1.0
+    np.testing.assert_array_equal(o.stats.depth, expected)
+    assert o.loss_of(plane(4.5, cam)).total == 0.0
+    # a taller prediction leaves the histogram (the mask area still counts it): a loss
+    assert o.loss_of(plane(4.3, cam)).depth == pytest.approx(1.0)
+    # the resolved preset round-trips as a fixed range, so a reload does not move it
+    o.save(tmp_path / "o")
+    back = Observation.load(tmp_path / "o")
+    assert back.equals(o) and back.preset.depth_range == (4.375, 5.0, 10)
+    # a canopy reaching above the paper's edge keeps it; a 0.5th-percentile top ignores a few
+    # stray pixels above the canopy
+    tall = Observation("maize", cam, plane(2.2, cam), full(cam), preset=p)
+    assert tall.preset.depth_range == (2.0, 5.0, 10)
+    d = plane(4.5, cam)
+    d.flat[:: d.size // 50] = 2.5  # 50 pixels (0.14 %) high above the canopy
+    assert Observation("maize", cam, d, full(cam), preset=p).preset.depth_range[0] == 4.375
+    # without the option nothing moves
+    assert Observation("maize", cam, plane(4.5, cam), full(cam)).preset.depth_range[0] == 2.0
+    with pytest.raises(ConfigError, match="depth_top_margin"):
+        preset("maize", depth_top_margin=-0.1)
+
+
 def test_parameter_box_violation_is_a_config_error():
     with pytest.raises(ConfigError, match="outside its range"):
         resolve_params("soybean", {"num_nodes": 30})

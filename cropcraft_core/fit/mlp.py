@@ -186,8 +186,18 @@ def predict_params(
 ) -> dict[str, float]:
     import torch
 
+    h = float(observation.preset.render_height)
+    trained = dict(preset(observation.crop, render_height=h).stats_spec())
+    differ = [k for k, v in observation.stats.spec if trained.get(k) != v]
+    if differ:  # the network reads its own presets' bins: others would be another input
+        raise ConfigError(
+            f"the mlp baseline is trained on the {observation.crop} preset's histograms; this "
+            f"observation's {', '.join(differ)} histogram settings differ "
+            f"({', '.join(f'{k}={dict(observation.stats.spec)[k]}' for k in differ)}): "
+            "fit it with the bo method, or observe it with the crop's default bins"
+        )
     net, mu, sd = load_or_train(observation.crop, cfg, layout)
-    x = features(observation.stats, observation.preset.render_height)
+    x = features(observation.stats, h)
     with torch.no_grad():
         u = net(torch.from_numpy(((x - mu) / sd)[None].astype(np.float32))).numpy()[0]
     b = param_bounds(observation.crop)

@@ -25,6 +25,7 @@ from cropcraft_core.observe.presets import (
     clear_render_height,
     observed_clearance,
     preset,
+    resolve_depth_range,
     soybean_render_height,
     with_overrides,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "observation_mask",
     "predicted_mask",
     "preset",
+    "resolve_depth_range",
     "clear_render_height",
     "observed_clearance",
     "soybean_render_height",

@@ -55,7 +55,7 @@ from cropcraft_core.observe.histograms import (
     lateral_factor,
 )
 from cropcraft_core.observe.loss import LossBreakdown, loss
-from cropcraft_core.observe.presets import CROPS, ObservePreset, preset
+from cropcraft_core.observe.presets import CROPS, ObservePreset, preset, resolve_depth_range
 
 FORMAT = "cropcraft-observation"
 VERSION = 1
@@ -222,7 +222,10 @@ class Observation:
     rgb: (H, W, 3) uint8 or float [0, 1] RGB render, or ``None``.
     stats: the :class:`HistogramStats` of (depth, mask); computed (derivative histogram
     included, whatever λ_sobel) when ``None``.
-    preset: the :class:`ObservePreset`; ``preset(crop)`` when ``None``.
+    preset: the :class:`ObservePreset`; ``preset(crop)`` when ``None``. One that fits its depth
+    range to the canopy (``depth_top_margin``) is resolved against this observation's
+    foreground depths (:func:`~cropcraft_core.observe.presets.resolve_depth_range`): the
+    attribute holds the resolved, fixed-range preset.
     meta: JSON-serialisable provenance (scene, source, render-height choice, ...).
     box_mask: whether ``mask`` drops the preset's box (height < ``mask_min_height``, ``|y|`` ≥
     ``mask_max_lateral``), as :func:`observation_mask` does; predictions are then cut by the
@@ -268,6 +271,7 @@ class Observation:
         n_bad = int(np.count_nonzero(m & ~valid))
         if n_bad:
             raise InputError(f"mask marks {n_bad} pixel(s) whose depth is not finite and positive")
+        p = resolve_depth_range(p, d[m])  # the depth bins over this canopy, where p asks
         rgb = self.rgb
         if rgb is not None:
             rgb_to_lab(rgb, d.shape)  # validates shape, dtype and range

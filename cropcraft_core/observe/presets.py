@@ -25,7 +25,9 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
-from cropcraft_core.errors import ConfigError
+import numpy as np
+
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry.camera import ROW_CAMERA_SIZE, ROW_CAMERA_VFOV_DEG, PinholeCamera
 
 #: Histogram normalisations understood by :func:`cropcraft_core.observe.compute_stats`.
@@ -55,6 +57,15 @@ class LossPreset:
     """Lower edge of the depth histogram, metres of z-depth (soybean 0.1, maize 2.0)."""
     depth_max: float | None = None
     """Upper edge of the depth histogram, metres of z-depth; ``None`` = the render height."""
+    depth_top_margin: float | None = None
+    """``None`` (default): the paper's fixed depth range. A number ``m`` (not in the paper): the
+    observation lowers the depth histogram's lower edge to just above its own canopy's top,
+    ``max(depth_min, t - m * (hi - t))`` with ``t`` the 0.5th percentile of its foreground
+    depths and ``hi`` the upper edge, so that a short canopy spans all the bins instead of one
+    or two (:func:`resolve_depth_range`). The observation keeps the resolved edge as its
+    preset's ``depth_min`` (and this field as ``None``), and its predictions are binned alike;
+    a prediction taller than ``t - m * (hi - t)`` leaves its top out of the depth histogram
+    (the mask area still counts it)."""
     lateral_bins: int = 10
     """Number of equal-width bins of |y|, the lateral offset from the row line (10)."""
     lateral_min: float = 0.0
@@ -95,7 +106,7 @@ class LossPreset:
             raise ConfigError(f"blur_kernel must be odd, got {self.blur_kernel}")
         for name in ("depth_min", "lateral_min", "sobel_max", "blur_sigma"):
             _finite(name, getattr(self, name), minimum=0.0)
-        for name in ("depth_max", "lateral_max"):
+        for name in ("depth_max", "lateral_max", "depth_top_margin"):
             if getattr(self, name) is not None:
                 _finite(name, getattr(self, name), minimum=0.0)
         if self.sobel_max <= 0:
@@ -301,7 +312,7 @@ _LOSS_FIELDS = {f.name: f for f in fields(LossPreset)}
 _BOOL_FIELDS = {"mask_predictions"}
 _INT_FIELDS = {"image_width", "image_height", "depth_bins", "lateral_bins", "sobel_bins"}
 _INT_FIELDS |= {"blur_kernel"}
-_OPTIONAL_FIELDS = {"depth_max", "lateral_max", "mask_l_min"}
+_OPTIONAL_FIELDS = {"depth_max", "lateral_max", "mask_l_min", "depth_top_margin"}
 
 
 def _coerce(name: str, value: Any) -> Any:
@@ -361,6 +372,32 @@ def with_overrides(p: ObservePreset, **overrides: Any) -> ObservePreset:
     return ObservePreset.from_dict(d)
 
 
+#: Percentile of an observation's foreground depths taken as its canopy's top by
+#: :func:`resolve_depth_range` (a few stray pixels above the canopy do not move it).
+CANOPY_TOP_PERCENTILE = 0.5
+
+
+def resolve_depth_range(p: ObservePreset, foreground_depths: np.ndarray) -> ObservePreset:
+    """``p`` with its depth histogram fitted to an observed canopy when ``p`` asks for it
+    (``depth_top_margin`` set): ``depth_min`` raised to ``t - margin * (hi - t)`` (never
+    lowered, never past the top ``t``: the :data:`CANOPY_TOP_PERCENTILE` th percentile of the
+    observation's foreground z-depths, metres) and ``depth_top_margin`` cleared, so the result
+    is an ordinary fixed-range preset that predictions share. ``p`` itself when it does not
+    ask. ``InputError`` for no finite foreground depth."""
+    margin = p.loss.depth_top_margin
+    if margin is None:
+        return p
+    d = np.asarray(foreground_depths, dtype=np.float64).ravel()
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        raise InputError("depth_top_margin: the observation has no finite foreground depth")
+    lo, hi, _ = p.depth_range
+    top = float(np.percentile(d, CANOPY_TOP_PERCENTILE))
+    edge = top - float(margin) * max(hi - top, 0.0)
+    new_lo = min(max(lo, edge), top) if top < hi else lo
+    return with_overrides(p, depth_min=float(new_lo), depth_top_margin=None)
+
+
 def soybean_render_height(plant_fraction: float) -> float:
     """Soybean render height for a scene whose sampled points are ``plant_fraction`` plant
     points: 1.25 m above 75 %, else 1.0 m (supplementary)."""
@@ -418,6 +455,7 @@ __all__ = [
     "clear_render_height",
     "observed_clearance",
     "preset",
+    "resolve_depth_range",
     "soybean_render_height",
     "with_overrides",
 ]
