@@ -17,7 +17,7 @@ from cropcraft_core.fit import (
     fit_seed,
     observe_canopy,
 )
-from cropcraft_core.fit.mlp import MLPConfig, predict_params
+from cropcraft_core.fit.mlp import MLPConfig, observation_features, predict_params
 from cropcraft_core.metrics import canopy_metrics
 from cropcraft_core.observe import preset
 from cropcraft_core.optimize import SeedResult
@@ -215,13 +215,19 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     p2 = predict_params(obs, cfg)  # from the cache: same network, same answer
     assert p1 == p2
     assert 1.0 <= p1["num_nodes"] <= 18.0
-    # an observation binned otherwise than the network's training pairs is refused by name
-    # before any training, not fed to the network as another input
-    canopy = generate_canopy("maize", {"num_nodes": 9.0}, default_layout("maize"), seed=11)
-    for kw, words in (({"depth_bins": 20}, "depth"), ({"depth_top_margin": 0.25}, "depth")):
-        other = observe_canopy(canopy, preset("maize", **{**SMALL, **kw}))
-        with pytest.raises(ConfigError, match=f"mlp baseline .* {words} histogram"):
-            predict_params(other, cfg)
+    # the network reads an observation as its training pairs were made: the paper's bins,
+    # whatever the observation's own (here depth bins over its canopy), and for maize no
+    # derivative histogram (zeros in training; an observation computes one for its reports)
+    other = observe_canopy(
+        generate_canopy("maize", {"num_nodes": 9.0}, default_layout("maize"), seed=11),
+        preset("maize", **{**SMALL, "depth_top_margin": 0.25}),
+    )
+    assert other.stats.spec != obs.stats.spec and obs.stats.sobel.any()
+    x = observation_features(other)
+    np.testing.assert_array_equal(x, observation_features(obs))
+    assert not x[20:30].any()  # 10 depth, 10 lateral, then the 10 derivative bins
+    np.testing.assert_allclose(x[:20], np.r_[obs.stats.depth, obs.stats.lateral], rtol=1e-6)
+    assert predict_params(other, cfg) == p1
 
 
 def test_bad_fit_config():

@@ -28,7 +28,7 @@ from cropcraft_core.config import CanopyLayout, default_layout
 from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.config.params import params_from_vector
 from cropcraft_core.errors import ConfigError
-from cropcraft_core.observe import HistogramStats, Observation, preset
+from cropcraft_core.observe import HistogramStats, Observation, compute_stats, preset
 
 MODEL_VERSION = 1
 
@@ -66,6 +66,19 @@ def features(stats: HistogramStats, render_height: float) -> np.ndarray:
     return np.concatenate(
         [stats.depth, stats.lateral, stats.sobel, [render_height, stats.mask_area]]
     ).astype(np.float32)
+
+
+def observation_features(observation: Observation) -> np.ndarray:
+    """The network's input for ``observation``: its statistics recomputed as the training
+    pairs' are (:func:`training_pairs`): the crop's paper bins at the observation's render
+    height, whatever bins the observation's own preset chose (e.g. ``depth_top_margin``), and
+    the derivative histogram only where the crop's loss weighs it (maize's is all zeros in
+    training, so an observation's, which it always computes for reports, would put the
+    network far outside everything it saw)."""
+    h = float(observation.preset.render_height)
+    paper = preset(observation.crop, render_height=h)
+    stats = compute_stats(observation.depth, observation.camera, observation.mask, paper)
+    return features(stats, h)
 
 
 def training_pairs(
@@ -186,18 +199,8 @@ def predict_params(
 ) -> dict[str, float]:
     import torch
 
-    h = float(observation.preset.render_height)
-    trained = dict(preset(observation.crop, render_height=h).stats_spec())
-    differ = [k for k, v in observation.stats.spec if trained.get(k) != v]
-    if differ:  # the network reads its own presets' bins: others would be another input
-        raise ConfigError(
-            f"the mlp baseline is trained on the {observation.crop} preset's histograms; this "
-            f"observation's {', '.join(differ)} histogram settings differ "
-            f"({', '.join(f'{k}={dict(observation.stats.spec)[k]}' for k in differ)}): "
-            "fit it with the bo method, or observe it with the crop's default bins"
-        )
     net, mu, sd = load_or_train(observation.crop, cfg, layout)
-    x = features(observation.stats, h)
+    x = observation_features(observation)
     with torch.no_grad():
         u = net(torch.from_numpy(((x - mu) / sd)[None].astype(np.float32))).numpy()[0]
     b = param_bounds(observation.crop)
