@@ -68,6 +68,13 @@ def features(stats: HistogramStats, render_height: float) -> np.ndarray:
     ).astype(np.float32)
 
 
+def network_preset(crop: str, render_height: float):
+    """The histograms the network reads: the crop's preset at ``render_height`` with fixed bins
+    (a ``depth_top_margin`` would fit every training pair's depth bins to the canopy that
+    fixes the forward model's camera, and every observation's to its own)."""
+    return preset(crop, render_height=render_height, depth_top_margin=None)
+
+
 def observation_features(observation: Observation) -> np.ndarray:
     """The network's input for ``observation``: its statistics recomputed as the training
     pairs' are (:func:`training_pairs`): the crop's paper bins at the observation's render
@@ -76,7 +83,7 @@ def observation_features(observation: Observation) -> np.ndarray:
     training, so an observation's, which it always computes for reports, would put the
     network far outside everything it saw)."""
     h = float(observation.preset.render_height)
-    paper = preset(observation.crop, render_height=h)
+    paper = network_preset(observation.crop, h)
     stats = compute_stats(observation.depth, observation.camera, observation.mask, paper)
     return features(stats, h)
 
@@ -95,7 +102,7 @@ def training_pairs(
     xs, ys = [], []
     per = int(np.ceil(cfg.n_pairs / len(heights)))
     for h in heights:
-        p = preset(crop, render_height=h)
+        p = network_preset(crop, h)
         # any observation fixes the camera and preset of the forward model
         seed_canopy = generate_canopy(crop, None, layout, seed=0)
         fm = ForwardModel(observe_canopy(seed_canopy, p), layout)
@@ -160,7 +167,7 @@ def config_hash(crop: str, cfg: MLPConfig, layout: CanopyLayout | None) -> str:
         "crop": crop,
         "cfg": asdict(cfg),
         "heights": cfg.heights(crop),
-        "presets": [preset(crop, render_height=h).to_dict() for h in cfg.heights(crop)],
+        "presets": [network_preset(crop, h).to_dict() for h in cfg.heights(crop)],
         "layout": lay.to_dict(),
         "version": __version__,
         "model": MODEL_VERSION,
