@@ -387,6 +387,10 @@ class _Scenes:
         # another loss or other statistics: another fit, its own checkpoints
         if self.preset_overrides:
             tag += "-p" + config_hash(self.preset_overrides)[:8]
+        # depth bins over each canopy (maize's default since session 40): not the paper's bins
+        top = preset(crop, **(self.preset_overrides or {})).loss.depth_top_margin
+        if top is not None:
+            tag += f"-top{top:g}"
         if any(self.boxes):  # parameters given: another fit, its own checkpoints
             tag += "-known-" + "-".join(sorted(self.boxes[0]))
         default_h = preset(crop).render_height

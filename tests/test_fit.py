@@ -216,18 +216,19 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     assert p1 == p2
     assert 1.0 <= p1["num_nodes"] <= 18.0
     # the network reads an observation as its training pairs were made: the paper's bins,
-    # whatever the observation's own (here depth bins over its canopy), and for maize no
-    # derivative histogram (zeros in training; an observation computes one for its reports)
-    other = observe_canopy(
+    # whatever the observation's own (maize's default fits its depth bins to the canopy), and
+    # for maize no derivative histogram (zeros in training; an observation computes one for
+    # its reports)
+    paper = observe_canopy(
         generate_canopy("maize", {"num_nodes": 9.0}, default_layout("maize"), seed=11),
-        preset("maize", **{**SMALL, "depth_top_margin": 0.25}),
+        preset("maize", **{**SMALL, "depth_top_margin": None}),
     )
-    assert other.stats.spec != obs.stats.spec and obs.stats.sobel.any()
-    x = observation_features(other)
-    np.testing.assert_array_equal(x, observation_features(obs))
+    assert paper.stats.spec != obs.stats.spec and obs.stats.sobel.any()
+    x = observation_features(obs)
+    np.testing.assert_array_equal(x, observation_features(paper))
     assert not x[20:30].any()  # 10 depth, 10 lateral, then the 10 derivative bins
-    np.testing.assert_allclose(x[:20], np.r_[obs.stats.depth, obs.stats.lateral], rtol=1e-6)
-    assert predict_params(other, cfg) == p1
+    np.testing.assert_allclose(x[:20], np.r_[paper.stats.depth, paper.stats.lateral], rtol=1e-6)
+    assert predict_params(paper, cfg) == p1
 
 
 def test_bad_fit_config():

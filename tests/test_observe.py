@@ -144,8 +144,10 @@ def test_depth_range_over_the_canopy_is_resolved_by_the_observation(tmp_path):
     d = plane(4.5, cam)
     d.flat[:: d.size // 50] = 2.5  # 50 pixels (0.14 %) high above the canopy
     assert Observation("maize", cam, d, full(cam), preset=p).preset.depth_range[0] == 4.375
-    # without the option nothing moves
-    assert Observation("maize", cam, plane(4.5, cam), full(cam)).preset.depth_range[0] == 2.0
+    # the paper's fixed range (soybean's default) moves nothing; maize's default is this margin
+    paper = with_overrides(p, depth_top_margin=None)
+    assert Observation("maize", cam, plane(4.5, cam), full(cam), preset=paper).preset == paper
+    assert MAIZE.loss.depth_top_margin == 0.25 and SOY.loss.depth_top_margin is None
     with pytest.raises(ConfigError, match="depth_top_margin"):
         preset("maize", depth_top_margin=-0.1)
 

@@ -58,7 +58,8 @@ class LossPreset:
     depth_max: float | None = None
     """Upper edge of the depth histogram, metres of z-depth; ``None`` = the render height."""
     depth_top_margin: float | None = None
-    """``None`` (default): the paper's fixed depth range. A number ``m`` (not in the paper): the
+    """Soybean ``None``: the paper's fixed depth range; maize 0.25. A number ``m`` (maize's
+    departure from the paper, measured in README's *Where the fit departs*): the
     observation lowers the depth histogram's lower edge to just above its own canopy's top,
     ``max(depth_min, t - m * (hi - t))`` with ``t`` the 0.5th percentile of its foreground
     depths and ``hi`` the upper edge, so that a short canopy spans all the bins instead of one
@@ -298,6 +299,7 @@ _BASE: dict[str, dict[str, Any]] = {
         mask_max_lateral=3.0,
         depth_bins=10,
         depth_min=2.0,
+        depth_top_margin=0.25,
         blur_kernel=55,
         lambda_lateral=1.0,
         lambda_sobel=0.0,
