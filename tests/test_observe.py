@@ -148,6 +148,14 @@ def test_depth_range_over_the_canopy_is_resolved_by_the_observation(tmp_path):
     paper = with_overrides(p, depth_top_margin=None)
     assert Observation("maize", cam, plane(4.5, cam), full(cam), preset=paper).preset == paper
     assert MAIZE.loss.depth_top_margin == 0.25 and SOY.loss.depth_top_margin is None
+    # a maize observation stored before the option existed reloads with the range it was made
+    # with, not re-binned by today's default
+    old = Observation("maize", cam, plane(4.5, cam), full(cam), preset=paper)
+    old.save(tmp_path / "old")
+    rec = json.loads((tmp_path / "old" / "observation.json").read_text())
+    del rec["preset"]["depth_top_margin"]
+    (tmp_path / "old" / "observation.json").write_text(json.dumps(rec))
+    assert Observation.load(tmp_path / "old").equals(old)
     with pytest.raises(ConfigError, match="depth_top_margin"):
         preset("maize", depth_top_margin=-0.1)
 

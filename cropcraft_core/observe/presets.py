@@ -261,10 +261,13 @@ class ObservePreset:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ObservePreset:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ConfigError``."""
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ConfigError``. A record without
+        ``depth_top_margin`` (older than it) reads as the fixed range it was made with."""
         if not isinstance(d, dict) or "crop" not in d:
             raise ConfigError("preset record must be a mapping with a 'crop' entry")
         rest = dict(d)
+        # a record written before the field existed had the paper's fixed depth range
+        rest.setdefault("depth_top_margin", None)
         return preset(rest.pop("crop"), **rest)
 
 
