@@ -74,6 +74,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # 4: a user's camera height is taken above the fitted ground plane, not levelling's ground;
     # maize's row-spacing scale from plant points within 3 m (was the rows' 2 m ROI)
     "rowfit": 4,
+    # 2: maize's depth bins start just above the observed canopy (depth_top_margin 0.25);
+    # soybean's observations come out the same bytes, so their fits stay cached
+    "observe": 2,
+    "observe_rows": 2,
     # 2: predictions are cut by the observation's box (height >= 0.1 m, |y| limit) like the
     # observation itself; before, the low leaves it drops counted on the predicted side only
     "fit_seed": 2,
