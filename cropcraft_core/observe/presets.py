@@ -60,8 +60,8 @@ class LossPreset:
     depth_top_margin: float | None = None
     """Soybean ``None``: the paper's fixed depth range; maize 0.25. A number ``m`` (maize's
     departure from the paper, measured in README's *Where the fit departs*): the
-    observation lowers the depth histogram's lower edge to just above its own canopy's top,
-    ``max(depth_min, t - m * (hi - t))`` with ``t`` the 0.5th percentile of its foreground
+    observation starts its depth histogram just above its own canopy's top instead of at
+    ``depth_min``: at z-depth ``max(depth_min, t - m * (hi - t))``, with ``t`` the 0.5th percentile of its foreground
     depths and ``hi`` the upper edge, so that a short canopy spans all the bins instead of one
     or two (:func:`resolve_depth_range`). The observation keeps the resolved edge as its
     preset's ``depth_min`` (and this field as ``None``), and its predictions are binned alike;
