@@ -61,10 +61,11 @@ class LossPreset:
     """Soybean ``None``: the paper's fixed depth range; maize 0.25. A number ``m`` (maize's
     departure from the paper, measured in README's *Where the fit departs*): the
     observation starts its depth histogram just above its own canopy's top instead of at
-    ``depth_min``: at z-depth ``max(depth_min, t - m * (hi - t))``, with ``t`` the 0.5th percentile of its foreground
-    depths and ``hi`` the upper edge, so that a short canopy spans all the bins instead of one
-    or two (:func:`resolve_depth_range`). The observation keeps the resolved edge as its
-    preset's ``depth_min`` (and this field as ``None``), and its predictions are binned alike;
+    ``depth_min``: at z-depth ``max(depth_min, t - m * (hi - t))``, with ``t`` the 0.5th
+    percentile of its foreground depths and ``hi`` the upper edge, so that a short canopy spans
+    all the bins instead of one or two (:func:`resolve_depth_range`). The observation keeps
+    the resolved edge as its preset's ``depth_min`` (and this field as ``None``), and its
+    predictions are binned alike;
     a prediction taller than ``t - m * (hi - t)`` leaves its top out of the depth histogram
     (the mask area still counts it)."""
     lateral_bins: int = 10
