@@ -65,9 +65,8 @@ class LossPreset:
     percentile of its foreground depths and ``hi`` the upper edge, so that a short canopy spans
     all the bins instead of one or two (:func:`resolve_depth_range`). The observation keeps
     the resolved edge as its preset's ``depth_min`` (and this field as ``None``), and its
-    predictions are binned alike;
-    a prediction taller than ``t - m * (hi - t)`` leaves its top out of the depth histogram
-    (the mask area still counts it)."""
+    predictions are binned alike; a prediction taller than ``t - m * (hi - t)`` leaves its top
+    out of the depth histogram (the mask area still counts it)."""
     lateral_bins: int = 10
     """Number of equal-width bins of |y|, the lateral offset from the row line (10)."""
     lateral_min: float = 0.0
@@ -399,8 +398,9 @@ def resolve_depth_range(p: ObservePreset, foreground_depths: np.ndarray) -> Obse
         raise InputError("depth_top_margin: the observation has no finite foreground depth")
     lo, hi, _ = p.depth_range
     top = float(np.percentile(d, CANOPY_TOP_PERCENTILE))
-    edge = top - float(margin) * max(hi - top, 0.0)
-    new_lo = min(max(lo, edge), top) if top < hi else lo
+    if top >= hi:  # nothing above the histogram's far edge to fit the bins to
+        return with_overrides(p, depth_top_margin=None)
+    new_lo = min(max(lo, top - float(margin) * (hi - top)), top)
     return with_overrides(p, depth_min=float(new_lo), depth_top_margin=None)
 
 
