@@ -352,6 +352,41 @@ def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_p
     assert sec["bo-median"] < sec["bo-unpolished"] < sec["bo"]
 
 
+def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth():
+    """``--diagnose K``: a scene whose LAI misses by more than 15 % is scored at its answer and
+    at its truth on the same K fresh canopies; an answer far from a truth that scores lower is
+    the optimiser's miss, the truth itself as the answer ties (the loss's, exactly zero apart);
+    a scene within 15 % is not scored, and each verdict's share of the squared LAI error is
+    its scenes' part; the bench's worker processes score alike."""
+    from benchmarks.bench_accuracy import diagnose, diagnose_misses, run, scene_observation
+    from benchmarks.workers import pool
+
+    truth, obs = scene_observation("maize", 0, 0.25)
+    same = diagnose(obs, truth["params"], truth["params"], 3)
+    assert same["difference"] == {"mean": 0.0, "se": 0.0} and same["whose"] == "loss"
+    assert same["answer_loss"] == same["truth_loss"] > 0
+    far = {**truth["params"], "leaf_length": 0.8, "num_nodes": 2.0}
+    miss = diagnose(obs, far, truth["params"], 3)
+    assert miss["truth_loss"] == same["truth_loss"]  # the same fresh canopies
+    assert miss["answer_loss"] > 5 * miss["truth_loss"] and miss["whose"] == "optimiser"
+
+    predictions = [
+        {"params": far, "lai": truth["lai"] * 0.5},
+        {"params": truth["params"], "lai": truth["lai"] * 1.1},
+    ]
+    got = diagnose_misses([obs, obs], predictions, [truth, truth], [7, 8], 3, log=print)
+    assert list(got["scenes"]) == [7] and got["scenes"][7] == miss and got["canopies"] == 3
+    share = got["share_of_lai_sq_error"]
+    assert share["optimiser"] == pytest.approx(0.25 / (0.25 + 0.01)) and share["loss"] == 0.0
+    ex = pool(2, {"observations": [obs, obs]})  # as the bench's worker processes score them
+    try:
+        assert diagnose_misses([obs, obs], predictions, [truth, truth], [7, 8], 3, ex) == got
+    finally:
+        ex.shutdown()
+    with pytest.raises(ConfigError, match="--diagnose takes 2 canopies or more, got 1"):
+        run("maize", ["bo"], True, 1, diagnose=1)
+
+
 def test_accuracy_bench_keeps_each_scenes_answers_and_scores_the_finished_scenes_alone(tmp_path):
     """With ``--checkpoint-dir`` a scene's answers under every row are kept beside its seeds, so
     a resumed run reads them instead of combining again (the same table); ``--first`` runs the
