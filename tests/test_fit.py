@@ -356,8 +356,9 @@ def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth
     """``--diagnose K``: a scene whose LAI misses by more than 15 % is scored at its answer and
     at its truth on the same K fresh canopies; an answer far from a truth that scores lower is
     the optimiser's miss, the truth itself as the answer ties (the loss's, exactly zero apart);
-    a scene within 15 % is not scored, and each verdict's share of the squared LAI error is
-    its scenes' part; the bench's worker processes score alike."""
+    a scene within 15 % is scored only where it is among the misses that carry most of LAIE,
+    each verdict's share of the squared LAI error is its scenes' part, and the bench's worker
+    processes score alike."""
     from benchmarks.bench_accuracy import diagnose, diagnose_misses, run, scene_observation
     from benchmarks.workers import pool
 
@@ -370,17 +371,24 @@ def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth
     assert miss["truth_loss"] == same["truth_loss"]  # the same fresh canopies
     assert miss["answer_loss"] > 5 * miss["truth_loss"] and miss["whose"] == "optimiser"
 
+    # scene 7 misses by 50 %; scene 8, ten times denser, by only 10 % but carries 79 % of the
+    # squared LAI error (scored too); scene 9's 10 % of a sparse canopy is left alone
+    lai = truth["lai"]
+    truths = [truth, {**truth, "lai": 10 * lai}, truth]
     predictions = [
-        {"params": far, "lai": truth["lai"] * 0.5},
-        {"params": truth["params"], "lai": truth["lai"] * 1.1},
+        {"params": far, "lai": 0.5 * lai},
+        {"params": truth["params"], "lai": 11 * lai},
+        {"params": far, "lai": 1.1 * lai},
     ]
-    got = diagnose_misses([obs, obs], predictions, [truth, truth], [7, 8], 3, log=print)
-    assert list(got["scenes"]) == [7] and got["scenes"][7] == miss and got["canopies"] == 3
+    obs3 = [obs, obs, obs]
+    got = diagnose_misses(obs3, predictions, truths, [7, 8, 9], 3, log=print)
+    assert list(got["scenes"]) == [7, 8] and got["canopies"] == 3
+    assert got["scenes"][7] == miss and got["scenes"][8] == same
     share = got["share_of_lai_sq_error"]
-    assert share["optimiser"] == pytest.approx(0.25 / (0.25 + 0.01)) and share["loss"] == 0.0
-    ex = pool(2, {"observations": [obs, obs]})  # as the bench's worker processes score them
+    assert share == pytest.approx({"optimiser": 0.25 / 1.26, "loss": 1 / 1.26})
+    ex = pool(2, {"observations": obs3})  # as the bench's worker processes score them
     try:
-        assert diagnose_misses([obs, obs], predictions, [truth, truth], [7, 8], 3, ex) == got
+        assert diagnose_misses(obs3, predictions, truths, [7, 8, 9], 3, ex) == got
     finally:
         ex.shutdown()
     with pytest.raises(ConfigError, match="--diagnose takes 2 canopies or more, got 1"):
