@@ -333,10 +333,6 @@ def run(
     return out
 
 
-#: Canopies of :func:`diagnose`: those on which ``bench_pipeline.loss_attribution`` scores its
-#: points (past the first 1,000 of the re-scoring's sequence and the attribution's 16 polish
-#: canopies), so no optimiser seed, re-scoring or polish drew them.
-_DIAGNOSIS_FROM = 1_016
 #: A paired difference beyond this many standard errors decides (as ``loss_attribution``'s).
 DIAGNOSIS_SE = 2.0
 #: :func:`diagnose_misses` also scores the largest LAI misses that together carry this share of
@@ -358,12 +354,16 @@ def diagnose(observation, answer: dict, truth: dict, canopies: int) -> dict:
     only that the truth itself would not have been the better answer
     (``bench_pipeline.loss_attribution`` polishes both to their floors, at a hundred times the
     cost)."""
+    from benchmarks.bench_pipeline import ATTRIBUTION_FROM, POLISH_SEEDS
     from cropcraft_core.fit.select import reevaluation_seeds
 
     if canopies < 2:
         raise ConfigError(f"diagnose needs 2 canopies or more, got {canopies}")
     fm = ForwardModel(observation)
-    seeds = reevaluation_seeds(_DIAGNOSIS_FROM + canopies)[_DIAGNOSIS_FROM:]
+    # the canopies on which loss_attribution scores its points (after its polish canopies),
+    # so no optimiser seed, re-scoring or polish drew them
+    first = ATTRIBUTION_FROM + len(POLISH_SEEDS)
+    seeds = reevaluation_seeds(first + canopies)[first:]
     la = np.asarray([fm.loss(answer, s) for s in seeds])
     lt = np.asarray([fm.loss(truth, s) for s in seeds])
     d = la - lt

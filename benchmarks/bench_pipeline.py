@@ -542,9 +542,10 @@ def fit_and_compare(
     }
 
 
-#: Canopy seeds of :func:`loss_attribution`: past the first 1,000 of the re-scoring's sequence,
-#: so no optimiser seed and no re-scoring (up to 1,000 canopies) draws them.
-_ATTRIBUTION_CANOPIES = reevaluation_seeds(1_000 + 7 * 16)[1_000:]
+#: Where the canopy seeds of :func:`loss_attribution` start in the re-scoring's sequence: past
+#: its first 1,000, so no optimiser seed and no re-scoring (up to 1,000 canopies) draws them.
+ATTRIBUTION_FROM = 1_000
+_ATTRIBUTION_CANOPIES = reevaluation_seeds(ATTRIBUTION_FROM + 7 * 16)[ATTRIBUTION_FROM:]
 #: Canopies on which :func:`loss_attribution` polishes the answer and the truth to their basins'
 #: floors.
 POLISH_SEEDS = tuple(_ATTRIBUTION_CANOPIES[:16])
