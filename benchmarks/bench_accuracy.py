@@ -304,7 +304,7 @@ def run(
         for label, method, crn in runs:
             b = budget(quick, scenes, method, crn, overrides, scale)
             if method == "mlp":
-                params, seconds = _predict_mlp(observations, quick)
+                params, seconds = _predict_mlp(observations, quick, ex)
                 params = [
                     ParamBox.of(crop, bx).clip(p) for p, bx in zip(params, boxes, strict=True)
                 ]
@@ -660,15 +660,16 @@ def _fit_and_combine(
                 combined(*fut.result())
 
 
-def _predict_mlp(observations, quick: bool):
-    """The mlp baseline per scene (its network trained once per crop and config, then cached)."""
+def _predict_mlp(observations, quick: bool, ex=None):
+    """The mlp baseline per scene (its network trained once per crop and config, then cached;
+    its training pairs made in ``ex``'s worker processes)."""
     from cropcraft_core.fit.mlp import MLPConfig, predict_params
 
     cfg = MLPConfig(n_pairs=400, epochs=60) if quick else None
     params, seconds = [], []
     for obs in observations:
         t = time.perf_counter()
-        params.append(predict_params(obs, cfg))
+        params.append(predict_params(obs, cfg, executor=ex))
         seconds.append(time.perf_counter() - t)
     return params, seconds
 

@@ -17,7 +17,12 @@ from cropcraft_core.fit import (
     fit_seed,
     observe_canopy,
 )
-from cropcraft_core.fit.mlp import MLPConfig, observation_features, predict_params
+from cropcraft_core.fit.mlp import (
+    MLPConfig,
+    observation_features,
+    predict_params,
+    training_pairs,
+)
 from cropcraft_core.metrics import canopy_metrics
 from cropcraft_core.observe import preset
 from cropcraft_core.optimize import SeedResult
@@ -229,6 +234,28 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     assert not x[20:30].any()  # 10 depth, 10 lateral, then the 10 derivative bins
     np.testing.assert_allclose(x[:20], np.r_[paper.stats.depth, paper.stats.lateral], rtol=1e-6)
     assert predict_params(paper, cfg) == p1
+
+
+def test_mlp_training_pairs_are_the_same_made_in_worker_processes(monkeypatch):
+    """The pairs are drawn first and made in jobs, so a process pool (spawned workers, as the
+    benchmarks' ``--workers``) gives exactly the in-process pairs, in order."""
+    from benchmarks.workers import pool
+
+    monkeypatch.setattr("cropcraft_core.fit.mlp.PAIRS_PER_JOB", 2)
+    cfg = MLPConfig(n_pairs=7)  # soybean: 4 at each render height (1.0, 1.25 m), 7 kept
+    x, y = training_pairs("soybean", cfg)
+    made = []
+    ex = pool(2)
+    try:
+        xp, yp = training_pairs("soybean", cfg, executor=ex, progress=made.append)
+    finally:
+        ex.shutdown()
+    np.testing.assert_array_equal(xp, x)
+    np.testing.assert_array_equal(yp, y)
+    assert x.shape == (7, 42) and y.shape == (7, 5) and made == [2, 4, 6, 8]
+    # the render height is the feature before the mask area: four pairs at 1 m, three higher
+    assert x[:, -2].tolist() == [1.0] * 4 + [1.25] * 3
+    assert len({row.tobytes() for row in x}) == 7
 
 
 def test_bad_fit_config():
