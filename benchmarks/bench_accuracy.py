@@ -51,7 +51,6 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.workers import SHARED, pool
 from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
@@ -61,6 +60,7 @@ from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.fit.select import select, unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
+from cropcraft_core.parallel import SHARED, pool
 from cropcraft_core.procedural import generate_canopy
 from cropcraft_core.store import config_hash
 

@@ -22,12 +22,12 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from benchmarks.workers import one_thread, pool, run_jobs
 from cropcraft_core.config import default_layout
 from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import make_objective
 from cropcraft_core.observe import preset
+from cropcraft_core.parallel import one_thread, pool, run_jobs
 from cropcraft_core.procedural import generate_canopy
 
 TRUTH = {

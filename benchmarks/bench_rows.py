@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.workers import pool, run_jobs
 from cropcraft_core.config import default_layout
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
 from cropcraft_core.metrics import canopy_metrics, evaluate
+from cropcraft_core.parallel import pool, run_jobs
 from cropcraft_core.procedural import generate_canopy
 from cropcraft_core.store import config_hash
 

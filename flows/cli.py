@@ -195,16 +195,30 @@ def cmd_fit(args: argparse.Namespace) -> int:
     n = args.neighbour_rows
     if not 0 <= n <= MAX_NEIGHBOURS:
         raise ConfigError(f"--neighbour-rows must be 0 to {MAX_NEIGHBOURS}, got {n}")
-    metrics = fit_geometry(
-        args.geometry,
-        args.crop,
-        args.out,
-        cfg,
-        layout,
-        seed=args.seed,
-        neighbours=n,
-        row_answer=args.rows_answer,
-    )
+    from cropcraft_core.parallel import default_workers, pool
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    from cropcraft_core.fit.mlp import PAIRS_PER_JOB, MLPConfig
+
+    # the seeds' processes; mlp's are its training pairs' (where no network is cached yet)
+    jobs = {"poisson": 1, "mlp": MLPConfig().n_pairs // PAIRS_PER_JOB}.get(args.method, cfg.n_seeds)
+    ex = pool(args.workers or default_workers(jobs))
+    try:
+        metrics = fit_geometry(
+            args.geometry,
+            args.crop,
+            args.out,
+            cfg,
+            layout,
+            seed=args.seed,
+            neighbours=n,
+            row_answer=args.rows_answer,
+            executor=ex,
+        )
+    finally:
+        if ex is not None:
+            ex.shutdown(cancel_futures=True)
     _print_summary(args.out, metrics)
     if n:
         table = json.loads((Path(args.out) / "rows.json").read_text())
@@ -288,6 +302,13 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seeds", type=int, default=10, help="optimiser seeds (paper: 10)")
     f.add_argument("--evals", type=int, default=500, help="evaluations per seed (paper: 500)")
     f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
+    f.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="processes the seeds run in, one thread each (default: one per CPU, at most one "
+        "per seed; 1: in this process); mlp makes its first training pairs there",
+    )
     from cropcraft_core.fit.fitting import COMBINE_RULES
 
     f.add_argument(

@@ -207,6 +207,24 @@ def test_baselines_run_end_to_end(method):
         assert np.isfinite(value), name
 
 
+def test_fit_seeds_in_worker_processes_give_the_in_process_fit():
+    """``cropcraft fit --workers``: the seeds spread over spawned single-threaded processes
+    give the fit that running them here does, seed by seed."""
+    from cropcraft_core.parallel import pool
+
+    obs, _ = observation("maize", {"num_nodes": 9.0})
+    cfg = FitConfig(n_seeds=3, n_evals=16, n_initial=8, combine="median")
+    here = fit_observation(obs, cfg)
+    ex = pool(2)
+    try:
+        there = fit_observation(obs, cfg, executor=ex)
+    finally:
+        ex.shutdown()
+    assert there.seed_losses == here.seed_losses and len(set(here.seed_losses)) == 3
+    assert there.seed_params == here.seed_params
+    assert there.params == here.params
+
+
 def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     monkeypatch.setenv("CROPCRAFT_CACHE", str(tmp_path))
     obs, _ = observation("maize", {"num_nodes": 9.0})
@@ -239,7 +257,7 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
 def test_mlp_training_pairs_are_the_same_made_in_worker_processes(monkeypatch):
     """The pairs are drawn first and made in jobs, so a process pool (spawned workers, as the
     benchmarks' ``--workers``) gives exactly the in-process pairs, in order."""
-    from benchmarks.workers import pool
+    from cropcraft_core.parallel import pool
 
     monkeypatch.setattr("cropcraft_core.fit.mlp.PAIRS_PER_JOB", 2)
     cfg = MLPConfig(n_pairs=7)  # soybean: 4 at each render height (1.0, 1.25 m), 7 kept
@@ -387,7 +405,7 @@ def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth
     each verdict's share of the squared LAI error is its scenes' part, and the bench's worker
     processes score alike."""
     from benchmarks.bench_accuracy import diagnose, diagnose_misses, run, scene_observation
-    from benchmarks.workers import pool
+    from cropcraft_core.parallel import pool
 
     truth, obs = scene_observation("maize", 0, 0.25)
     same = diagnose(obs, truth["params"], truth["params"], 3)

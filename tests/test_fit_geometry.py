@@ -159,8 +159,8 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     a row beyond the scan is listed and left out."""
     out = tmp_path / "rows"
     argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(out)]
-    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--rows-answer", "mean"]
-    argv += ["--neighbour-rows", "2"]
+    argv += ["--seeds", "2", "--evals", "8", "--initial", "6", "--rows-answer", "mean"]
+    argv += ["--workers", "2", "--neighbour-rows", "2"]  # every row's seeds in two processes
     assert main(argv) == 0
     table = json.loads((out / "rows.json").read_text())
     fit = json.loads((out / "fit.json").read_text())
@@ -182,7 +182,10 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     assert params["params"] == pytest.approx(fit["fit"]["params"])
     assert metrics["lai"] > 0
     assert "LAI by row" in capsys.readouterr().out
+    assert len(fit["best_row_fit"]["seed_losses"]) == 2
     assert main([*argv[:-1], "9"]) == 2
+    assert main([*argv, "--workers", "0"]) == 2
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
 
 
 def test_cli_poisson_baseline(canopy_ply, tmp_path):

@@ -388,21 +388,33 @@ def combine(
     )
 
 
+def _fit_seed_job(args) -> SeedResult:
+    """:func:`fit_seed` on (observation, seed, config, layout, checkpoint): a module-level
+    function, so that a process pool can run it."""
+    return fit_seed(*args)
+
+
 def fit_observation(
     observation: Observation,
     config: FitConfig | None = None,
     layout: CanopyLayout | None = None,
     checkpoint_dir: str | Path | None = None,
     seeds: list[int] | None = None,
+    executor=None,
 ) -> FitResult:
-    """Every seed in turn in this process (the Prefect flow maps ``fit_seed`` instead)."""
+    """Every seed in turn in this process, or spread over ``executor`` (anything with
+    ``map``: :func:`cropcraft_core.parallel.pool`'s processes, which ``cropcraft fit
+    --workers`` makes; the Prefect flow maps ``fit_seed`` as tasks instead). The seeds'
+    results are combined in seed order either way; ``mlp`` makes its training pairs there."""
     cfg = (config or FitConfig()).validate()
     t = time.perf_counter()
     if cfg.method == "mlp":
         from cropcraft_core.fit.mlp import predict_params
 
         # the network predicts every parameter; what the user knows replaces its guess
-        params = cfg.param_box(observation.crop).clip(predict_params(observation, layout=layout))
+        params = cfg.param_box(observation.crop).clip(
+            predict_params(observation, layout=layout, executor=executor)
+        )
         zero = {k: 0.0 for k in params}
         return FitResult(
             observation.crop,
@@ -415,8 +427,15 @@ def fit_observation(
             cfg.to_dict(),
         )
     seeds = list(range(cfg.n_seeds)) if seeds is None else seeds
-    results = []
-    for s in seeds:
-        ck = Path(checkpoint_dir) / f"seed-{s}.json" if checkpoint_dir else None
-        results.append(fit_seed(observation, s, cfg, layout, ck))
+    jobs = [
+        (
+            observation,
+            s,
+            cfg,
+            layout,
+            Path(checkpoint_dir) / f"seed-{s}.json" if checkpoint_dir else None,
+        )
+        for s in seeds
+    ]
+    results = list((executor.map if executor is not None else map)(_fit_seed_job, jobs))
     return combine(observation.crop, results, cfg, time.perf_counter() - t, observation, layout)

@@ -259,6 +259,7 @@ def fit_geometry(
     seed: int = 0,
     neighbours: int = 0,
     row_answer: str = "best",
+    executor=None,
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
     write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
@@ -266,7 +267,8 @@ def fit_geometry(
     (:func:`neighbour_observations`), each alone, and write their answers side by side with
     their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
     is then ``row_answer``'s (``rows_answer``: the best row's, or the rows' mean), and
-    ``fit.json`` keeps the best row's own fit as ``best_row_fit``."""
+    ``fit.json`` keeps the best row's own fit as ``best_row_fit``. ``executor``: where the
+    seeds run (:func:`~cropcraft_core.fit.fitting.fit_observation`)."""
     import json
 
     from cropcraft_core.bundle import check_output_dir, write_bundle
@@ -286,7 +288,7 @@ def fit_geometry(
         return _poisson_to_files(path, crop, out, seed)
     geo = load_geometry(path, seed=seed)
     obs, rowfit = observe_geometry(geo, crop, seed=seed, row_spacing=layout.row_spacing)
-    res = fit_observation(obs, cfg, layout=layout)
+    res = fit_observation(obs, cfg, layout=layout, executor=executor)
     answer = res.to_dict()
     if neighbours:
         from cropcraft_core.metrics.rows import compare_rows, rows_answer
@@ -294,7 +296,7 @@ def fit_geometry(
         others, tried = neighbour_observations(geo, crop, rowfit, layout.row_spacing, neighbours)
         fits = {0: res.to_dict()}  # every row's fit.json, by row index
         for k, o in others.items():
-            fits[k] = fit_observation(o, cfg, layout=layout).to_dict()
+            fits[k] = fit_observation(o, cfg, layout=layout, executor=executor).to_dict()
         offsets = {0: 0.0, **{t["index"]: t["offset_m"] for t in tried}}
         answers = [
             {

@@ -1,4 +1,6 @@
-"""Worker processes for the benchmarks that fit many seeds: the parallelism is the processes.
+"""Worker processes for the work that fits many seeds on one machine (``cropcraft fit
+--workers``, the benchmarks): the parallelism is the processes. Beyond one machine the flows
+map the seeds as Prefect tasks on Dask (``flows/runners.py``).
 
 Workers are spawned, not forked: numba's OpenMP threading layer aborts a process that forks
 after using it ("fork() called from a process already using GNU OpenMP"), and the parent has
@@ -8,6 +10,7 @@ rendered observations by then.
 from __future__ import annotations
 
 import multiprocessing
+import os
 from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
@@ -35,6 +38,16 @@ def pool(workers: int, shared: dict[str, Any] | None = None) -> Executor | None:
         return None
     ctx = multiprocessing.get_context("spawn")
     return ProcessPoolExecutor(workers, mp_context=ctx, initializer=one_thread, initargs=(shared,))
+
+
+def default_workers(jobs: int) -> int:
+    """Processes for ``jobs`` independent jobs: one per CPU this process may run on, at most
+    one per job, at least one."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(jobs, cpus))
 
 
 def run_jobs(ex: Executor | None, fn: Callable, jobs: list):
