@@ -164,6 +164,12 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     except TypeError as exc:
         raise ConfigError(f"invalid layout override {cfg['layout']}: {exc}") from None
     FitConfig(**cfg["fit"]).validate().param_box(crop)
+    if cfg["fit"]["method"] == "mlp":  # refused here, not at the seeds after SfM and surfaces
+        raise ConfigError(
+            "fit.method=mlp: the scene flow maps optimiser seeds (bo, trust-region, random); "
+            "the mlp baseline predicts in one step: `cropcraft fit --method mlp --geometry "
+            "FILE.ply` or `cropcraft bench accuracy --methods mlp`"
+        )
     rowfit_preset(crop, **cfg["rowfit"]["preset"])
     observe_preset(crop, **cfg["observe"]["preset"])
     if SurfacesConfig is not None:

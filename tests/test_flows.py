@@ -635,6 +635,8 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         run_scene("plotA", CROP, DATE, images=str(tmp_path / "missing"), store=store)
     with pytest.raises(ConfigError, match="unknown setting"):
         prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.n_eval": 3}, store)
+    with pytest.raises(ConfigError, match="fit.method=mlp: the scene flow maps optimiser seeds"):
+        prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.method": "mlp"}, store)
     monkeypatch.setenv("AWS_ACCESS_KEY_ID", "x")
     monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "y")
     monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_dead_port()}")
