@@ -60,7 +60,7 @@ from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.fit.select import select, unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
 from cropcraft_core.observe import clear_render_height, preset
-from cropcraft_core.parallel import SHARED, pool
+from cropcraft_core.parallel import SHARED, processes
 from cropcraft_core.procedural import generate_canopy
 from cropcraft_core.store import config_hash
 
@@ -299,8 +299,7 @@ def run(
         out["scenes"] = len(keep)
     out["scene_indices"] = list(scene_set.indices)
     boxes = scene_set.boxes
-    ex = pool(workers, {"observations": observations})
-    try:
+    with processes(workers, {"observations": observations}) as ex:
         for label, method, crn in runs:
             b = budget(quick, scenes, method, crn, overrides, scale)
             if method == "mlp":
@@ -326,9 +325,6 @@ def run(
                 r["diagnosis"] = diagnose_misses(
                     observations, r["predictions"], truths, scene_set.indices, diagnose, ex, log
                 )
-    finally:
-        if ex is not None:
-            ex.shutdown()
     out["truths"] = truths
     return out
 

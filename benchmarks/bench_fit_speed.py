@@ -27,7 +27,7 @@ from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import make_objective
 from cropcraft_core.observe import preset
-from cropcraft_core.parallel import one_thread, pool, run_jobs
+from cropcraft_core.parallel import one_thread, processes, run_jobs
 from cropcraft_core.procedural import generate_canopy
 
 TRUTH = {
@@ -97,14 +97,10 @@ def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) 
     optimiser times are process CPU seconds, so they do not depend on the sharing)."""
     jobs = [(m, s, n_evals, n_initial) for s in range(n_seeds) for m in ("skopt", "ours")]
     rows: dict[str, list] = {"ours": [], "skopt": []}
-    ex = pool(workers)
-    try:
+    with processes(workers) as ex:
         for method, row in run_jobs(ex, _compare_one, jobs):
             rows[method].append(row)
             print(f"    {method} seed {row['seed']}: {row}", flush=True)
-    finally:
-        if ex is not None:
-            ex.shutdown()
     return rows
 
 

@@ -31,7 +31,7 @@ from cropcraft_core.config import default_layout
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
 from cropcraft_core.metrics import canopy_metrics, evaluate
-from cropcraft_core.parallel import pool, run_jobs
+from cropcraft_core.parallel import processes, run_jobs
 from cropcraft_core.procedural import generate_canopy
 from cropcraft_core.store import config_hash
 
@@ -117,9 +117,10 @@ def run(
         for k in rows
     ]
     fitted: dict[tuple[int, int], dict] = {}
-    for i, k, answers in run_jobs(pool(workers), _job, jobs):
-        fitted[i, k] = answers
-        log(f"  {crop} scene {i} row {k:+d}: fitted")
+    with processes(workers) as ex:
+        for i, k, answers in run_jobs(ex, _job, jobs):
+            fitted[i, k] = answers
+            log(f"  {crop} scene {i} row {k:+d}: fitted")
     truths = [row_observation(crop, i, 0, scale)[0] for i in indices]
     layout = default_layout(crop)
 

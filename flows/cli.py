@@ -195,7 +195,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     n = args.neighbour_rows
     if not 0 <= n <= MAX_NEIGHBOURS:
         raise ConfigError(f"--neighbour-rows must be 0 to {MAX_NEIGHBOURS}, got {n}")
-    from cropcraft_core.parallel import default_workers, pool
+    from cropcraft_core.parallel import default_workers, processes
 
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
@@ -203,8 +203,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     # the seeds' processes; mlp's are its training pairs' (where no network is cached yet)
     jobs = {"poisson": 1, "mlp": MLPConfig().n_pairs // PAIRS_PER_JOB}.get(args.method, cfg.n_seeds)
-    ex = pool(args.workers or default_workers(jobs))
-    try:
+    with processes(args.workers or default_workers(jobs)) as ex:
         metrics = fit_geometry(
             args.geometry,
             args.crop,
@@ -216,9 +215,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
             row_answer=args.rows_answer,
             executor=ex,
         )
-    finally:
-        if ex is not None:
-            ex.shutdown(cancel_futures=True)
     _print_summary(args.out, metrics)
     if n:
         table = json.loads((Path(args.out) / "rows.json").read_text())

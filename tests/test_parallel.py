@@ -1,0 +1,105 @@
+"""The worker processes that `cropcraft fit --workers` and the benchmarks spread seeds over:
+stopped at once on an exception or Ctrl-C, gone when their parent dies, and deaf to the
+Ctrl-C their parent handles."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+
+import pytest
+
+from cropcraft_core.parallel import default_workers, processes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie (exited, not yet reaped) counts as gone
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(") ", 1)[1].startswith("Z"))
+
+
+def _gone_within(pids: list[int], seconds: float) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if not any(_alive(p) for p in pids):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _started_workers(ex, n: int) -> list[int]:
+    """Run a no-op on every worker, so all ``n`` have started, and return their pids."""
+    for f in [ex.submit(os.getpid) for _ in range(4 * n)]:
+        f.result()
+    assert len(ex._processes) == n
+    return sorted(ex._processes)
+
+
+def test_an_exception_stops_running_jobs_at_once_and_workers_ignore_ctrl_c():
+    t = time.monotonic()
+    with pytest.raises(KeyboardInterrupt), processes(2) as ex:
+        pids = _started_workers(ex, 2)
+        running = [ex.submit(time.sleep, 120) for _ in range(2)]
+        queued = [ex.submit(time.sleep, 120) for _ in range(6)]
+        time.sleep(0.5)
+        os.kill(pids[0], signal.SIGINT)  # a Ctrl-C reaches the workers too: they leave it
+        time.sleep(0.5)
+        assert _alive(pids[0]) and not any(f.done() for f in running)
+        raise KeyboardInterrupt  # the parent's Ctrl-C
+    assert _gone_within(pids, 10)
+    assert time.monotonic() - t < 30  # not the 120 s the running jobs had left
+    # none ran on: cancelled, or (the one or two already handed to the pool's queue) broken off
+    for f in running + queued:
+        assert f.cancelled() or isinstance(f.exception(), BrokenProcessPool)
+    assert sum(f.cancelled() for f in queued) >= 4
+
+
+def test_a_finished_block_waits_for_its_jobs():
+    with processes(2) as ex:
+        f = ex.submit(sum, [1, 2, 3])
+    assert f.result() == 6
+    with processes(1) as ex:  # one worker: in this process, nothing to stop
+        assert ex is None
+
+
+def test_workers_exit_when_their_parent_is_killed(tmp_path):
+    """A scheduler kills the fit: its workers do not go on fitting for no one."""
+    script = (
+        "import os, sys, time\n"
+        "from cropcraft_core.parallel import pool\n"
+        "ex = pool(2)\n"
+        "fs = [ex.submit(time.sleep, 120) for _ in range(2)]\n"
+        "time.sleep(3)\n"
+        "print(' '.join(map(str, ex._processes)), flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        pids = [int(p) for p in parent.stdout.readline().split()]
+        assert len(pids) == 2 and all(_alive(p) for p in pids)
+        parent.kill()
+        parent.wait(10)
+        assert _gone_within(pids, 10)
+    finally:
+        parent.kill()
+
+
+def test_default_workers_one_per_cpu_at_most_one_per_job():
+    cpus = len(os.sched_getaffinity(0))
+    assert default_workers(1) == 1
+    assert default_workers(0) == 1
+    assert default_workers(10**6) == cpus
+    assert default_workers(2) == min(2, cpus)
