@@ -69,6 +69,9 @@ def stop(ex: Executor | None, *, now: bool = False) -> None:
     if not now:
         ex.shutdown()
         return
+    if hasattr(ex, "terminate_workers"):  # Python 3.14's public way
+        ex.terminate_workers()
+        return
     procs = list((getattr(ex, "_processes", None) or {}).values())  # the executor's workers
     ex.shutdown(wait=False, cancel_futures=True)
     for p in procs:
