@@ -210,16 +210,13 @@ def test_baselines_run_end_to_end(method):
 def test_fit_seeds_in_worker_processes_give_the_in_process_fit():
     """``cropcraft fit --workers``: the seeds spread over spawned single-threaded processes
     give the fit that running them here does, seed by seed."""
-    from cropcraft_core.parallel import pool
+    from cropcraft_core.parallel import processes
 
     obs, _ = observation("maize", {"num_nodes": 9.0})
     cfg = FitConfig(n_seeds=3, n_evals=16, n_initial=8, combine="median")
     here = fit_observation(obs, cfg)
-    ex = pool(2)
-    try:
+    with processes(2) as ex:
         there = fit_observation(obs, cfg, executor=ex)
-    finally:
-        ex.shutdown()
     assert there.seed_losses == here.seed_losses and len(set(here.seed_losses)) == 3
     assert there.seed_params == here.seed_params
     assert there.params == here.params
@@ -257,17 +254,14 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
 def test_mlp_training_pairs_are_the_same_made_in_worker_processes(monkeypatch):
     """The pairs are drawn first and made in jobs, so a process pool (spawned workers, as the
     benchmarks' ``--workers``) gives exactly the in-process pairs, in order."""
-    from cropcraft_core.parallel import pool
+    from cropcraft_core.parallel import processes
 
     monkeypatch.setattr("cropcraft_core.fit.mlp.PAIRS_PER_JOB", 2)
     cfg = MLPConfig(n_pairs=7)  # soybean: 4 at each render height (1.0, 1.25 m), 7 kept
     x, y = training_pairs("soybean", cfg)
     made = []
-    ex = pool(2)
-    try:
+    with processes(2) as ex:
         xp, yp = training_pairs("soybean", cfg, executor=ex, progress=made.append)
-    finally:
-        ex.shutdown()
     np.testing.assert_array_equal(xp, x)
     np.testing.assert_array_equal(yp, y)
     assert x.shape == (7, 42) and y.shape == (7, 5) and made == [2, 4, 6, 8]

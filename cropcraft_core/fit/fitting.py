@@ -28,6 +28,7 @@ from cropcraft_core.observe import Observation
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
 from cropcraft_core.optimize.bo import OUTPUT_TRANSFORMS
+from cropcraft_core.parallel import run_jobs
 
 if TYPE_CHECKING:
     from cropcraft_core.fit.select import Selection
@@ -437,5 +438,5 @@ def fit_observation(
         )
         for s in seeds
     ]
-    results = list((executor.map if executor is not None else map)(_fit_seed_job, jobs))
+    results = list(run_jobs(executor, _fit_seed_job, jobs))
     return combine(observation.crop, results, cfg, time.perf_counter() - t, observation, layout)

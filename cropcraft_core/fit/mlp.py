@@ -29,6 +29,7 @@ from cropcraft_core.config.params import bounds as param_bounds
 from cropcraft_core.config.params import params_from_vector
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.observe import HistogramStats, Observation, compute_stats, preset
+from cropcraft_core.parallel import run_jobs
 
 MODEL_VERSION = 1
 
@@ -140,8 +141,7 @@ def training_pairs(
             z = slice(a, a + PAIRS_PER_JOB)
             jobs.append((crop, layout, h, units[z], seeds[z]))
     xs, made = [], 0
-    mapped = (executor.map if executor is not None else map)(_pairs_job, jobs)
-    for x in mapped:
+    for x in run_jobs(executor, _pairs_job, jobs):
         xs.append(x)
         made += len(x)
         if progress:
