@@ -201,8 +201,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     from cropcraft_core.fit.mlp import PAIRS_PER_JOB, MLPConfig
 
-    # the seeds' processes; mlp's are its training pairs' (where no network is cached yet)
-    jobs = {"poisson": 1, "mlp": MLPConfig().n_pairs // PAIRS_PER_JOB}.get(args.method, cfg.n_seeds)
+    # the seeds' processes (every row's, fitted together); mlp's are its training pairs'
+    # (where no network is cached yet)
+    rows = 1 + 2 * n
+    jobs = {"poisson": 1, "mlp": MLPConfig().n_pairs // PAIRS_PER_JOB}.get(
+        args.method, cfg.n_seeds * rows
+    )
     with processes(args.workers or default_workers(jobs)) as ex:
         metrics = fit_geometry(
             args.geometry,
@@ -303,7 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         metavar="N",
         help="processes the seeds run in, one thread each (default: one per CPU, at most one "
-        "per seed; 1: in this process); mlp makes its first training pairs there",
+        "per seed of every row fitted; 1: in this process); mlp makes its first training "
+        "pairs there",
     )
     from cropcraft_core.fit.fitting import COMBINE_RULES
 

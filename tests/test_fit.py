@@ -222,6 +222,32 @@ def test_fit_seeds_in_worker_processes_give_the_in_process_fit():
     assert there.params == here.params
 
 
+def test_rows_fitted_together_give_each_rows_own_fit():
+    """``cropcraft fit --neighbour-rows``: every row's seeds in one map over the processes and
+    every row's re-scoring in another give each row the answer its own fit gives, in order."""
+    from cropcraft_core.fit import fit_observations
+    from cropcraft_core.parallel import processes
+
+    rows = [observation("maize", {"num_nodes": n}, seed=s)[0] for n, s in ((9.0, 11), (12.0, 5))]
+    cfg = FitConfig(
+        n_seeds=2,
+        n_evals=14,
+        n_initial=8,
+        combine="reevaluate",
+        reevaluate_canopies=2,
+        polish_evals=4,
+    )
+    alone = [fit_observation(o, cfg) for o in rows]
+    with processes(2) as ex:
+        together = fit_observations(rows, cfg, executor=ex)
+    assert [r.params for r in together] == [r.params for r in alone]
+    assert [r.seed_losses for r in together] == [r.seed_losses for r in alone]
+    assert together[0].params != together[1].params
+    for a, b in zip(alone, together, strict=True):
+        sa, sb = a.extra["selection"], b.extra["selection"]
+        assert (sa["chosen"], sa["candidates"]) == (sb["chosen"], sb["candidates"])
+
+
 def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     monkeypatch.setenv("CROPCRAFT_CACHE", str(tmp_path))
     obs, _ = observation("maize", {"num_nodes": 9.0})

@@ -7,6 +7,7 @@ from cropcraft_core.fit.fitting import (
     FitResult,
     combine,
     fit_observation,
+    fit_observations,
     fit_seed,
 )
 from cropcraft_core.fit.forward import ForwardModel, observe_canopy, row_frame_camera
@@ -18,6 +19,7 @@ __all__ = [
     "ForwardModel",
     "combine",
     "fit_observation",
+    "fit_observations",
     "fit_seed",
     "observe_canopy",
     "row_frame_camera",

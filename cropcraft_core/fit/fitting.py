@@ -389,6 +389,11 @@ def combine(
     )
 
 
+def _combine_job(args) -> FitResult:
+    """:func:`combine` on (crop, results, config, seconds, observation, layout), for a pool."""
+    return combine(*args)
+
+
 def _fit_seed_job(args) -> SeedResult:
     """:func:`fit_seed` on (observation, seed, config, layout, checkpoint): a module-level
     function, so that a process pool can run it."""
@@ -440,3 +445,31 @@ def fit_observation(
     ]
     results = list(run_jobs(executor, _fit_seed_job, jobs))
     return combine(observation.crop, results, cfg, time.perf_counter() - t, observation, layout)
+
+
+def fit_observations(
+    observations: list[Observation],
+    config: FitConfig | None = None,
+    layout: CanopyLayout | None = None,
+    executor=None,
+) -> list[FitResult]:
+    """Several observations of one plot (its rows) under one config, each answer the one
+    :func:`fit_observation` gives that observation alone. Every seed of every observation goes
+    to ``executor`` in one map, and then every observation's combination (re-scoring, guard)
+    in another, so that rows finish together instead of one after another and no process
+    waits for the last seeds of a row while the next row's queue. Each result's ``seconds``:
+    the wall time of the shared seed stage plus its own combination's."""
+    cfg = (config or FitConfig()).validate()
+    if cfg.method == "mlp":  # one prediction each; the network is trained (or loaded) once
+        return [fit_observation(o, cfg, layout=layout, executor=executor) for o in observations]
+    t = time.perf_counter()
+    seeds = range(cfg.n_seeds)
+    jobs = [(o, s, cfg, layout, None) for o in observations for s in seeds]
+    results = list(run_jobs(executor, _fit_seed_job, jobs))
+    seconds = time.perf_counter() - t
+    n = cfg.n_seeds
+    combos = [
+        (o.crop, results[i * n : (i + 1) * n], cfg, seconds, o, layout)
+        for i, o in enumerate(observations)
+    ]
+    return list(run_jobs(executor, _combine_job, combos))

@@ -268,13 +268,14 @@ def fit_geometry(
     their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
     is then ``row_answer``'s (``rows_answer``: the best row's, or the rows' mean), and
     ``fit.json`` keeps the best row's own fit as ``best_row_fit``. ``executor``: where the
-    seeds run (:func:`~cropcraft_core.fit.fitting.fit_observation`)."""
+    seeds run (:func:`~cropcraft_core.fit.fitting.fit_observation`), every row's at once
+    (:func:`~cropcraft_core.fit.fitting.fit_observations`)."""
     import json
 
     from cropcraft_core.bundle import check_output_dir, write_bundle
     from cropcraft_core.config import default_layout
     from cropcraft_core.export import atomic_write_text
-    from cropcraft_core.fit.fitting import FitConfig, fit_observation
+    from cropcraft_core.fit.fitting import FitConfig, fit_observation, fit_observations
     from cropcraft_core.fit.forward import ForwardModel
     from cropcraft_core.procedural import generate_canopy
     from cropcraft_core.render.preview import save_png
@@ -288,15 +289,17 @@ def fit_geometry(
         return _poisson_to_files(path, crop, out, seed)
     geo = load_geometry(path, seed=seed)
     obs, rowfit = observe_geometry(geo, crop, seed=seed, row_spacing=layout.row_spacing)
-    res = fit_observation(obs, cfg, layout=layout, executor=executor)
-    answer = res.to_dict()
-    if neighbours:
+    if not neighbours:
+        res = fit_observation(obs, cfg, layout=layout, executor=executor)
+        answer = res.to_dict()
+    else:
         from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
         others, tried = neighbour_observations(geo, crop, rowfit, layout.row_spacing, neighbours)
+        # the rows' seeds share the executor: the best row's answer is the one it gets alone
+        res, *rest = fit_observations([obs, *others.values()], cfg, layout, executor)
         fits = {0: res.to_dict()}  # every row's fit.json, by row index
-        for k, o in others.items():
-            fits[k] = fit_observation(o, cfg, layout=layout, executor=executor).to_dict()
+        fits.update({k: r.to_dict() for k, r in zip(others, rest, strict=True)})
         offsets = {0: 0.0, **{t["index"]: t["offset_m"] for t in tried}}
         answers = [
             {
