@@ -425,7 +425,7 @@ def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth
     each verdict's share of the squared LAI error is its scenes' part, and the bench's worker
     processes score alike."""
     from benchmarks.bench_accuracy import diagnose, diagnose_misses, run, scene_observation
-    from cropcraft_core.parallel import pool
+    from cropcraft_core.parallel import processes
 
     truth, obs = scene_observation("maize", 0, 0.25)
     same = diagnose(obs, truth["params"], truth["params"], 3)
@@ -451,11 +451,8 @@ def test_accuracy_bench_diagnoses_a_miss_by_scoring_the_answer_against_the_truth
     assert got["scenes"][7] == miss and got["scenes"][8] == same
     share = got["share_of_lai_sq_error"]
     assert share == pytest.approx({"optimiser": 0.25 / 1.26, "loss": 1 / 1.26})
-    ex = pool(2, {"observations": obs3})  # as the bench's worker processes score them
-    try:
+    with processes(2, {"observations": obs3}) as ex:  # as the bench's workers score them
         assert diagnose_misses(obs3, predictions, truths, [7, 8, 9], 3, ex) == got
-    finally:
-        ex.shutdown()
     with pytest.raises(ConfigError, match="--diagnose takes 2 canopies or more, got 1"):
         run("maize", ["bo"], True, 1, diagnose=1)
 
