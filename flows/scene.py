@@ -509,6 +509,9 @@ class _CacheWalk:
         self.states[_state_name(stage, row)] = "Cached"
         return rec
 
+    def run_rows(self, stage: str, jobs: Mapping[int | None, dict]) -> dict[int | None, dict]:
+        return {row: self.run(stage, up, row=row) for row, up in jobs.items()}
+
     def map_seeds(
         self, jobs: Mapping[int | None, dict], seeds: list[int]
     ) -> dict[int | None, dict[str, dict]]:
@@ -590,27 +593,53 @@ class _PrefectRun:
         )
 
     def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
-        fut = self._task(stage, refresh).submit(
+        """The stage's task submitted (not waited for)."""
+        return self._task(stage, refresh).submit(
             store_root=self.req.store_root,
             scene=self.req.scene.prefix,
             config=self.req.stages[stage],
             upstream=upstream,
             **kwargs,
         )
-        fut.wait()
-        return fut
 
     def run(self, stage: str, upstream: dict, row: int | None = None, **kwargs: Any) -> dict:
         if row is not None:
             kwargs["row"] = row
+        return self._finish(stage, upstream, row, self._submit(stage, upstream, **kwargs), kwargs)
+
+    def run_rows(self, stage: str, jobs: Mapping[int | None, dict]) -> dict[int | None, dict]:
+        """``stage`` for every row (``jobs``: row → its upstream, None the best row), all
+        submitted before any is waited for, so that a Dask cluster runs them side by side
+        (the rows' re-scoring takes minutes each); each recorded as :meth:`run` records it,
+        and the first failure in row order raised once every row has finished."""
+        futures = {
+            row: self._submit(stage, up, **({} if row is None else {"row": row}))
+            for row, up in jobs.items()
+        }
+        out: dict[int | None, dict] = {}
+        failed: Exception | None = None
+        for row, fut in futures.items():
+            try:
+                kwargs = {} if row is None else {"row": row}
+                out[row] = self._finish(stage, jobs[row], row, fut, kwargs)
+            except Exception as exc:  # the other rows still finish and are recorded
+                failed = failed or exc
+        if failed is not None:
+            raise failed
+        return out
+
+    def _finish(self, stage: str, upstream: dict, row: int | None, fut: Any, kwargs: dict) -> dict:
+        """A submitted stage's record, once it has finished: recomputed where its cached
+        artefacts were since overwritten; recorded in the manifest either way."""
         name = _state_name(stage, row)
-        fut = self._submit(stage, upstream, **kwargs)
+        fut.wait()
         try:
             rec = fut.result()
             cached = fut.state.name == "Cached"
             if cached and _overwritten(_written(self.store, self.req.scene), rec):
                 self.log.info("%s: cached, but its artefacts were since overwritten", name)
                 fut = self._submit(stage, upstream, refresh=True, **kwargs)
+                fut.wait()
                 rec = fut.result()
         except Exception as exc:
             self.states[name] = fut.state.name
@@ -714,13 +743,12 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     seeds = list(range(int(req.config["fit"]["n_seeds"])))
     row_seeds = ex.map_seeds(jobs, seeds)
     seed_recs = row_seeds[None]
-    r["aggregate"] = ex.run("aggregate", {"observe": r["observe"], **dict(seed_recs)})
+    # every row's seeds combined (re-scoring, guard) side by side
+    aggregates = ex.run_rows("aggregate", {k: {**jobs[k], **row_seeds[k]} for k in jobs})
+    r["aggregate"] = aggregates[None]
     if "observe_rows" in r:
         answers = {"aggregate": r["aggregate"]}
-        for k in jobs:
-            if k is not None:
-                up = {**jobs[k], **row_seeds[k]}
-                answers[f"aggregate@{k}"] = ex.run("aggregate", up, row=k)
+        answers.update({f"aggregate@{k}": a for k, a in aggregates.items() if k is not None})
         r["rows"] = ex.run("rows", {"observe_rows": r["observe_rows"], **answers})
     # the scene's answer: the best row's, or the rows' combined (rows.answer)
     answer = r["rows"] if "fit" in r.get("rows", {}).get("artefacts", {}) else r["aggregate"]
