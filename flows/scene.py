@@ -612,16 +612,13 @@ class _PrefectRun:
         submitted before any is waited for, so that a Dask cluster runs them side by side
         (the rows' re-scoring takes minutes each); each recorded as :meth:`run` records it,
         and the first failure in row order raised once every row has finished."""
-        futures = {
-            row: self._submit(stage, up, **({} if row is None else {"row": row}))
-            for row, up in jobs.items()
-        }
+        kwargs = {row: {} if row is None else {"row": row} for row in jobs}
+        futures = {row: self._submit(stage, up, **kwargs[row]) for row, up in jobs.items()}
         out: dict[int | None, dict] = {}
         failed: Exception | None = None
         for row, fut in futures.items():
             try:
-                kwargs = {} if row is None else {"row": row}
-                out[row] = self._finish(stage, jobs[row], row, fut, kwargs)
+                out[row] = self._finish(stage, jobs[row], row, fut, kwargs[row])
             except Exception as exc:  # the other rows still finish and are recorded
                 failed = failed or exc
         if failed is not None:

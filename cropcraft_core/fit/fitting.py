@@ -456,9 +456,9 @@ def fit_observations(
     """Several observations of one plot (its rows) under one config, each answer the one
     :func:`fit_observation` gives that observation alone. Every seed of every observation goes
     to ``executor`` in one map, and then every observation's combination (re-scoring, guard)
-    in another, so that rows finish together instead of one after another and no process
-    waits for the last seeds of a row while the next row's queue. Each result's ``seconds``:
-    the wall time of the shared seed stage plus its own combination's."""
+    in another, so that the rows finish together instead of one after another (no process
+    idles at the end of one row's seeds). Each result's ``seconds``: the wall time of the
+    shared seed stage plus its own combination's."""
     cfg = (config or FitConfig()).validate()
     if cfg.method == "mlp":  # one prediction each; the network is trained (or loaded) once
         return [fit_observation(o, cfg, layout=layout, executor=executor) for o in observations]
