@@ -229,31 +229,37 @@ def compare(a: argparse.Namespace) -> dict:
     from benchmarks.bench_surfaces import _truth_mesh
     from cropcraft_core.geometry.camera import PinholeCamera
     from cropcraft_core.observe import Observation
-    from cropcraft_core.surfaces import SurfacesConfig, make_backend
+    from cropcraft_core.surfaces import SurfacesConfig, make_backend, resolve_bbox
+    from cropcraft_core.surfaces.base import in_bbox
 
     root, kept = Path(a.scene_dir), Path(a.kept)
     rec = json.loads((kept / "row.json").read_text())
-    if "camera_truth" not in rec:
-        raise SystemExit(f"{kept / 'row.json'}: no observation to compare ({rec.get('error')})")
-    obs = Observation.load(kept / "observation.npz")
+    keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
+    keys += ("views_mean",)
+    out = {k: rec[k] for k in keys if k in rec}
+    out["pace"] = rec.get("pace", {})  # train halves from before session 38 lack it
     truth_mesh = _truth_mesh(root)
+    # the point cloud first: it is there even where the row fit failed
+    if (kept / "points.npz").exists():
+        with np.load(kept / "points.npz") as z:
+            out["points"] = points_vs_truth(z["points"], truth_mesh)
+            box = resolve_bbox("auto", rec["crop"])
+            seen = visible_truth_points(root)
+            out["heights"] = height_profile(z["points"], seen[in_bbox(seen, box)])
+    if "camera_truth" not in rec:  # no observation: what the train half found, and stop
+        out["error"] = rec.get("error") or f"{kept / 'row.json'}: no observation"
+        return out
+    obs = Observation.load(kept / "observation.npz")
     truth = make_backend(SurfacesConfig(backend="truth"), mesh=truth_mesh)
     d_true, _ = truth.render(PinholeCamera.from_dict(rec["camera_truth"]))
     d_true = np.where(np.isfinite(d_true), d_true, np.nan)
     h_obs, h_true, area = observation_vs_truth(obs, d_true)
-    keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
-    keys += ("views_mean",)
-    out = {k: rec[k] for k in keys}
-    out["pace"] = rec.get("pace", {})  # train halves from before session 38 lack it
     if "row_errors" in rec:  # train halves from before it was recorded lack it
         out["row_errors"] = rec["row_errors"]
     out["hist_l1"] = float(np.abs(h_obs - h_true).sum())
     out["mask_area"] = area
     out["holes"] = float((~np.isfinite(obs.depth) & np.isfinite(d_true)).mean())
     out.update(depth_errors(obs, d_true))
-    if (kept / "points.npz").exists():
-        with np.load(kept / "points.npz") as z:
-            out["points"] = points_vs_truth(z["points"], truth_mesh)
     if a.fit:
         out["fit"] = fit_and_compare(obs, root, a.fit, d_true)
     return out
@@ -279,6 +285,50 @@ def points_vs_truth(points: np.ndarray, mesh) -> dict:
         "within": float((d < WITHIN_M).mean()),
         "median_dist_m": float(np.median(d)),
     }
+
+
+def visible_truth_points(root: Path, step: int = 4) -> np.ndarray:
+    """The true surfaces the photos see: each view's true z-depth (``depth/*.npy``, as ``cropcraft
+    synth`` writes it) unprojected through its true camera (``transforms.json``), every
+    ``step``-th pixel each way; (n, 3) m in the truth frame. Views without a depth file are
+    skipped (a GPU host is sent only the scored views')."""
+    from cropcraft_core.sfm import import_transforms_json
+
+    pts = []
+    for name, cam in import_transforms_json(root / "transforms.json"):
+        f = root / "depth" / f"{Path(name).stem}.npy"
+        if not f.exists():
+            continue
+        xyz = cam.unproject(np.load(f))[::step, ::step].reshape(-1, 3)
+        pts.append(xyz[np.isfinite(xyz).all(axis=1)])
+    return np.concatenate(pts) if pts else np.zeros((0, 3))
+
+
+#: ``height_profile``: a point this close to the soil (|z|, m) is the soil's
+SOIL_M = 0.03
+
+
+def height_profile(points: np.ndarray, truth: np.ndarray, band_m: float = 0.1) -> dict:
+    """How a point cloud's points share out by height against the true surfaces the photos see
+    (:func:`visible_truth_points`), both in the truth frame (soil at z = 0): the soil
+    (|z| < :data:`SOIL_M`), then bands of ``band_m`` from :data:`SOIL_M` (the first band is
+    shorter) up to the highest true point, and a last one for anything above it (or under the
+    soil). A reconstruction that loses the low leaves and the soil seen through the canopy's
+    gaps shows it here, where the median distance to a true surface does not."""
+    p, t = np.asarray(points, np.float64)[:, 2], np.asarray(truth, np.float64)[:, 2]
+    top = float(t.max()) if len(t) else 0.0
+    edges = np.arange(band_m, top + band_m, band_m)
+    edges = np.concatenate([[-SOIL_M, SOIL_M], edges[edges > SOIL_M]])
+    labels = ["soil"] + [
+        f"{lo:.2f}-{hi:.2f}" for lo, hi in zip(edges[1:-1], edges[2:], strict=True)
+    ]
+
+    def shares(z: np.ndarray) -> list[float]:
+        n = np.histogram(z, edges)[0].astype(np.float64)
+        other = len(z) - n.sum()  # under the soil, or above the highest true point
+        return [float(v) for v in np.append(n, other) / max(len(z), 1)]
+
+    return {"bands": labels + ["other"], "truth": shares(t), "cloud": shares(p)}
 
 
 def print_compare(out: dict) -> None:
@@ -321,6 +371,15 @@ def print_compare(out: dict) -> None:
             f"{100 * WITHIN_M:.0f} cm of a true surface "
             f"(median {1000 * pts['median_dist_m']:.1f} mm)"
         )
+    hts = out.get("heights")
+    if hts:
+        print("  heights (m): share of the point cloud / of the true surfaces the photos see")
+        for band, c, t in zip(hts["bands"], hts["cloud"], hts["truth"], strict=True):
+            if c or t:
+                print(f"    {band:>10}  {100 * c:5.1f} %  / {100 * t:5.1f} %")
+    if "error" in out:  # the train half made no observation
+        print(f"  no observation: {out['error']}")
+        return
     m = out["mask_area"]
     print(f"  mask area {m['observation']:.3f} (truth {m['truth']:.3f}), holes {out['holes']:.3f}")
     print_checks(out.get("row_errors"), out["hist_l1"], out.get("fit"))

@@ -363,6 +363,65 @@ def test_nerfacto_benchmark_scores_points_against_the_true_surfaces():
     assert points_vs_truth(np.zeros((0, 3)), mesh)["n"] == 0
 
 
+def test_nerfacto_benchmark_shares_points_by_height_against_what_the_photos_see(tmp_path):
+    """``bench nerfacto compare``'s height profile, by hand: the true surfaces the photos see are
+    each view's true depth unprojected (a camera 1.5 m over flat soil sees z = 0 at every
+    sampled pixel); the bands are the soil (3 cm), then 10 cm bands to the highest true point,
+    then the rest (under the soil or above the canopy)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from benchmarks.bench_nerfacto import height_profile, visible_truth_points
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.sfm import import_transforms_json
+    from cropcraft_core.surfaces.nerfacto import write_transforms
+
+    cam = PinholeCamera.look_down((0.3, -0.2), 1.5, size=(64, 48), vfov_deg=50.0)
+    write_transforms(tmp_path, [np.zeros((48, 64, 3), np.uint8)], [cam])
+    ((name, _),) = import_transforms_json(tmp_path / "transforms.json")
+    (tmp_path / "depth").mkdir()
+    depth = np.full((48, 64), 1.5)
+    depth[0, 0] = np.nan  # nothing seen there: not a point
+    np.save(tmp_path / "depth" / f"{Path(name).stem}.npy", depth)
+    seen = visible_truth_points(tmp_path, step=4)
+    assert seen.shape == (12 * 16 - 1, 3)
+    np.testing.assert_allclose(seen[:, 2], 0.0, atol=1e-9)
+    # the sampled pixels' centres, as the camera's own unprojection gives them
+    np.testing.assert_allclose(seen[0], cam.unproject(np.full((48, 64), 1.5))[0, 4])
+
+    truth = np.zeros((5, 3))
+    truth[:, 2] = [0.0, 0.0, 0.05, 0.15, 0.25]
+    cloud = np.zeros((4, 3))
+    cloud[:, 2] = [0.01, 0.5, -0.2, 0.15]
+    h = height_profile(cloud, truth)
+    assert h["bands"] == ["soil", "0.03-0.10", "0.10-0.20", "0.20-0.30", "other"]
+    assert h["truth"] == pytest.approx([0.4, 0.2, 0.2, 0.2, 0.0])
+    assert h["cloud"] == pytest.approx([0.25, 0.0, 0.25, 0.0, 0.5])
+
+
+def test_nerfacto_compare_without_an_observation_reports_the_point_cloud(capsys):
+    """Where the train half's row fit failed, ``compare`` still prints the views, the point
+    cloud and its heights, then the row fit's error, and no targets table."""
+    from benchmarks.bench_nerfacto import print_compare
+
+    out = {
+        "backend": "nerfacto", "scene_dir": "SC", "surfaces_timings": {},
+        "views_mean": {"median_ratio": 0.999, "median_abs_err_m": 0.02, "within": 0.52,
+                       "holes": 0.0},
+        "points": {"n": 100, "within": 0.87, "median_dist_m": 0.0043},
+        "heights": {"bands": ["soil", "0.03-0.10", "other"], "truth": [0.055, 0.945, 0.0],
+                    "cloud": [0.001, 0.999, 0.0]},
+        "error": "row fit: no ground found",
+    }  # fmt: skip
+    print_compare(out)
+    text = capsys.readouterr().out
+    assert "87.0 % of 100 points" in text
+    assert "soil    0.1 %  /   5.5 %" in text and "other" not in text  # empty bands left out
+    assert text.rstrip().endswith("no observation: row fit: no ground found")
+    assert "target" not in text
+
+
 def test_nerfacto_probe_plane_is_the_same_ground_in_every_view(tmp_path):
     """``nerfacto_probe prepare --plane``: the control scene's depth is the plane's (a camera
     looking straight down from 1.5 m sees z-depth 1.5 everywhere), and its texture is a function
