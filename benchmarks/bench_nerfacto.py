@@ -12,8 +12,9 @@ worker image may lack.
 ``compare`` (any host with the project installed): the same figures ``bench pipeline --poses
 truth`` prints for the CPU backends, from the kept files: the depth histogram's L1 against the
 true mesh's from the same camera, mask areas, depth errors, the point cloud's distance to the
-true surfaces (``points``), and with ``--fit SEEDSxEVALS`` the fit and its traits against the
-truth (``bench_pipeline.fit_and_compare``).
+true surfaces (``points``) and its share by height against the true surfaces the photos see
+(``heights``: these two also where the train half's row fit failed), and with ``--fit
+SEEDSxEVALS`` the fit and its traits against the truth (``bench_pipeline.fit_and_compare``).
 
     cropcraft bench nerfacto train --scene-dir DIR --iterations 5000 --out KEPT
     cropcraft bench nerfacto compare --scene-dir DIR --kept KEPT [--fit 10x300] [--json FILE]

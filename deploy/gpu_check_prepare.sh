@@ -6,8 +6,8 @@
 # `bench nerfacto train` scores) into .gpu/SCENE_NAME/. Both folders must be git-ignored.
 #   bash deploy/gpu_check_prepare.sh SCENE_DIR
 # then on the GPU host (carrying .whl and .gpu), from the repository root, the acceptance test
-# and a training run side by side with their small outputs in $OUT:
-#   bash deploy/gpu_check_run.sh SCENE_NAME SECONDS [bench nerfacto train options]
+# and a training run side by side with their small outputs in $OUT (--alone: training only):
+#   bash deploy/gpu_check_run.sh SCENE_NAME SECONDS [--alone] [bench nerfacto train options]
 # or by hand:
 #   pip install --no-index --no-deps --target /tmp/site .whl/*.whl
 #   PYTHONPATH=/tmp/site:$PWD python3 -m benchmarks.bench_nerfacto train \
