@@ -309,6 +309,15 @@ def test_named_errors():
     pts, col, _ = make_cloud("soybean", YOUNG_SOY, 0.0, seed=10, soil=False)
     with pytest.raises(RowFitError, match="no ground found"):
         fit_ground_and_rows(pts, col, "soybean", p, rng=0)
+    # enough ground-coloured points, but scattered through the canopy, on no plane (a closed
+    # canopy's reconstruction: nerfacto on a 1.1 m canopy, benchmarks/RESULTS.md#nerfacto-dense)
+    rng = np.random.default_rng(1)
+    specks = np.column_stack([rng.uniform(-1, 1, (80, 2)), rng.uniform(0.1, 0.9, 80)])
+    brown = np.vstack([col, np.tile(BROWN, (80, 1))])
+    with pytest.raises(
+        RowFitError, match=r"best plane holds \d+ of \d+ ground-coloured.*closed canopy"
+    ):
+        fit_ground_and_rows(np.vstack([pts, specks]), brown, "soybean", p, rng=0)
     rng = np.random.default_rng(0)
     soil = np.column_stack([rng.uniform(-1, 1, (30000, 2)), rng.normal(0, 0.005, 30000)])
     scol = np.tile(BROWN, (30000, 1))

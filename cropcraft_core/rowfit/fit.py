@@ -455,7 +455,9 @@ def fit_ground_and_rows(
     if n_ground_in < p.min_ground_points:
         raise RowFitError(
             f"no ground found: the best plane holds {n_ground_in} of {n_ground} ground-coloured "
-            f"points within {p.ground_threshold:g} m, need at least {p.min_ground_points}"
+            f"points (of {len(pts_m)}) within {p.ground_threshold:g} m, need at least "
+            f"{p.min_ground_points}: the photos see too little soil (a closed canopy hides it) "
+            f"or those points are not soil"
         )
     if n_plant == 0:
         raise RowFitError(
