@@ -24,10 +24,12 @@ py="${PYTHON:-python3.11}"
 command -v "$py" >/dev/null || py=python3
 [ -x .venv/bin/python ] || "$py" -m venv .venv
 stamp=".venv/.installed${extra}"
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  # torch is pinned first on its own so that nothing pulls a CUDA build.
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ deploy/constraints.txt -nt "$stamp" ]; then
+  # torch is pinned first on its own so that nothing pulls a CUDA build. Every package comes
+  # at the version deploy/constraints.txt locks (deploy/lock.sh re-resolves it): the fit's
+  # answer moves with the numeric libraries, so every fresh machine gets the same ones.
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -e ".${extra}"
+  .venv/bin/python -m pip install -q "torch==2.13.0" -c deploy/constraints.txt
+  .venv/bin/python -m pip install -q -e ".${extra}" -c deploy/constraints.txt
   touch "$stamp"
 fi
