@@ -88,6 +88,7 @@ __all__ = [
     "canonical_json",
     "code_version",
     "config_hash",
+    "environment_versions",
     "redact",
     "scene_prefix",
     "sha256_bytes",
@@ -331,6 +332,41 @@ def code_version() -> str:
     return f"{__version__}+{described}" if described else __version__
 
 
+#: The libraries a stage's numbers are computed with, by distribution name; where one has
+#: alternatives (Open3D's CPU and CUDA wheels, OpenCV's builds) the first installed is named.
+#: The fit's answer moves with them (benchmarks/RESULTS.md#demo), which is why
+#: ``deploy/constraints.txt`` pins them and every stage record says which ran it.
+NUMERIC_PACKAGES: tuple[tuple[str, ...], ...] = (
+    ("numpy",),
+    ("scipy",),
+    ("numba",),
+    ("llvmlite",),
+    ("open3d-cpu", "open3d"),
+    ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless"),
+    ("pycolmap",),
+    ("torch",),
+    ("scikit-learn",),
+    ("scikit-optimize",),
+)
+
+
+@lru_cache(maxsize=1)
+def environment_versions() -> dict[str, str]:
+    """``{distribution: version}`` of :data:`NUMERIC_PACKAGES` in this process, plus
+    ``python``; a library that is not installed is left out."""
+    from importlib import metadata
+
+    out = {"python": ".".join(str(v) for v in sys.version_info[:3])}
+    for names in NUMERIC_PACKAGES:
+        for name in names:
+            try:
+                out[name] = metadata.version(name)
+                break
+            except metadata.PackageNotFoundError:
+                continue
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Redaction
 # --------------------------------------------------------------------------------------------
@@ -403,6 +439,9 @@ class StageRecord(BaseModel):
     """Wall-clock seconds of the attempt."""
     error: str | None = None
     """One-line error of a failed attempt (credentials redacted)."""
+    environment: dict[str, str] = Field(default_factory=dict)
+    """The numeric libraries' versions in the process that computed the stage
+    (:func:`environment_versions`); empty for records written before it was kept."""
 
 
 class Manifest(BaseModel):
@@ -1167,6 +1206,7 @@ class SceneStore:
         artefacts: Mapping[str, str] | None = None,
         error: str | BaseException | None = None,
         seconds: float | None = None,
+        environment: Mapping[str, str] | None = None,
     ) -> Manifest:
         """Read-modify-write one stage record of a scene's manifest, replaced atomically.
 
@@ -1175,6 +1215,7 @@ class SceneStore:
         * ``status="done"`` or ``"failed"`` sets ``finished`` = now and ``seconds`` (from
           ``started`` unless given); ``error`` is redacted and cut to one line.
         * ``artefacts`` and ``inputs`` are merged into the record; ``config_hash`` replaces it.
+        * ``environment`` (the computing process's :func:`environment_versions`) replaces it.
 
         Updates are serialised within a process (and across processes on a local store); on
         object storage two processes must not update the same scene's manifest at the same time
@@ -1208,6 +1249,8 @@ class SceneStore:
                 manifest.written.update({_check_key(k): str(v) for k, v in artefacts.items()})
             if seconds is not None:
                 rec.seconds = float(seconds)
+            if environment is not None:
+                rec.environment = {str(k): str(v) for k, v in environment.items()}
             if error is not None:
                 if isinstance(error, BaseException):
                     error = f"{type(error).__name__}: {error}"

@@ -23,7 +23,7 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -538,6 +538,18 @@ def _state_name(stage: str, row: int | None) -> str:
     return f"{stage}@{row_label(row)}"
 
 
+def _merged_environment(records: Iterable[Mapping[str, Any]]) -> dict[str, str]:
+    """One environment for the seeds of one fit: each library's version, or its versions
+    joined by " | " where workers differed (which is worth seeing in a manifest)."""
+    versions: dict[str, list[str]] = {}
+    for rec in records:
+        for name, version in (rec.get("environment") or {}).items():
+            seen = versions.setdefault(name, [])
+            if version not in seen:
+                seen.append(version)
+    return {name: " | ".join(v) for name, v in versions.items()}
+
+
 def _manifest_stage(stage: str, row: int | None) -> str:
     """The manifest record a run reports to: its stage's, or ``rows`` for a neighbour row's
     seeds and answer (the best row's records stay those of the scene's answer)."""
@@ -590,6 +602,7 @@ class _PrefectRun:
             inputs=_flatten(upstream),
             artefacts=rec["hashes"],
             seconds=rec["seconds"],
+            environment=rec.get("environment"),
         )
 
     def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
@@ -698,7 +711,10 @@ class _PrefectRun:
                     out[row][f"seed-{s}"] = fut.result()
                 except Exception as exc:
                     failed.append((s, exc))
-            done = {"hashes": _flatten(out[row])}
+            done = {
+                "hashes": _flatten(out[row]),
+                "environment": _merged_environment(out[row].values()),
+            }
             if failed:
                 where = "" if row is None else f" of {_state_name('row', row)}"
                 msg = "; ".join(f"seed {s}{where}: {type(e).__name__}: {e}" for s, e in failed)

@@ -37,7 +37,14 @@ from typing import Any
 from prefect import task
 
 from cropcraft_core.errors import ConfigError, InputError
-from cropcraft_core.store import SceneKey, SceneStore, canonical_json, config_hash, sha256_bytes
+from cropcraft_core.store import (
+    SceneKey,
+    SceneStore,
+    canonical_json,
+    config_hash,
+    environment_versions,
+    sha256_bytes,
+)
 
 #: Pipeline stages in order (``fit_seed`` is mapped over optimiser seeds; ``observe_rows`` and
 #: ``rows`` run only when the scene is also fitted over the best row's neighbours, and then
@@ -265,7 +272,10 @@ def make_record(
     summary: Mapping[str, Any] | None = None,
     seconds: float = 0.0,
 ) -> dict[str, Any]:
-    """A stage record: ``artefacts`` {name: key}, ``hashes`` {key: sha256}, a small summary."""
+    """A stage record: ``artefacts`` {name: key}, ``hashes`` {key: sha256}, a small summary,
+    and ``environment``: the numeric libraries of the process that computed it
+    (:func:`cropcraft_core.store.environment_versions`; a cached record keeps the one that
+    computed it)."""
     return {
         "stage": stage,
         "scene": scene,
@@ -273,6 +283,7 @@ def make_record(
         "hashes": dict(sorted(hashes.items())),
         "summary": dict(summary or {}),
         "seconds": float(seconds),
+        "environment": environment_versions(),
     }
 
 

@@ -32,6 +32,12 @@ def _timings(upstream: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def _libraries(env: dict[str, str] | None) -> str | None:
+    """``"numpy 2.4.6, scipy 1.17.1, ..."`` of a stage record's environment (None where the
+    record predates it): the fit's answer moves with these, so the report names them."""
+    return ", ".join(f"{k} {v}" for k, v in env.items()) if env else None
+
+
 def _percent(x: float | None) -> str | None:
     return None if x is None else f"{100 * float(x):.1f} %"
 
@@ -98,6 +104,7 @@ def report(
             "row camera height (m)": rf.get("render_height_m"),
             "scale (m per unit)": rf.get("scale"),
             "scale source": rf.get("scale_source"),
+            "libraries (fit)": _libraries(upstream["aggregate"].get("environment")),
         }
         if "observe_rows" in upstream:
             listed = upstream["observe_rows"]["summary"]["rows"]

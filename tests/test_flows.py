@@ -161,6 +161,10 @@ def test_scene_flow_produces_everything(base_run):
         assert store.isfile(f"{scene}/export/bundle/{name}")
     manifest = store.load_manifest(SceneKey.parse(scene))
     assert all(manifest.stages[s].status == "done" for s in ("ingest", "report", "fit_seed"))
+    # every stage says which numeric libraries computed it; the report names the fit's
+    for rec in manifest.stages.values():
+        assert rec.environment["numpy"] == np.__version__
+    assert f"numpy {np.__version__}" in html and "libraries (fit)" in html
     # no arrays in any record that went through Prefect
     assert len(repr(out)) < 20_000
 

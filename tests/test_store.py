@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import pickle
+import sys
 import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
@@ -24,6 +25,7 @@ from cropcraft_core.store import (
     canonical_json,
     code_version,
     config_hash,
+    environment_versions,
     redact,
     scene_prefix,
     sha256_bytes,
@@ -225,9 +227,13 @@ def test_manifest_roundtrip_and_stage_updates(store):
     rec = store.load_manifest(SCENE).stages["sfm"]
     assert rec.status == "running" and rec.started is not None and rec.finished is None
     digest = store.put_json(cameras, {"n": 1})
-    m = store.update_stage(SCENE, "sfm", status="done", artefacts={cameras: digest})
+    env = {"numpy": "2.4.6", "python": "3.11.2"}
+    m = store.update_stage(
+        SCENE, "sfm", status="done", artefacts={cameras: digest}, environment=env
+    )
     rec = store.load_manifest(SCENE).stages["sfm"]
     assert m.stages["sfm"] == rec
+    assert rec.environment == env  # which libraries computed it, kept with the record
     assert rec.status == "done" and rec.artefacts == {cameras: digest}
     assert rec.inputs == inputs and rec.config_hash == "c1"
     assert rec.seconds is not None and rec.seconds >= 0 and rec.finished >= rec.started
@@ -377,6 +383,23 @@ def test_canonical_json_and_hash():
     with pytest.raises(InputError):
         canonical_json({"x": float("inf")})
     assert code_version().startswith(__version__)
+
+
+def test_environment_versions_name_the_installed_numeric_libraries():
+    """Each entry is what importlib.metadata reports for an installed distribution, the
+    alternatives (open3d-cpu / open3d) resolved to the one installed."""
+    from importlib import metadata
+
+    import numpy
+    import open3d
+    import scipy
+
+    env = environment_versions()
+    assert env["numpy"] == numpy.__version__ and env["scipy"] == scipy.__version__
+    assert env["python"] == ".".join(map(str, sys.version_info[:3]))
+    (o3d,) = [k for k in env if k.startswith("open3d")]
+    assert env[o3d] == metadata.version(o3d) and open3d.__version__.startswith(env[o3d])
+    assert {"numba", "pycolmap", "torch"} <= set(env)
 
 
 def test_redact():
