@@ -297,6 +297,56 @@ def test_one_view_fill_closes_holes_behind_the_two_view_surface(scene, fitted):
     assert (raised & (z_true >= 0.05)).sum() > 0.5 * raised.sum()
 
 
+def _quad(x0: float, x1: float, y0: float, y1: float, z: float) -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float64)
+    return v, np.array([[0, 1, 2], [0, 2, 3]], np.int64)
+
+
+def _merge(*quads):
+    vs, fs, n = [], [], 0
+    for v, f in quads:
+        vs.append(v)
+        fs.append(f + n)
+        n += len(v)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def test_carving_removes_what_other_views_see_past_and_keeps_what_they_see():
+    """Twelve views of the soil (z = 0) with a real plate at 0.3 m; three neighbouring views'
+    depth maps also hold a phantom plate at 0.3 m over bare soil (a leaf edge stretched by the
+    matching window) that the other nine see past. Fused as before, the phantom is a two-view
+    surface and the row view shows it; with ``carve_free_space`` the others' free space removes
+    it, and the real plate and the soil stay where they were."""
+    soil = _quad(-1.5, 1.5, -1.5, 1.5, 0.0)
+    plate = _quad(-0.35, -0.05, -0.15, 0.15, 0.3)
+    phantom = _quad(0.1, 0.35, -0.15, 0.15, 0.3)
+    cams = _arc(12, 1.1, 1.5, arc_deg=300.0)
+    scene_v, scene_f = _merge(soil, plate)
+    depths = [render_depth(scene_v, scene_f, c).depth for c in cams]
+    ph_v, ph_f = _merge(soil, plate, phantom)
+    for i in (0, 1, 2):  # neighbouring views fattened the same way: a two-view surface
+        depths[i] = render_depth(ph_v, ph_f, cams[i]).depth
+    grey = [np.full((c.height, c.width, 3), 128, np.uint8) for c in cams]
+    box = np.array([[-0.8, -0.8, -0.05], [0.8, 0.8, 0.6]])
+    limits = [(0.3, 4.0)] * len(cams)
+    look = PinholeCamera.look_down(height_m=1.2, size=(160, 120))
+    where = {"plate": (-0.2, 0.0), "phantom": (0.22, 0.0), "soil": (0.0, 0.35)}
+    pix = {k: look.project(np.array([[x, y, 0.3]]))[0][0].astype(int) for k, (x, y) in where.items()}
+    heights = {}
+    for carve in (False, True):
+        b = make_backend(SurfacesConfig(carve_free_space=carve))
+        b.bbox, b.cameras = box, cams
+        b._fuse(grey, cams, depths, limits)
+        d, _ = b.render(look)
+        z = look.unproject(np.where(np.isfinite(d), d, 0.0))[..., 2]
+        heights[carve] = {k: z[v, u] for k, (u, v) in pix.items()}
+    assert heights[False]["phantom"] == pytest.approx(0.3, abs=0.02)  # the fattened edge
+    assert heights[True]["phantom"] == pytest.approx(0.0, abs=0.02)  # carved: the soil
+    for carve in (False, True):
+        assert heights[carve]["plate"] == pytest.approx(0.3, abs=0.02)
+        assert heights[carve]["soil"] == pytest.approx(0.0, abs=0.02)
+
+
 def test_surfaces_saved_before_the_fill_load_without_it(fitted, tmp_path):
     """A store's older surfaces (no fill in surfaces.json, no surface_fill.ply) load and render
     their one mesh, as they did when they were made."""

@@ -217,6 +217,13 @@ class SurfacesConfig:
     skirts of leaf edges reaching into the gaps, in front of the low leaves there. Rendering the
     one-view surface everywhere instead (a weight threshold of 0) read +36 % and −13 % on the
     first and last canopies: its skirts also cover what the two-view surface shows."""
+    carve_free_space: bool = False
+    """tsdf: every depth map is fused into every voxel block that any depth map allocated, not
+    only into the blocks near its own surfaces, so a view that sees past a surface another
+    view put there (a leaf edge fattened by the matching window, reaching over the soil or a
+    lower leaf) fuses free space into it (Open3D's kernel clips the signed distance in front of
+    the surface at the truncation) and outvoted, it is carved away. Voxels hidden behind a
+    view's surface by more than the truncation are left alone."""
     visibility_rel: float = 0.01
     """points: relative z-depth tolerance of the visibility check: another view agrees with a
     stereo point within it, and sees past the point beyond it."""

@@ -784,14 +784,17 @@ class TsdfSurfaces(SurfaceBackend):
             frames.append((depth_img, o3d.t.geometry.Image(rgb), intr, extr, far, bc))
         if not frames:
             raise SurfacesError("no view has a usable depth map: nothing to fuse")
-        n_blocks = len(np.unique(np.concatenate(coords), axis=0))
+        blocks = np.unique(np.concatenate(coords), axis=0)
         vbg = o3d.t.geometry.VoxelBlockGrid(
             ("tsdf", "weight", "color"),
             (o3d.core.float32, o3d.core.float32, o3d.core.float32),
-            ((1), (1), (3)), vs, block_res, int(n_blocks * 1.2) + 64,
+            ((1), (1), (3)), vs, block_res, int(len(blocks) * 1.2) + 64,
         )  # fmt: skip
+        every = o3d.core.Tensor(np.ascontiguousarray(blocks, dtype=np.int32))
         for depth_img, color_img, intr, extr, far, bc in frames:
-            vbg.integrate(bc, depth_img, color_img, intr, extr, 1.0, far, trunc)
+            # carving: each view also fuses the free space it sees in the others' blocks
+            own = every if cfg.carve_free_space else bc
+            vbg.integrate(own, depth_img, color_img, intr, extr, 1.0, far, trunc)
         v, f, c = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold)))
         fill = None
         if cfg.fill_one_view:
