@@ -331,7 +331,9 @@ def test_carving_removes_what_other_views_see_past_and_keeps_what_they_see():
     limits = [(0.3, 4.0)] * len(cams)
     look = PinholeCamera.look_down(height_m=1.2, size=(160, 120))
     where = {"plate": (-0.2, 0.0), "phantom": (0.22, 0.0), "soil": (0.0, 0.35)}
-    pix = {k: look.project(np.array([[x, y, 0.3]]))[0][0].astype(int) for k, (x, y) in where.items()}
+    pix = {
+        k: look.project(np.array([[x, y, 0.3]]))[0][0].astype(int) for k, (x, y) in where.items()
+    }
     heights = {}
     for carve in (False, True):
         b = make_backend(SurfacesConfig(carve_free_space=carve))
