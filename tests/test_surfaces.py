@@ -238,6 +238,16 @@ def test_soil_height_is_the_layer_where_soil_points_pile_up_or_none():
     assert soil_height(np.r_[tail, ground], -1.2, 1.2) == pytest.approx(-0.40, abs=0.02)
     assert soil_height(tail, -1.2, 1.2) is None  # no layer stands out
     assert soil_height(ground[:50], -1.2, 1.2) is None  # too few points
+    # wrong matches dense enough that three bins hold SOIL_MIN_POINTS (the default canopy's
+    # coarse pass: ~45 per 2 cm bin down to the box's bottom): the lowest bins have no bins
+    # under them to stand out against, so they are not a layer (they once were: the sweep
+    # then started at the box's bottom, 1.2 m under the soil)
+    dense = rng.uniform(-1.2, 1.0, 5000)
+    assert soil_height(np.r_[dense, ground], -1.2, 1.2) == pytest.approx(-0.40, abs=0.02)
+    assert soil_height(dense, -1.2, 1.2) is None
+    # a box whose bottom lies within SOIL_BELOW_M of the soil leaves no reference: no layer,
+    # and the sweep starts at that (tight) bottom
+    assert soil_height(np.r_[dense[dense > -0.5], ground], -0.5, 1.2) is None
 
 
 def test_point_cloud_coloured(fitted):

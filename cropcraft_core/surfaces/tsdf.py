@@ -643,7 +643,9 @@ def soil_height(z: np.ndarray, lo: float, hi: float) -> float | None:
     between ``lo`` and ``hi`` (smoothed over three), the first bin holding ``SOIL_MIN_POINTS``
     and ``SOIL_PEAK_RATIO`` times the mean of the bins ``SOIL_BELOW_M`` under it (the wrong
     matches below the soil are spread thin, the soil is a layer), moved to the fullest bin
-    within ``SOIL_LAYER_M`` above it; its centre, or None where no bin qualifies. The lowest,
+    within ``SOIL_LAYER_M`` above it; its centre, or None where no bin qualifies. A bin within
+    ``SOIL_BELOW_M`` of ``lo`` has no full reference and never qualifies (a box that tight
+    already starts at the soil). The lowest,
     not the fullest: leaf edges mixed with the soil behind them in the photos' pixels can
     outnumber the soil seen through a canopy, at the leaves' heights."""
     edges = np.arange(lo, hi + SOIL_BIN_M, SOIL_BIN_M)
@@ -657,8 +659,12 @@ def soil_height(z: np.ndarray, lo: float, hi: float) -> float | None:
     csum = np.r_[0.0, np.cumsum(sm)]
     idx = np.arange(len(sm))
     a, b = np.maximum(idx - below, 0), np.maximum(idx - 1, 0)
-    ref = np.where(b > a, (csum[b] - csum[a]) / np.maximum(b - a, 1), 0.0)
-    (strong,) = np.nonzero((sm >= SOIL_MIN_POINTS) & (sm >= SOIL_PEAK_RATIO * ref))
+    ref = (csum[b] - csum[a]) / np.maximum(b - a, 1)
+    # only a bin with the whole reference under it can stand out: the lowest bins have nothing
+    # (or little) under them, and the thin spread of wrong matches down to the box's bottom
+    # passed there as a layer wherever three bins held SOIL_MIN_POINTS
+    full = idx >= below
+    (strong,) = np.nonzero(full & (sm >= SOIL_MIN_POINTS) & (sm >= SOIL_PEAK_RATIO * ref))
     if not len(strong):
         return None
     k0 = int(strong[0])
