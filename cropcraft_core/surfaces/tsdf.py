@@ -26,7 +26,10 @@ Pipeline (``TsdfSurfaces.fit``):
    a triangle mesh with vertex colours, cropped to the bounding box, from the cells whose voxels
    were all fused from two or more depth maps (``config.weight_threshold``), and (with
    ``config.fill_one_view``) a second, *fill* mesh: the faces that the cells with one or more
-   depth maps add to it.
+   depth maps add to it. Each depth map is fused into the voxel blocks near its own surfaces;
+   with ``config.carve_free_space`` into every block any of them allocated, so the free space
+   a view sees in front of its surfaces carves what others put there (opt-in: measured in
+   ``benchmarks/RESULTS.md#carving``).
 5. **Rendering** casts one ray per pixel centre at the mesh (Open3D ``RaycastingScene``), and the
    rays it leaves empty at the fill mesh, and interpolates the vertex colours with the hit's
    barycentric coordinates. In a dense canopy the low leaves seen through gaps are matched by few
@@ -645,9 +648,9 @@ def soil_height(z: np.ndarray, lo: float, hi: float) -> float | None:
     matches below the soil are spread thin, the soil is a layer), moved to the fullest bin
     within ``SOIL_LAYER_M`` above it; its centre, or None where no bin qualifies. A bin within
     ``SOIL_BELOW_M`` of ``lo`` has no full reference and never qualifies (a box that tight
-    already starts at the soil). The lowest,
-    not the fullest: leaf edges mixed with the soil behind them in the photos' pixels can
-    outnumber the soil seen through a canopy, at the leaves' heights."""
+    already starts at the soil). The lowest, not the fullest: leaf edges mixed with the soil
+    behind them in the photos' pixels can outnumber the soil seen through a canopy, at the
+    leaves' heights."""
     edges = np.arange(lo, hi + SOIL_BIN_M, SOIL_BIN_M)
     if len(z) < SOIL_MIN_POINTS or len(edges) < 4:
         return None
@@ -796,11 +799,16 @@ class TsdfSurfaces(SurfaceBackend):
             (o3d.core.float32, o3d.core.float32, o3d.core.float32),
             ((1), (1), (3)), vs, block_res, int(len(blocks) * 1.2) + 64,
         )  # fmt: skip
-        every = o3d.core.Tensor(np.ascontiguousarray(blocks, dtype=np.int32))
+        # carving: each view also fuses the free space it sees into the others' blocks
+        every = (
+            o3d.core.Tensor(np.ascontiguousarray(blocks, dtype=np.int32))
+            if cfg.carve_free_space
+            else None
+        )
         for depth_img, color_img, intr, extr, far, bc in frames:
-            # carving: each view also fuses the free space it sees in the others' blocks
-            own = every if cfg.carve_free_space else bc
-            vbg.integrate(own, depth_img, color_img, intr, extr, 1.0, far, trunc)
+            vbg.integrate(
+                bc if every is None else every, depth_img, color_img, intr, extr, 1.0, far, trunc
+            )
         v, f, c = _o3d_mesh(vbg.extract_triangle_mesh(weight_threshold=float(cfg.weight_threshold)))
         fill = None
         if cfg.fill_one_view:
