@@ -365,15 +365,16 @@ DEMO_SCENE = ("demo", "soybean", "2024-07-15")
 #: photos at 480×360 the demo ran faster but read LAI 25–31 % low on three runs; at 50 photos
 #: at 640×480 it read 12 and 15 % low on two (6.4 min alone on 2 cores).
 DEMO_SYNTH = {"seed": 0, "views": 50, "resolution": (640, 480), "trajectory": "walk"}
-#: The demo's settings over the flow's: the CPU surfaces backend and a metric box for its
-#: imported metric poses. It fits at the flow's own budget (10 seeds × 500 evaluations,
-#: full-resolution row camera). The former reduced budget (300 evaluations, half resolution)
-#: ran in 220–280 s but its seeds scattered: leaf angle mean 18.5–31.7° against 15.2° over six
-#: fresh runs; from the same surfaces the full budget read 14.9° (LAI +8.0 %, internode 54 mm
-#: against 50).
+#: The demo's settings over the flow's: the CPU surfaces backend (whatever the host has), and
+#: otherwise the flow's own defaults, so the demo runs what a user's scene runs: the flow's
+#: scene box, its fit budget (10 seeds × 500 evaluations, full-resolution row camera). Until
+#: session 45 it gave its own box ([-1.2, 1.2]² × [-0.1, 1.0] m); its row fit then chose the
+#: plot's edge row, whose reconstructed leaf edges reach over the soil (LAI +24.5 % on one
+#: environment; the flow's box: the central row, +16.2 %; benchmarks/RESULTS.md#carving). The
+#: former reduced budget (300 evaluations, half resolution) ran in 220–280 s but its seeds
+#: scattered: leaf angle mean 18.5–31.7° against 15.2° over six fresh runs.
 DEMO_OVERRIDES: dict[str, Any] = {
     "surfaces.backend": "tsdf",
-    "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
 }
 DEMO_TRUTH_KEYS = (
     ("lai", "LAI (m2/m2)"),
