@@ -3,7 +3,7 @@
     cropcraft bench pipeline [--crop soybean|maize] [--trajectory walk|drone] [--views 50]
                              [--resolution 640x480] [--scene-dir DIR] [--poses sfm|truth]
                              [--sfm K=V ...] [--surfaces K=V ...] [--fit SEEDSxEVALS]
-                             [--image-scale S] [--json FILE] [--keep DIR]
+                             [--fit-true-mesh] [--image-scale S] [--json FILE] [--keep DIR]
 
 The same core calls, in the same order, as the scene flow's stages (ingest → poses → surfaces →
 rowfit → observe), without Prefect, each timed; scene synthesis is timed apart (not pipeline).
@@ -38,7 +38,11 @@ centres, used only for scoring):
 * with ``--fit``: LAI, leaf angle, nodes and internode of the fitted canopy against the truth's
   (LAI target: within 15 %), and whose miss a wrong answer is (``loss_attribution``): the loss
   of the answer and of the true parameters, and of their basins' floors, on the same fresh
-  canopies, against the observation and against the true mesh from the same camera.
+  canopies, against the observation and against the true mesh from the same camera;
+* with ``--fit-true-mesh`` as well: the true mesh seen from the same row camera
+  (:func:`true_mesh_observation`: a perfect reconstruction) fitted at the same budget and
+  seeds. Its LAI error is the method's own from this view (the statistics of one row of one
+  random draw of the canopy); the rest of the pipeline's is the reconstruction's.
 * speed: images → observation ≤ 8 minutes on the 2-core machine (50 images at 640 × 480).
 """
 
@@ -125,6 +129,25 @@ def truth_stats(obs, d_true: np.ndarray):
 
     box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
     return obs.predicted_stats(d_true, predicted_mask(d_true, *box))
+
+
+def true_mesh_observation(obs, d_true: np.ndarray):
+    """The observation a perfect reconstruction would give: the true mesh's depth ``d_true``
+    (NaN where nothing) as ``obs``'s camera sees it, with ``obs``'s preset (its depth bins
+    included) and mask rules and no background; its statistics are :func:`truth_stats`'s."""
+    from cropcraft_core.observe import Observation
+    from cropcraft_core.observe.observation import predicted_mask
+
+    box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
+    return Observation(
+        obs.crop,
+        obs.camera,
+        d_true,
+        predicted_mask(d_true, *box),
+        preset=obs.preset,
+        meta={**obs.meta, "source": "the true mesh from the observation's camera"},
+        box_mask=obs.box_mask,
+    )
 
 
 def _scene_from_true(poses, truth_poses) -> np.ndarray:
@@ -292,6 +315,17 @@ def run(a: argparse.Namespace) -> dict:
     if a.fit:
         seeds_dir = Path(a.keep) / "seeds" if a.keep else None
         out["fit"] = fit_and_compare(obs, root, a.fit, d_true, seeds_dir)
+        if a.fit_true_mesh:
+            # the same camera, budget and seeds on a perfect reconstruction: the LAI error the
+            # method itself makes from this view (one draw of the canopy, one row)
+            out["fit_true_mesh"] = fit_and_compare(
+                true_mesh_observation(obs, d_true),
+                root,
+                a.fit,
+                d_true,
+                seeds_dir / "true-mesh" if seeds_dir else None,
+                attribute=False,
+            )
     return out
 
 
@@ -497,19 +531,26 @@ FIT_TRAITS = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", 
 
 
 def fit_and_compare(
-    obs, root: Path, budget: str, d_true: np.ndarray, checkpoint_dir: Path | None = None
+    obs,
+    root: Path,
+    budget: str,
+    d_true: np.ndarray,
+    checkpoint_dir: Path | None = None,
+    attribute: bool = True,
+    **options,
 ) -> dict:
     """Fit the observation at ``SEEDSxEVALS`` (:func:`fit_rules`), compare the default
-    answer's canopy traits with the truth and say whose miss it is against the true mesh's
-    depth ``d_true`` from the same camera (:func:`loss_attribution`); the other rules' answers
-    and traits (``rules``) and every seed's best point (``seeds``) ride along, so one fit
-    compares the rules on a photo observation as ``bench accuracy`` does on renders."""
+    answer's canopy traits with the truth and (``attribute``) say whose miss it is against the
+    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`); the other
+    rules' answers and traits (``rules``) and every seed's best point (``seeds``) ride along,
+    so one fit compares the rules on a photo observation as ``bench accuracy`` does on
+    renders. ``options``: further ``FitConfig`` fields (:func:`fit_rules`)."""
     from cropcraft_core.config import default_layout
     from cropcraft_core.metrics import canopy_metrics
     from cropcraft_core.procedural import generate_canopy
 
     t = time.perf_counter()
-    answers, spread = fit_rules(obs, budget, checkpoint_dir)
+    answers, spread = fit_rules(obs, budget, checkpoint_dir, **options)
     seconds = time.perf_counter() - t
     true = json.loads((root / "truth" / "metrics.json").read_text())
     true_params = json.loads((root / "truth" / "params.json").read_text())
@@ -528,7 +569,7 @@ def fit_and_compare(
         rows = traits(params)
         per_rule[row] = {"params": params, "traits": rows, "lai_rel_err": lai_err(rows)}
     main = per_rule.pop("bo")
-    return {
+    out = {
         "budget": budget,
         "seconds": seconds,
         "params": main["params"],
@@ -538,8 +579,10 @@ def fit_and_compare(
         "lai_rel_err": main["lai_rel_err"],
         "rules": per_rule,
         "seeds": spread["seeds"],
-        "loss": loss_attribution(obs, d_true, main["params"], true_params["params"]),
     }
+    if attribute:
+        out["loss"] = loss_attribution(obs, d_true, main["params"], true_params["params"])
+    return out
 
 
 #: Where the canopy seeds of :func:`loss_attribution` start in the re-scoring's sequence: past
@@ -788,6 +831,14 @@ def _print(out: dict) -> None:
             )
             + f"; whose miss: {att['whose']}"
         )
+    if out.get("fit_true_mesh"):
+        m, f = out["fit_true_mesh"], out["fit"]
+        print(
+            f"  LAI relative error {100 * f['lai_rel_err']:+.1f} % = the method's from this row "
+            f"camera {100 * m['lai_rel_err']:+.1f} % (the true mesh fitted at the same budget: a "
+            f"perfect reconstruction) + the reconstruction's "
+            f"{100 * (f['lai_rel_err'] - m['lai_rel_err']):+.1f} points"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -821,6 +872,12 @@ def main(argv: list[str] | None = None) -> int:
         help='scene box: "auto" (default) or JSON [[x, y, z], [x, y, z]]',
     )
     ap.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
+    ap.add_argument(
+        "--fit-true-mesh",
+        action="store_true",
+        help="with --fit: also fit the true mesh seen from the same row camera (a perfect "
+        "reconstruction), to split the LAI error into the reconstruction's and the method's",
+    )
     ap.add_argument("--json", default=None)
     ap.add_argument(
         "--keep",
@@ -828,6 +885,8 @@ def main(argv: list[str] | None = None) -> int:
         help="save points, row fit, surfaces, depths and the observation here",
     )
     a = ap.parse_args(argv)
+    if a.fit_true_mesh and not a.fit:
+        ap.error("--fit-true-mesh needs --fit SEEDSxEVALS (the budget of both fits)")
     out = run(a)
     out.pop("_observation")
     _print(out)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cropcraft_core.config import default_layout
-from cropcraft_core.config.params import ParamBox, bounds, param_space
+from cropcraft_core.config.params import ParamBox, bounds, param_space, resolve_params
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import (
     FitConfig,
@@ -614,6 +614,74 @@ def test_pipeline_bench_combines_one_fits_seeds_by_every_rule(tmp_path):
     ]
     again, spread_again = fit_rules(obs, "3x10", tmp_path / "seeds", **small)
     assert again == answers and spread_again == spread
+
+
+@pytest.mark.parametrize("crop", ["soybean", "maize"])
+def test_true_mesh_observation_is_the_attributions_perfect_reconstruction(crop):
+    """``bench pipeline --fit-true-mesh`` fits the true mesh's depth seen by the observation's
+    camera: the same camera, preset and depth bins (maize's resolved over the observation's
+    canopy), the mask rules of the observation's box, and statistics identical to the ones the
+    whose-miss attribution scores as the true mesh (``truth_stats``)."""
+    from benchmarks.bench_pipeline import true_mesh_observation, truth_stats
+    from cropcraft_core.observe import Observation, loss
+    from cropcraft_core.observe.observation import predicted_mask
+
+    truth = resolve_params(crop)  # the middle of every range
+    seen, _ = observation(crop, truth)
+    other = {**truth, "leaf_length": 0.8 * truth["leaf_length"]}
+    wrong, _ = observation(crop, other, seed=5)  # a reconstruction of some other canopy
+    boxed = Observation(
+        crop,
+        wrong.camera,
+        wrong.depth,
+        predicted_mask(wrong.depth, wrong.camera, wrong.preset),
+        preset=wrong.preset,
+        box_mask=True,
+    )
+    for obs in (wrong, boxed):
+        perfect = true_mesh_observation(obs, seen.depth)
+        assert perfect.camera is obs.camera and perfect.preset == obs.preset
+        assert perfect.box_mask == obs.box_mask
+        scored = truth_stats(obs, seen.depth)  # without the Sobel histogram where λ is 0
+        for k in ("depth", "lateral", "mask_area") + (("sobel",) if scored.has_sobel else ()):
+            np.testing.assert_array_equal(getattr(perfect.stats, k), getattr(scored, k))
+        assert loss(perfect.stats, scored, obs.preset).total == 0.0
+    # without a box the true mesh's render is its own observation
+    np.testing.assert_array_equal(true_mesh_observation(wrong, seen.depth).mask, seen.mask)
+
+
+def test_pipeline_bench_fits_the_true_mesh_beside_the_observation(tmp_path, capsys):
+    """The perfect reconstruction's fit is an ordinary fit of the bench (its own checkpoints,
+    every rule, the truth's traits) without the whose-miss attribution, and the bench asks
+    for a budget before fitting it."""
+    from benchmarks.bench_pipeline import fit_and_compare, main, true_mesh_observation
+
+    obs, canopy = observation("soybean", SOY_TRUTH)
+    other = {**SOY_TRUTH, "leaf_length": 0.9}
+    recon, _ = observation("soybean", other, seed=5)
+    root = tmp_path / "scene"
+    (root / "truth").mkdir(parents=True)
+    (root / "truth" / "params.json").write_text(json.dumps({"params": SOY_TRUTH}))
+    metrics = canopy_metrics(canopy, gap_fraction=False)
+    (root / "truth" / "metrics.json").write_text(json.dumps(metrics, default=float))
+    small = {"reevaluate_canopies": 2, "polish_evals": 4}
+    perfect = true_mesh_observation(recon, obs.depth)
+    fit = fit_and_compare(perfect, root, "2x8", obs.depth, tmp_path / "tm", False, **small)
+    assert "loss" not in fit
+    assert sorted(p.name for p in (tmp_path / "tm").iterdir()) == ["seed-0.json", "seed-1.json"]
+    assert set(fit["rules"]) == {
+        "bo-median",
+        "bo-mean",
+        "bo-reevaluate",
+        "bo-reevaluate-unpolished",
+    }
+    lai = fit["traits"]["lai"]
+    assert lai["true"] == pytest.approx(metrics["lai"])
+    assert fit["lai_rel_err"] == pytest.approx(lai["estimated"] / lai["true"] - 1)
+    with pytest.raises(SystemExit) as err:
+        main(["--fit-true-mesh", "--scene-dir", str(root)])
+    assert err.value.code == 2
+    assert "--fit-true-mesh needs --fit" in capsys.readouterr().err
 
 
 def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_path, monkeypatch):
