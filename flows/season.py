@@ -9,7 +9,7 @@ from typing import Any
 from prefect import flow, get_run_logger
 
 from cropcraft_core.errors import CropCraftError
-from cropcraft_core.store import SceneStore
+from cropcraft_core.store import SceneKey, SceneStore, manifest_key
 
 
 def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
@@ -33,10 +33,18 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
-def _rows(store: SceneStore, prefix: str) -> dict[str, Any]:
+def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
     """The date's LAI over the rows it was fitted on (``rows/rows.json``): ``n_rows_fitted``,
     ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when the answer it records is
-    not the date's current canopy (``generate/canopy.json``: a later run answered otherwise)."""
+    not the date's current canopy (``generate/canopy.json``: a later run answered otherwise).
+
+    The canopy is the table's when its parameters are the table's answer and, where the
+    manifest keeps the generate stage's inputs, the canopy was built from the answer the
+    table names: the rows' combined answer (``rows/fit.json``, as stored by the rows stage)
+    for ``rows.answer`` other than ``best``, the best row's own (not ``rows/fit.json``) for
+    ``best``. So a later best-only run whose answer equals the rows' mean to the last digit
+    no longer reads as the rows' table (the parameters alone cannot tell them apart)."""
+    prefix = scene.prefix
     key, recipe = f"{prefix}/rows/rows.json", f"{prefix}/generate/canopy.json"
     if not (store.isfile(key) and store.isfile(recipe)):
         return {}
@@ -46,6 +54,17 @@ def _rows(store: SceneStore, prefix: str) -> dict[str, Any]:
         not math.isclose(float(answer[k]), float(params[k]), rel_tol=1e-9) for k in answer
     ):
         return {}
+    stages = store.load_manifest(scene).stages if store.isfile(manifest_key(scene)) else {}
+    built = stages.get("generate")
+    if built is not None and built.inputs:  # older manifests: the parameters decide alone
+        combined = f"{prefix}/rows/fit.json"
+        if table.get("answer", "best") == "best":
+            if combined in built.inputs:
+                return {}
+        else:
+            stored = stages["rows"].artefacts.get(combined) if "rows" in stages else None
+            if stored is None or built.inputs.get(combined) != stored:
+                return {}
     spread = table["spread"]["lai"]
     return {
         "n_rows_fitted": table["n_rows"],
@@ -72,7 +91,7 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
                 **store.get_json(key),
                 "parameters_given": given_text((fit.get("config") or {}).get("box")),
                 "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
-                **_rows(store, d.scene.prefix),
+                **_rows(store, d.scene),
             }
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"
