@@ -317,14 +317,15 @@ def run(a: argparse.Namespace) -> dict:
         out["fit"] = fit_and_compare(obs, root, a.fit, d_true, seeds_dir)
         if a.fit_true_mesh:
             # the same camera, budget and seeds on a perfect reconstruction: the LAI error the
-            # method itself makes from this view (one draw of the canopy, one row)
+            # method itself makes from this view (one draw of the canopy, one row), and whether
+            # the true mesh prefers the truth's basin to that answer's (the optimiser's miss)
             out["fit_true_mesh"] = fit_and_compare(
                 true_mesh_observation(obs, d_true),
                 root,
                 a.fit,
                 d_true,
                 seeds_dir / "true-mesh" if seeds_dir else None,
-                attribute=False,
+                observation_side=False,
             )
     return out
 
@@ -537,11 +538,13 @@ def fit_and_compare(
     d_true: np.ndarray,
     checkpoint_dir: Path | None = None,
     attribute: bool = True,
+    observation_side: bool = True,
     **options,
 ) -> dict:
     """Fit the observation at ``SEEDSxEVALS`` (:func:`fit_rules`), compare the default
     answer's canopy traits with the truth and (``attribute``) say whose miss it is against the
-    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`); the other
+    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`, on the true
+    mesh alone without ``observation_side``); the other
     rules' answers and traits (``rules``) and every seed's best point (``seeds``) ride along,
     so one fit compares the rules on a photo observation as ``bench accuracy`` does on
     renders. ``options``: further ``FitConfig`` fields (:func:`fit_rules`)."""
@@ -581,7 +584,9 @@ def fit_and_compare(
         "seeds": spread["seeds"],
     }
     if attribute:
-        out["loss"] = loss_attribution(obs, d_true, main["params"], true_params["params"])
+        out["loss"] = loss_attribution(
+            obs, d_true, main["params"], true_params["params"], observation_side=observation_side
+        )
     return out
 
 
@@ -614,6 +619,7 @@ def loss_attribution(
     floor_evals: int = FLOOR_EVALS,
     polish_seeds: tuple[int, ...] = POLISH_SEEDS,
     score_groups: tuple[tuple[int, ...], ...] = SCORE_GROUPS,
+    observation_side: bool = True,
 ) -> dict:
     """Whose miss a wrong answer is, asked on two sides: the observation, and the true mesh's
     depth ``d_true`` seen by the same camera with the same rules (what a perfect reconstruction
@@ -640,7 +646,11 @@ def loss_attribution(
     A side whose polish took one point out of its basin, to the other's floor, prefers the
     other's basin (``floor_left_basin``; :func:`whose_miss`).
 
-    The verdict is about a wrong answer: one in the truth's basin also reads ``loss``."""
+    The verdict is about a wrong answer: one in the truth's basin also reads ``loss``.
+
+    Without ``observation_side`` only the true mesh is asked (``obs`` is then the true mesh's
+    own observation, :func:`true_mesh_observation`): ``optimiser`` where it prefers the
+    truth's basin, else ``loss``."""
     from dataclasses import replace
 
     from cropcraft_core.config.params import bounds, params_from_vector, params_to_vector
@@ -649,6 +659,8 @@ def loss_attribution(
     from cropcraft_core.observe import loss
 
     sides = {"observation": obs, "true_mesh": replace(obs, stats=truth_stats(obs, d_true))}
+    if not observation_side:
+        del sides["observation"]
     # the predicted statistics depend on the camera and the mask rules, not on the reference:
     # each point's canopies are rendered once and scored against both sides
     fm = ForwardModel(obs)
@@ -711,6 +723,8 @@ def whose_miss(
         d = diff[against]
         return d["mean"] > significant * d["se"] and d["mean"] > 0.0
 
+    if "observation" not in diff:  # the true mesh asked alone: a perfect reconstruction's fit
+        return "optimiser" if deeper_at_truth("true_mesh") else "loss"
     if deeper_at_truth("observation"):
         return "optimiser"
     return "reconstruction" if deeper_at_truth("true_mesh") else "loss"
@@ -838,6 +852,16 @@ def _print(out: dict) -> None:
             f"camera {100 * m['lai_rel_err']:+.1f} % (the true mesh fitted at the same budget: a "
             f"perfect reconstruction) + the reconstruction's "
             f"{100 * (f['lai_rel_err'] - m['lai_rel_err']):+.1f} points"
+        )
+        att, d = m["loss"], m["loss"]["floor_difference"]["true_mesh"]
+        print(
+            f"  the perfect reconstruction's answer / the true parameters on the true mesh: "
+            f"{att['true_mesh']['answer']:.4f} / {att['true_mesh']['truth']:.4f} (their basins' "
+            f"floors {att['true_mesh']['answer_floor']:.4f} / {att['true_mesh']['truth_floor']:.4f}"
+            f", difference {d['mean']:+.4f} ± {d['se']:.4f}); its miss: "
+            + {"optimiser": "the optimiser's", "loss": "the view's (this draw of the canopy)"}[
+                att["whose"]
+            ]
         )
 
 

@@ -95,6 +95,12 @@ def test_pipeline_bench_says_whose_miss_an_answer_is():
         assert miss[against]["truth"] == same[against]["truth"]
         assert miss[against]["answer_floor"] <= miss[against]["answer"]
     assert miss["whose"] == "optimiser"
+    # a perfect reconstruction's own fit: the true mesh asked alone, the same figures
+    alone = loss_attribution(obs, obs.depth, far, truth, observation_side=False)
+    assert set(alone["floor_difference"]) == {"true_mesh"} and "observation" not in alone
+    assert alone["true_mesh"] == pytest.approx(miss["true_mesh"], rel=1e-9)
+    assert alone["whose"] == "optimiser"
+    assert loss_attribution(obs, obs.depth, truth, truth, observation_side=False)["whose"] == "loss"
 
     other = {**truth, "leaf_length": 0.8, "num_nodes": 5.0}
     wrong, _ = observation("soybean", other)
@@ -117,6 +123,12 @@ def test_whose_miss_trusts_a_side_only_where_each_floor_stayed_in_its_basin():
         return {s: {"answer": "answer" in w, "truth": "truth" in w} for s, w in sides.items()}
 
     assert whose_miss(diff(0.004, 0.02)) == "optimiser"
+    mesh_only = {"true_mesh": {"mean": 0.02, "se": 0.001}}
+    assert whose_miss(mesh_only) == "optimiser"
+    assert whose_miss({"true_mesh": {"mean": -0.02, "se": 0.001}}) == "loss"
+    # the answer's polish left for the truth's basin: the true mesh prefers the truth's
+    flags = {"true_mesh": {"answer": True, "truth": False}}
+    assert whose_miss({"true_mesh": {"mean": -0.001, "se": 0.001}}, flags) == "optimiser"
     assert whose_miss(diff(-0.006, 0.02)) == "reconstruction"
     assert whose_miss(diff(-0.006, -0.005)) == "loss"
     assert whose_miss(diff(0.001, 0.001)) == "loss"  # within two standard errors
@@ -667,7 +679,7 @@ def test_pipeline_bench_fits_the_true_mesh_beside_the_observation(tmp_path, caps
     small = {"reevaluate_canopies": 2, "polish_evals": 4}
     perfect = true_mesh_observation(recon, obs.depth)
     fit = fit_and_compare(perfect, root, "2x8", obs.depth, tmp_path / "tm", False, **small)
-    assert "loss" not in fit
+    assert "loss" not in fit  # the attribution asked of no side
     assert sorted(p.name for p in (tmp_path / "tm").iterdir()) == ["seed-0.json", "seed-1.json"]
     assert set(fit["rules"]) == {
         "bo-median",
