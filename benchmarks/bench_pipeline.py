@@ -42,7 +42,10 @@ centres, used only for scoring):
 * with ``--fit-true-mesh`` as well: the true mesh seen from the same row camera
   (:func:`true_mesh_observation`: a perfect reconstruction) fitted at the same budget and
   seeds. Its LAI error is the method's own from this view (the statistics of one row of one
-  random draw of the canopy); the rest of the pipeline's is the reconstruction's.
+  random draw of the canopy); the rest of the pipeline's is the reconstruction's. Its
+  answer's and the truth's basins are compared on the true mesh alone
+  (``loss_attribution(..., observation_side=False)``): the truth's deeper is the optimiser's
+  miss, otherwise the view's (this draw of the canopy looks like the answer).
 * speed: images → observation ≤ 8 minutes on the 2-core machine (50 images at 640 × 480).
 """
 
