@@ -546,11 +546,11 @@ def fit_and_compare(
 ) -> dict:
     """Fit the observation at ``SEEDSxEVALS`` (:func:`fit_rules`), compare the default
     answer's canopy traits with the truth and (``attribute``) say whose miss it is against the
-    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`, on the true
-    mesh alone without ``observation_side``); the other
-    rules' answers and traits (``rules``) and every seed's best point (``seeds``) ride along,
-    so one fit compares the rules on a photo observation as ``bench accuracy`` does on
-    renders. ``options``: further ``FitConfig`` fields (:func:`fit_rules`)."""
+    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`; on the true
+    mesh alone without ``observation_side``). The other rules' answers and traits (``rules``)
+    and every seed's best point (``seeds``) ride along, so one fit compares the rules on a
+    photo observation as ``bench accuracy`` does on renders. ``options``: further
+    ``FitConfig`` fields (:func:`fit_rules`)."""
     from cropcraft_core.config import default_layout
     from cropcraft_core.metrics import canopy_metrics
     from cropcraft_core.procedural import generate_canopy
