@@ -124,29 +124,33 @@ def depth_errors(obs, d_true: np.ndarray) -> dict:
     return out
 
 
-def truth_stats(obs, d_true: np.ndarray):
-    """Statistics of the true canopy mesh's depth ``d_true`` (NaN where no leaf) from the
-    observation's camera, as a perfect reconstruction would give them: no background, the
+def truth_mask(obs, d_true: np.ndarray) -> np.ndarray:
+    """The foreground a perfect reconstruction would give from the observation's camera: the
+    true mesh's depth ``d_true`` (NaN where no leaf) where finite, no background, cut by the
     observation's own height and lateral clauses where its mask has them (``box_mask``)."""
     from cropcraft_core.observe.observation import predicted_mask
 
     box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
-    return obs.predicted_stats(d_true, predicted_mask(d_true, *box))
+    return predicted_mask(d_true, *box)
+
+
+def truth_stats(obs, d_true: np.ndarray):
+    """Statistics of the true canopy mesh's depth ``d_true`` from the observation's camera,
+    as a perfect reconstruction would give them (:func:`truth_mask`)."""
+    return obs.predicted_stats(d_true, truth_mask(obs, d_true))
 
 
 def true_mesh_observation(obs, d_true: np.ndarray):
     """The observation a perfect reconstruction would give: the true mesh's depth ``d_true``
     (NaN where nothing) as ``obs``'s camera sees it, with ``obs``'s preset (its depth bins
-    included) and mask rules and no background; its statistics are :func:`truth_stats`'s."""
+    included) and :func:`truth_mask`; its statistics are :func:`truth_stats`'s."""
     from cropcraft_core.observe import Observation
-    from cropcraft_core.observe.observation import predicted_mask
 
-    box = (obs.camera, obs.preset) if obs.box_mask else (None, None)
     return Observation(
         obs.crop,
         obs.camera,
         d_true,
-        predicted_mask(d_true, *box),
+        truth_mask(obs, d_true),
         preset=obs.preset,
         meta={**obs.meta, "source": "the true mesh from the observation's camera"},
         box_mask=obs.box_mask,
