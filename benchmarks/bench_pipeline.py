@@ -332,7 +332,7 @@ def run(a: argparse.Namespace) -> dict:
                 a.fit,
                 d_true,
                 seeds_dir / "true-mesh" if seeds_dir else None,
-                observation_side=False,
+                attribute="true-mesh",
             )
     return out
 
@@ -534,6 +534,9 @@ def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None, **options) -
     return {row: params for row, (params, _) in answers.items()}, spread
 
 
+#: The sides ``fit_and_compare`` can ask whose miss an answer is of.
+ATTRIBUTE_SIDES = ("both", "true-mesh", None)
+
 #: The traits ``fit_and_compare`` compares with the truth's.
 FIT_TRAITS = ("lai", "leaf_angle_mean_deg", "leaf_angle_std_deg", "node_count", "internode_mean_m")
 
@@ -544,14 +547,15 @@ def fit_and_compare(
     budget: str,
     d_true: np.ndarray,
     checkpoint_dir: Path | None = None,
-    attribute: bool = True,
-    observation_side: bool = True,
+    attribute: str | None = "both",
     **options,
 ) -> dict:
     """Fit the observation at ``SEEDSxEVALS`` (:func:`fit_rules`), compare the default
-    answer's canopy traits with the truth and (``attribute``) say whose miss it is against the
-    true mesh's depth ``d_true`` from the same camera (:func:`loss_attribution`; on the true
-    mesh alone without ``observation_side``). The other rules' answers and traits (``rules``)
+    answer's canopy traits with the truth and say whose miss it is against the true mesh's
+    depth ``d_true`` from the same camera (:func:`loss_attribution`), asked of ``attribute``'s
+    sides: ``"both"`` (the observation and the true mesh), ``"true-mesh"`` (the true mesh
+    alone: for a fit of the true mesh itself) or None (not asked: its polishes are the costly
+    part). The other rules' answers and traits (``rules``)
     and every seed's best point (``seeds``) ride along, so one fit compares the rules on a
     photo observation as ``bench accuracy`` does on renders. ``options``: further
     ``FitConfig`` fields (:func:`fit_rules`)."""
@@ -559,6 +563,8 @@ def fit_and_compare(
     from cropcraft_core.metrics import canopy_metrics
     from cropcraft_core.procedural import generate_canopy
 
+    if attribute not in ATTRIBUTE_SIDES:
+        raise ValueError(f"attribute must be one of {ATTRIBUTE_SIDES}, got {attribute!r}")
     t = time.perf_counter()
     answers, spread = fit_rules(obs, budget, checkpoint_dir, **options)
     seconds = time.perf_counter() - t
@@ -592,7 +598,11 @@ def fit_and_compare(
     }
     if attribute:
         out["loss"] = loss_attribution(
-            obs, d_true, main["params"], true_params["params"], observation_side=observation_side
+            obs,
+            d_true,
+            main["params"],
+            true_params["params"],
+            observation_side=attribute == "both",
         )
     return out
 

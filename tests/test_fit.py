@@ -678,7 +678,7 @@ def test_pipeline_bench_fits_the_true_mesh_beside_the_observation(tmp_path, caps
     (root / "truth" / "metrics.json").write_text(json.dumps(metrics, default=float))
     small = {"reevaluate_canopies": 2, "polish_evals": 4}
     perfect = true_mesh_observation(recon, obs.depth)
-    fit = fit_and_compare(perfect, root, "2x8", obs.depth, tmp_path / "tm", False, **small)
+    fit = fit_and_compare(perfect, root, "2x8", obs.depth, tmp_path / "tm", None, **small)
     assert "loss" not in fit  # the attribution asked of no side
     assert sorted(p.name for p in (tmp_path / "tm").iterdir()) == ["seed-0.json", "seed-1.json"]
     assert set(fit["rules"]) == {
