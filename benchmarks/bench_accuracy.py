@@ -55,7 +55,7 @@ from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
-from cropcraft_core.fit.fitting import COMBINE_RULES, combine
+from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES, combine
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.fit.select import select, unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
@@ -433,10 +433,12 @@ def diagnose_misses(
 def rules(crop: str, label: str, cfg: FitConfig) -> list[tuple[str, FitConfig]]:
     """The table rows one method's seeds give: BO's seeds are also combined by the other rules
     (``{label}-mean``, ``{label}-median``, ``{label}-reevaluate``), at no extra fitting cost,
-    so every run compares them on the same seeds."""
+    so every run compares them on the same seeds. The opt-in rules (``OPT_IN_RULES``:
+    ``floors`` polishes every seed's point) are a row only where ``--combine`` names them."""
     if cfg.method != "bo":
         return [(label, cfg)]
-    others = [r for r in COMBINE_RULES if r != cfg.combine_rule(crop)]
+    own = cfg.combine_rule(crop)
+    others = [r for r in COMBINE_RULES if r != own and r not in OPT_IN_RULES]
     rows = [(label, cfg), *((f"{label}-{r}", replace(cfg, combine=r)) for r in others)]
     # the re-scoring's own answer without its Nelder-Mead polish, on the same seeds
     return rows + [
@@ -794,6 +796,12 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         help="override the share of each BO seed's evaluations spent last on Nelder-Mead",
     )
+    ap.add_argument(
+        "--combine",
+        choices=list(COMBINE_RULES),
+        help="BO's answer rule (the first row; default: the crop's); the other rules but the "
+        "opt-in floors are compared on the same seeds as further rows",
+    )
     ap.add_argument("--image-scale", type=float, help="row camera resolution / 994x738")
     ap.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
@@ -852,6 +860,7 @@ def main(argv: list[str] | None = None) -> int:
         "canopies_per_eval": a.canopies,
         "gp_output": a.gp_output,
         "local_share": a.local_share,
+        "combine": a.combine,
     }
     if a.finished_only and not a.checkpoint_dir:
         raise SystemExit("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")

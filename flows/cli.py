@@ -316,8 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--combine",
         choices=list(COMBINE_RULES),
         help="bo's answer from its seeds: the median or the paper's mean of their best points, "
-        "candidates re-scored on fresh canopies and the best refined, or the median unless that "
-        "refined winner's basin is significantly deeper (guarded; fit/select.py); "
+        "candidates re-scored on fresh canopies and the best refined, the median unless that "
+        "refined winner's basin is significantly deeper (guarded), or every candidate refined "
+        "and the lowest on fresh canopies unless it ties the median's (floors: each seed "
+        "costs about twice as much; fit/select.py); "
         "default: the crop's (soybean guarded, maize reevaluate)",
     )
     f.add_argument(
@@ -325,8 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=60,
         metavar="N",
-        help="reevaluate, guarded: Nelder-Mead evaluations refining the best re-scored "
-        "candidate (and guarded's median) (60; 0: none)",
+        help="reevaluate, guarded, floors: Nelder-Mead evaluations refining the best re-scored "
+        "candidate (guarded's median; floors: every candidate) (60; 0: none)",
     )
     from flows.service_cli import add_param_option
 

@@ -71,7 +71,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         # (None: the crop's, FitConfig)
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
         "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate",
-        # "guarded"
+        # "guarded", "floors" (opt-in: each seed polishes its point, so its seeds are its own)
         "reevaluate_canopies": 16,
         "polish_starts": 1,  # "reevaluate": refine the lowest re-scored candidate(s) ...
         "polish_evals": 60,  # ... by Nelder-Mead on the same canopies (0: none)
@@ -257,6 +257,12 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             fit.pop("gp_output")
             fit.pop("local_share")
     seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
+    if agg_only.get("combine", fit.get("combine")) == "floors":
+        # each seed polishes its own point in its mapped task (select.seed_floor), so its
+        # record carries the floor and is keyed apart from the other rules' seeds
+        seed_fit.update(
+            {k: fit[k] for k in ("reevaluate_canopies", "polish_evals")}, combine="floors"
+        )
     agg = {**fit, **agg_only}
     surfaces = dict(cfg["surfaces"])
     if crop is not None and surfaces.get("bbox") == "auto":

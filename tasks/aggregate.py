@@ -19,6 +19,9 @@ from tasks.common import (
 )
 from tasks.fit_seed import fit_config
 
+#: The records in ``FitResult.extra`` that name the chosen candidate, the final one first.
+_VERDICTS = ("floors", "guard", "selection")
+
 
 def _run_name() -> str:
     """``aggregate`` (the best row), ``aggregate@row_p1`` (a neighbour row)."""
@@ -75,8 +78,9 @@ def aggregate(
             "params_std": fit.params_std,
             "n_seeds": len(results),
             "row": row,
-            "chosen": fit.extra.get("guard", fit.extra.get("selection", {})).get(
-                "chosen", cfg.combine_rule(crop)
+            "chosen": next(
+                (fit.extra[k]["chosen"] for k in _VERDICTS if k in fit.extra),
+                cfg.combine_rule(crop),
             ),
         },
         t.seconds,

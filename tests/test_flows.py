@@ -341,6 +341,32 @@ def test_the_papers_optimiser_keeps_the_seed_keys_it_had_before_the_local_search
     assert seed_config({})["local_share"] == 0.2
 
 
+def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
+    """The answer rule and its polish are the aggregate's settings, so changing them re-combines
+    the stored seeds; under ``floors`` each seed polishes its own point in its task, so there
+    they are the seeds' settings too (and a seed polished 60 times is not one polished 30)."""
+    from flows.scene import resolve_config, stage_configs
+
+    def configs(overrides):
+        return stage_configs(resolve_config(CROP, overrides), CROP)
+
+    default = configs({})["fit_seed"]
+    assert not {"combine", "polish_evals", "reevaluate_canopies"} & set(default)
+    for o in ({"fit.combine": "reevaluate"}, {"fit.polish_evals": 30}):
+        assert configs(o)["fit_seed"] == default
+    floors = configs({"fit.combine": "floors"})
+    assert floors["fit_seed"] == {
+        **default,
+        "combine": "floors",
+        "polish_evals": 60,
+        "reevaluate_canopies": 16,
+    }
+    assert floors["aggregate"]["combine"] == "floors"
+    assert (
+        configs({"fit.combine": "floors", "fit.polish_evals": 30})["fit_seed"] != floors["fit_seed"]
+    )
+
+
 def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
     """Maize (drone photos) splats points capped at their spacing; soybean keeps the fused
     surface; a user's setting wins over the crop's, and the crops' surfaces stages hash apart."""

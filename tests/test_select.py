@@ -303,3 +303,120 @@ def test_benchmark_rows_share_one_rescoring_and_answer_as_separate_combines(soyb
         assert answers[row][0] == f.params, row
     with pytest.raises(ConfigError, match="pass it"):
         combine_scene("soybean", rows, seeds, 2.0)
+
+
+def test_floors_ranks_every_floor_on_fresh_canopies_and_guards_the_lowest(soybean_seeds):
+    """``combine="floors"``: every candidate polished on the re-scoring canopies, ranked on
+    fresh ones, the lowest taken only where it beats the median's floor on further canopies;
+    seeds that bring their floor (their own task polished it) are not polished again, and the
+    answer is the same."""
+    from benchmarks.bench_accuracy import rules
+    from cropcraft_core.fit.select import seed_floor
+
+    obs, cfg, seeds = soybean_seeds
+    cfg = replace(cfg, combine="floors", polish_evals=4)
+    assert cfg.reevaluates("soybean")
+    fit = combine("soybean", seeds, cfg, 0.0, obs)
+    f = fit.extra["floors"]
+    assert f["rule"] == "floors" and "selection" not in fit.extra
+    assert set(f["floors"]) == {"seed-0", "seed-1", "seed-2", "mean", "averaged"}
+    assert f["from_seeds"] == [] and all(r.floor is None for r in seeds)  # inputs untouched
+    assert f["pick_canopy_seeds"] == reevaluation_seeds(4 + 32)[4:20]
+    assert f["check_canopy_seeds"] == reevaluation_seeds(4 + 32)[20:]
+    pick = {k: v["pick_loss"] for k, v in f["floors"].items()}
+    best = min(pick, key=pick.get)
+    fm = ForwardModel(obs)
+    got = np.mean([fm.loss(f["floors"][best]["params"], [c]) for c in f["pick_canopy_seeds"]])
+    assert got == pytest.approx(pick[best], rel=1e-12)
+    # each floor is its polish from the candidate, never worse there than the candidate
+    x, v, _ = polish(fm, candidates(seeds)["mean"], reevaluation_seeds(4), 4)
+    assert list(f["floors"]["mean"]["params"].values()) == pytest.approx(list(x), rel=1e-12)
+    assert f["floors"]["mean"]["polish_loss"] == pytest.approx(v, rel=1e-12)
+    if f["chosen"] == "median":
+        assert np.allclose(list(fit.params.values()), np.median(aggregate(seeds).per_seed, 0))
+        assert f["difference"]["mean"] >= -2 * f["difference"]["se"]
+    else:
+        assert f["chosen"] == best and fit.params == f["floors"][best]["params"]
+        assert f["difference"]["mean"] < -2 * f["difference"]["se"]
+    # the seeds' own floors (as fit_seed makes them under this rule) give the same answer
+    floored = [seed_floor(fm, r, 4, 4) for r in seeds]
+    again = combine("soybean", floored, cfg, 0.0, obs)
+    assert again.extra["floors"]["from_seeds"] == ["seed-0", "seed-1", "seed-2"]
+    assert again.params == fit.params
+    # opt-in: the benchmark's automatic comparison rows leave it out
+    assert not any("floors" in r for r, _ in rules("soybean", "bo", replace(cfg, combine=None)))
+    with pytest.raises(ConfigError, match="pass it"):
+        combine("soybean", seeds, cfg, 0.0)
+
+
+def test_floors_takes_a_seed_at_the_truth_over_a_median_stranded_far_off():
+    from cropcraft_core.config.params import ParamBox
+    from cropcraft_core.fit.select import floors
+
+    truth = {
+        "leaf_length": 1.0,
+        "petiole_length": 1.1,
+        "petiole_angle": 1.5,
+        "internode_length": 1.25,
+        "num_nodes": 7.0,
+    }
+    obs = observe_canopy(
+        generate_canopy("soybean", truth, default_layout("soybean"), seed=5),
+        preset("soybean", **SMALL),
+    )
+    box = ParamBox.of("soybean")
+    t = np.array([truth[n] for n in box.names])
+    far = np.array([0.55, 1.9, 3.8, 0.6, 3.0])
+    lo, hi = box.bounds[:, 0], box.bounds[:, 1]
+
+    def seed(s: int, p: np.ndarray) -> SeedResult:  # three evaluations around p, best at p
+        X = np.clip(np.vstack([p, p + 0.03 * (hi - lo), p - 0.03 * (hi - lo)]), lo, hi)
+        return _seed(s, X, np.array([0.1, 0.2, 0.2]), box.bounds)
+
+    results = [seed(0, t), seed(1, far), seed(2, far + 0.01 * (hi - lo))]
+    got = floors(ForwardModel(obs), results, canopies=4, polish_evals=0, box=box, pick=8, check=8)
+    assert got.chosen == "seed-0" and np.allclose(got.x, t)
+    assert got.difference[0] < -2 * got.difference[1]
+    assert np.allclose(got.median, np.median([r.best_x for r in results], axis=0))
+    assert got.pick_seeds == reevaluation_seeds(20)[4:12]
+    assert got.check_seeds == reevaluation_seeds(20)[12:]
+
+
+def test_a_floors_seed_polishes_its_point_once_and_a_resumed_one_keeps_it(tmp_path, monkeypatch):
+    """Under ``combine="floors"`` ``fit_seed`` polishes the seed's point on the re-scoring
+    canopies and checkpoints it with the search; a run resumed from that checkpoint returns the
+    same floor without polishing (the polish would fail here); other rules polish nothing."""
+    from cropcraft_core.fit import select as select_mod
+
+    truth = {"leaf_length": 1.0, "petiole_length": 1.1, "petiole_angle": 1.5, "num_nodes": 7.0}
+    obs = observe_canopy(
+        generate_canopy("soybean", truth, default_layout("soybean"), seed=5),
+        preset("soybean", **SMALL),
+    )
+    cfg = FitConfig(
+        n_seeds=1, n_evals=14, n_initial=8, combine="floors", reevaluate_canopies=3, polish_evals=5
+    )
+    ckpt = tmp_path / "seed-0.json"
+    r = fit_seed(obs, 0, cfg, checkpoint=ckpt)
+    assert r.floor["canopy_seeds"] == reevaluation_seeds(3) and r.floor["polish_evals"] == 5
+    assert 1 <= r.floor["evals"] <= 6
+    fm = ForwardModel(obs)
+    assert fm.loss(params_from_vector("soybean", r.floor["x"]), reevaluation_seeds(3)) == (
+        pytest.approx(r.floor["loss"], rel=1e-12)
+    )
+    assert r.floor["loss"] <= fm.loss(
+        params_from_vector("soybean", r.reported_x), reevaluation_seeds(3)
+    )
+    assert SeedResult.load(ckpt).floor == r.floor
+
+    def no_polish(*a, **k):
+        raise AssertionError("a resumed seed polished its point again")
+
+    monkeypatch.setattr(select_mod, "polish", no_polish)
+    again = fit_seed(obs, 0, cfg, checkpoint=ckpt)
+    assert again.floor == r.floor and np.array_equal(again.X, r.X)
+    assert fit_seed(obs, 0, replace(cfg, combine="guarded")).floor is None
+    # a different polish is another floor: the search is resumed, the point polished anew
+    monkeypatch.undo()
+    other = fit_seed(obs, 0, replace(cfg, polish_evals=3), checkpoint=ckpt)
+    assert other.floor["polish_evals"] == 3 and np.array_equal(other.X, r.X)

@@ -34,9 +34,12 @@ if TYPE_CHECKING:
     from cropcraft_core.fit.select import Selection
 
 METHODS = ("bo", "trust-region", "random", "mlp")
-COMBINE_RULES = ("median", "mean", "reevaluate", "guarded")
+COMBINE_RULES = ("median", "mean", "reevaluate", "guarded", "floors")
 #: The rules that re-score candidates on fresh canopies (and so need the observation).
-RESCORING_RULES = ("reevaluate", "guarded")
+RESCORING_RULES = ("reevaluate", "guarded", "floors")
+#: Rules only asked for by name: no crop's default, and left out of the benchmark's automatic
+#: comparison rows (``floors`` polishes every seed's point: it doubles each seed's cost).
+OPT_IN_RULES = ("floors",)
 # Measured on the benchmark's stored seeds (fit/select.py): re-scoring improved maize's LAIE, LAIPE
 # and NCPE with each of three sets of re-scoring canopies, and on 12 fresh maize scenes (30-41,
 # session 37) it read LAIE 0.180 / NDPE 0.034 against the median's 0.485 / 0.054, though the median
@@ -95,8 +98,11 @@ class FitConfig:
     the seeds' averaged GPs re-scored on fresh canopies, the lowest wins: ``fit/select.py``,
     where its measurements are) or ``guarded`` (the median, unless the re-scoring's polished
     winner scores significantly lower than the median's own polished floor on further fresh
-    canopies: ``select.guard``). None: the crop's default, ``DEFAULT_COMBINE`` (soybean with its
-    node count given: the mean, ``DEFAULT_COMBINE_GIVEN``). The baselines
+    canopies: ``select.guard``) or ``floors`` (opt-in: every seed polishes its own point in its
+    own run, every candidate's floor is ranked on fresh canopies and the lowest is guarded
+    against the median's floor: ``select.floors``). None: the crop's default,
+    ``DEFAULT_COMBINE`` (soybean with its node count given: the mean,
+    ``DEFAULT_COMBINE_GIVEN``). The baselines
     follow the paper: random takes the mean, trust-region the lowest-loss seed."""
     reevaluate_canopies: int = 16
     """Fresh canopies (the same for every candidate) each ``reevaluate`` candidate is scored on."""
@@ -104,8 +110,8 @@ class FitConfig:
     """``reevaluate``: how many of the lowest re-scored candidates are then refined by
     Nelder-Mead on the same canopies (``fit/select.py``, where the measurements are)."""
     polish_evals: int = 60
-    """``reevaluate``: loss evaluations (each on ``reevaluate_canopies`` canopies) per polished
-    candidate; 0: no polishing."""
+    """``reevaluate``, ``guarded``, ``floors``: loss evaluations (each on
+    ``reevaluate_canopies`` canopies) per polished candidate; 0: no polishing."""
     n_evals: int = 500
     """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
     n_initial: int = 200
@@ -252,7 +258,10 @@ def fit_seed(
     checkpoint: str | Path | None = None,
     callback: Callable[[int, np.ndarray, float], None] | None = None,
 ) -> SeedResult:
-    """One optimiser seed against ``observation``: pure and resumable (``checkpoint``)."""
+    """One optimiser seed against ``observation``: pure and resumable (``checkpoint``). Under
+    ``combine="floors"`` a BO seed then polishes its own reported point on the re-scoring's
+    canopies (``select.seed_floor``, ``SeedResult.floor``) and checkpoints it, so that the fit's
+    combining step only ranks the floors."""
     cfg = (config or FitConfig()).validate()
     if cfg.method == "mlp":
         raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
@@ -287,6 +296,13 @@ def fit_seed(
             checkpoint=checkpoint,
             callback=callback,
         )
+    if cfg.method == "bo" and cfg.combine_rule(observation.crop) == "floors":
+        from cropcraft_core.fit.select import seed_floor
+
+        floored = seed_floor(forward, res, cfg.reevaluate_canopies, cfg.polish_evals, box)
+        if floored is not res and checkpoint is not None:
+            floored.save(checkpoint)
+        res = floored
     res.extra = {**getattr(res, "extra", {}), "forward_timings": dict(forward.timings)}
     return res
 
@@ -324,7 +340,8 @@ def combine(
     the spread of the seeds' best points; ``extra["selection"]`` holds every re-scored candidate.
     ``selection``: the re-scoring already made on these ``results`` and this observation under
     ``config``'s re-scoring options (:func:`select`; benchmarks share one between the rules that
-    re-score), used instead of re-scoring again; its seconds are still counted."""
+    re-score), used instead of re-scoring again; its seconds are still counted. ``floors``
+    records every floor under ``extra["floors"]`` and re-scores nothing else."""
     if not results:
         raise ConfigError("no seed results to combine")
     config = config.validate()
@@ -353,25 +370,31 @@ def combine(
                 f"combine={rule!r} re-scores candidates against the observation: pass it "
                 "(or use combine='mean', the paper's rule)"
             )
-        from cropcraft_core.fit.select import guard, select
+        from cropcraft_core.fit.select import floors, guard, select
 
         forward = ForwardModel(observation, layout)
-        sel = selection or select(
-            forward,
-            results,
-            config.reevaluate_canopies,
-            config.polish_starts,
-            config.polish_evals,
-            box=box,
-        )
-        final, std = sel.x, agg.std_x
-        extra["selection"] = sel.to_dict(box)
-        seconds += sel.seconds
-        if rule == "guarded":
-            g = guard(forward, results, sel, config.polish_evals, box)
-            final = g.x
-            extra["guard"] = g.to_dict(box)
-            seconds += g.seconds
+        if rule == "floors":
+            fl = floors(forward, results, config.reevaluate_canopies, config.polish_evals, box)
+            final, std = fl.x, agg.std_x
+            extra["floors"] = fl.to_dict(box)
+            seconds += fl.seconds
+        else:
+            sel = selection or select(
+                forward,
+                results,
+                config.reevaluate_canopies,
+                config.polish_starts,
+                config.polish_evals,
+                box=box,
+            )
+            final, std = sel.x, agg.std_x
+            extra["selection"] = sel.to_dict(box)
+            seconds += sel.seconds
+            if rule == "guarded":
+                g = guard(forward, results, sel, config.polish_evals, box)
+                final = g.x
+                extra["guard"] = g.to_dict(box)
+                seconds += g.seconds
     elif config.method == "bo" and config.combine_rule(crop) == "median":
         final, std = np.median(agg.per_seed, axis=0), agg.std_x
     else:

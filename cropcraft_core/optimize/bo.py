@@ -311,6 +311,10 @@ class SeedResult:
     complete: bool = True
     state: dict[str, Any] = field(default_factory=dict)
     """Method-private resume state (GP hyper-parameter history); empty when complete."""
+    floor: dict[str, Any] | None = None
+    """The seed's reported point polished on the fit's shared re-scoring canopies, where the
+    fit's answer rule asks each seed for it (``combine="floors"``: ``fit.select.seed_floor``):
+    ``{"x", "loss", "evals", "canopy_seeds", "polish_evals", "seconds"}``; None otherwise."""
 
     @property
     def n_evals(self) -> int:
@@ -353,6 +357,7 @@ class SeedResult:
                 config=dict(d.get("config") or {}),
                 complete=bool(d.get("complete", True)),
                 state=dict(d.get("state") or {}),
+                floor=d.get("floor"),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"not a SeedResult record: {e!r}") from None
