@@ -321,6 +321,36 @@ def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkey
     assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
 
 
+def test_the_floors_rule_polishes_in_the_seed_tasks_and_ranks_in_the_aggregate(
+    base_run, scene_dir, tmp_path
+):
+    """``fit.combine=floors`` through the flow: the seeds rerun (their records carry their
+    floors), each stored seed holds its floor, and the aggregate ranks them without polishing
+    any seed's again."""
+    from cropcraft_core.fit.select import reevaluation_seeds
+    from cropcraft_core.optimize import SeedResult
+
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": "floors"})
+    executed = set(_executed(out["states"]))
+    assert {f"fit_seed-{s}" for s in range(N_SEEDS)} | {"aggregate"} <= executed
+    assert not executed & {"ingest", "poses", "surfaces", "rowfit", "observe"}
+    store = SceneStore(str(base_run["store"]))
+    prefix = f"plotA/{CROP}/{DATE}"
+    for s in range(N_SEEDS):
+        seed = SeedResult.load(store.get_file(f"{prefix}/fit/seed-{s}.npz", tmp_path / f"{s}.npz"))
+        assert seed.floor["polish_evals"] == OVERRIDES["fit.polish_evals"]
+        assert seed.floor["canopy_seeds"] == reevaluation_seeds(
+            OVERRIDES["fit.reevaluate_canopies"]
+        )
+    fit = store.get_json(f"{prefix}/fit/fit.json")
+    floors = fit["extra"]["floors"]
+    assert floors["from_seeds"] == [f"seed-{s}" for s in range(N_SEEDS)]
+    assert fit["config"]["combine"] == "floors" and out["params"] == fit["params"]
+    if floors["chosen"] != "median":
+        assert fit["params"] == floors["floors"][floors["chosen"]]["params"]
+
+
 def test_the_papers_optimiser_keeps_the_seed_keys_it_had_before_the_local_search(monkeypatch):
     """BO's closing local search and log output are hashed only when they change the fit: the
     defaults (and their values written out) give the seeds' config of earlier releases, so

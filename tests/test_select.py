@@ -408,6 +408,7 @@ def test_a_floors_seed_polishes_its_point_once_and_a_resumed_one_keeps_it(tmp_pa
         params_from_vector("soybean", r.reported_x), reevaluation_seeds(3)
     )
     assert SeedResult.load(ckpt).floor == r.floor
+    assert SeedResult.load(r.save(tmp_path / "seed.npz")).floor == r.floor  # the flow's store
 
     def no_polish(*a, **k):
         raise AssertionError("a resumed seed polished its point again")
