@@ -65,7 +65,8 @@ def fit_seed_task(
     A local checkpoint (``$CROPCRAFT_WORK/checkpoints``, named by the cache key) lets a seed
     killed halfway continue where it stopped on the same machine; it is removed on success.
     Progress goes to :func:`tasks.common.report_progress` every evaluation and to the log every
-    10 %.
+    10 %. Under ``combine="floors"`` (then part of this stage's config) the seed also polishes
+    its point to its floor, stored in the seed's record for the aggregate to rank.
     """
     log = get_run_logger()
     store = open_store(store_root)
