@@ -213,13 +213,11 @@ def test_a_point_an_ulp_outside_the_box_is_set_on_its_bound():
         resolve_params("maize", params_from_vector("maize", far))
 
 
-def test_guarded_keeps_the_median_unless_the_winner_is_significantly_deeper():
-    """``combine="guarded"``: the seeds' median, unless re-scoring's winner beats the median's
-    own floor on fresh canopies by more than two standard errors. A winner at the true
-    parameters against seeds stranded far off: the winner. A winner that is the median itself:
-    a tie, the median. A far-off winner against seeds around the truth: the median."""
+@pytest.fixture(scope="module")
+def truth_scene():
+    """A soybean observation of known parameters at a test's size: (observation, the crop's
+    box, the true point, a point far off in every parameter)."""
     from cropcraft_core.config.params import ParamBox
-    from cropcraft_core.fit.select import Selection, guard
 
     truth = {
         "leaf_length": 1.0,
@@ -234,7 +232,17 @@ def test_guarded_keeps_the_median_unless_the_winner_is_significantly_deeper():
     )
     box = ParamBox.of("soybean")
     t = np.array([truth[n] for n in box.names])
-    far = np.array([0.55, 1.9, 3.8, 0.6, 3.0])
+    return obs, box, t, np.array([0.55, 1.9, 3.8, 0.6, 3.0])
+
+
+def test_guarded_keeps_the_median_unless_the_winner_is_significantly_deeper(truth_scene):
+    """``combine="guarded"``: the seeds' median, unless re-scoring's winner beats the median's
+    own floor on fresh canopies by more than two standard errors. A winner at the true
+    parameters against seeds stranded far off: the winner. A winner that is the median itself:
+    a tie, the median. A far-off winner against seeds around the truth: the median."""
+    from cropcraft_core.fit.select import Selection, guard
+
+    obs, box, t, far = truth_scene
 
     def seeds(centre: np.ndarray) -> list[SeedResult]:
         pts = [centre + d for d in (np.zeros(5), 0.02 * np.ones(5), -0.02 * np.ones(5))]
@@ -349,24 +357,10 @@ def test_floors_ranks_every_floor_on_fresh_canopies_and_guards_the_lowest(soybea
         combine("soybean", seeds, cfg, 0.0)
 
 
-def test_floors_takes_a_seed_at_the_truth_over_a_median_stranded_far_off():
-    from cropcraft_core.config.params import ParamBox
+def test_floors_takes_a_seed_at_the_truth_over_a_median_stranded_far_off(truth_scene):
     from cropcraft_core.fit.select import floors
 
-    truth = {
-        "leaf_length": 1.0,
-        "petiole_length": 1.1,
-        "petiole_angle": 1.5,
-        "internode_length": 1.25,
-        "num_nodes": 7.0,
-    }
-    obs = observe_canopy(
-        generate_canopy("soybean", truth, default_layout("soybean"), seed=5),
-        preset("soybean", **SMALL),
-    )
-    box = ParamBox.of("soybean")
-    t = np.array([truth[n] for n in box.names])
-    far = np.array([0.55, 1.9, 3.8, 0.6, 3.0])
+    obs, box, t, far = truth_scene
     lo, hi = box.bounds[:, 0], box.bounds[:, 1]
 
     def seed(s: int, p: np.ndarray) -> SeedResult:  # three evaluations around p, best at p

@@ -281,6 +281,15 @@ GUARD_CANOPIES = 32
 GUARD_SE = 2.0
 
 
+def _paired_lower(d: np.ndarray, se_factor: float) -> tuple[float, float, bool]:
+    """Of paired per-canopy differences ``d`` (candidate − reference): their mean, its standard
+    error, and whether the candidate is lower by more than ``se_factor`` standard errors (never
+    where a difference is non-finite: the comparison with NaN fails)."""
+    mean = float(d.mean())
+    se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+    return mean, se, mean < -se_factor * se
+
+
 @dataclass(frozen=True)
 class Guard:
     """The median of the seeds against re-scoring's winner (:func:`guard`)."""
@@ -335,8 +344,7 @@ def guard(
     fresh = reevaluation_seeds(len(seeds) + check)[len(seeds) :]
     winner, m_floor = box.params(selection.x), box.params(floor)
     d = np.array([forward.loss(winner, [c]) - forward.loss(m_floor, [c]) for c in fresh])
-    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
-    deeper = mean < -se_factor * se
+    mean, se, deeper = _paired_lower(d, se_factor)
     return Guard(
         x=np.asarray(selection.x if deeper else median, dtype=np.float64),
         chosen=selection.chosen if deeper else "median",
@@ -517,8 +525,7 @@ def floors(
     best = min(finite, key=finite.__getitem__)
     # a non-finite loss on a check canopy makes the test fail: the median stays
     d = per_canopy(fl[best], check_seeds) - per_canopy(median_floor, check_seeds)
-    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
-    deeper = mean < -se_factor * se
+    mean, se, deeper = _paired_lower(d, se_factor)
     return Floors(
         x=np.asarray(fl[best] if deeper else median, dtype=np.float64),
         chosen=best if deeper else "median",
