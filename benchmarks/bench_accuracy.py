@@ -145,12 +145,19 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
     ``results`` (combined in seed order, as ``fit_observation`` would), ``seconds`` the seeds'
     summed compute: ``{row: (params, seconds of fitting incl. any re-scoring)}``. Re-scoring
     rows need the scene's ``observation``; rows with the same re-scoring options share one
-    re-scoring (it is deterministic), and each row still counts its seconds."""
+    re-scoring (it is deterministic), and each row still counts its seconds. A ``floors`` row
+    also counts the seeds' own polishes (``SeedResult.floor``), which the other rows do not
+    use."""
     results = sorted(results, key=lambda r: r.seed)
     out, made, polished_by = {}, {}, {}
     for row, cfg in rows:
         if not cfg.reevaluates(crop):
             f = combine(crop, results, cfg, seconds)
+            out[row] = (f.params, f.seconds)
+            continue
+        if cfg.combine_rule(crop) == "floors":  # no re-scoring; the seeds' polishes count here
+            polishes = sum(float(r.floor["seconds"]) for r in results if r.floor is not None)
+            f = combine(crop, results, cfg, seconds + polishes, observation)
             out[row] = (f.params, f.seconds)
             continue
         box = cfg.param_box(crop)
