@@ -490,8 +490,8 @@ def floors(
     lowest is a floor that is low on the loss averaged over canopies, not on 16 of them. Measured
     on 15 soybean fits' stored seeds (benchmarks/RESULTS.md, *#floors*): mean |LAI error| 8.5 %
     against the guard's 14.3 %, median 6.2 % against 8.2 %, 12 of 15 within 15 % against 11;
-    one scene carries most of the gain (+83 % -> +7 %). Over 26 fits (session 48, *#floors-26*,
-    8 fresh scenes among them) 11.0 % against 14.9 %, better on open canopies, but on closed
+    one scene carries most of the gain (+83 % -> +7 %). Over 28 fits (session 48, *#floors-26*,
+    10 fresh scenes among them) 10.4 % against 13.9 %, better on open canopies, but on closed
     ones it rescued two (+83 -> +7, +36 -> -11) and sank two (-2 -> -32, -9 -> -27). Not the
     default: that, and 1.5-2x the guard's compute (the seeds' polishes take 0.4-1.2x their
     searches)."""
