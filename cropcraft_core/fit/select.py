@@ -281,6 +281,12 @@ GUARD_CANOPIES = 32
 GUARD_SE = 2.0
 
 
+def _per_canopy(forward: ForwardModel, params: dict, canopy_seeds: Sequence[int]) -> np.ndarray:
+    """The loss of ``params`` on each of ``canopy_seeds`` alone (one render each), so that two
+    points scored on the same canopies can be compared pair by pair."""
+    return np.array([forward.loss(params, [c]) for c in canopy_seeds], dtype=np.float64)
+
+
 def _paired_lower(d: np.ndarray, se_factor: float) -> tuple[float, float, bool]:
     """Of paired per-canopy differences ``d`` (candidate − reference): their mean, its standard
     error, and whether the candidate is lower by more than ``se_factor`` standard errors (never
@@ -343,7 +349,7 @@ def guard(
         floor, _, _ = polish(forward, median, seeds, polish_evals, box)
     fresh = reevaluation_seeds(len(seeds) + check)[len(seeds) :]
     winner, m_floor = box.params(selection.x), box.params(floor)
-    d = np.array([forward.loss(winner, [c]) - forward.loss(m_floor, [c]) for c in fresh])
+    d = _per_canopy(forward, winner, fresh) - _per_canopy(forward, m_floor, fresh)
     mean, se, deeper = _paired_lower(d, se_factor)
     return Guard(
         x=np.asarray(selection.x if deeper else median, dtype=np.float64),
@@ -516,8 +522,7 @@ def floors(
     median_floor, _, _ = _floor(forward, median, polish_seeds, polish_evals, box)
 
     def per_canopy(x: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
-        p = box.params(x)
-        v = np.array([forward.loss(p, [c]) for c in seeds], dtype=np.float64)
+        v = _per_canopy(forward, box.params(x), seeds)
         return np.where(np.isfinite(v), v, np.inf)
 
     pick_losses = {k: float(per_canopy(x, pick_seeds).mean()) for k, x in fl.items()}
