@@ -58,6 +58,45 @@ def test_true_parameters_beat_a_far_off_point():
     assert fm.timings["calls"] == 6
 
 
+def test_an_observation_pools_row_cameras_along_the_row_and_over_neighbouring_rows(tmp_path):
+    """``views_along``/``views_across``: the observation's statistics are the bin-by-bin mean
+    of the row cameras along its row and over the rows beside it; its depth map, mask and camera
+    stay the row camera's, and the pooled statistics survive a save and a load."""
+    from cropcraft_core.observe import Observation, loss, mean_stats
+
+    layout = default_layout("soybean")
+    canopy = generate_canopy("soybean", SOY_TRUTH, layout, seed=11)
+    single = preset("soybean", **SMALL)
+    pooled_preset = preset("soybean", **SMALL, views_along=3, views_across=1)
+    obs = observe_canopy(canopy, pooled_preset)
+    offsets = pooled_preset.view_offsets(layout.row_spacing)
+    assert len(offsets) == 9 and obs.meta["views"] == [list(o) for o in offsets]
+    views = [
+        observe_canopy(canopy, single, camera=single.row_camera().shifted(dx, dy))
+        for dx, dy in offsets
+    ]
+    assert obs.stats.equals(mean_stats([v.stats for v in views]))
+    assert len({round(v.stats.mask_area, 6) for v in views}) > 1  # nine different draws
+    np.testing.assert_array_equal(obs.depth, views[0].depth)
+    np.testing.assert_array_equal(obs.mask, views[0].mask)
+    assert obs.camera.to_dict() == views[0].camera.to_dict()
+    # one camera (the default) is the paper's observation, bit for bit
+    assert observe_canopy(canopy, single).stats.equals(views[0].stats)
+    obs.save(tmp_path / "o")
+    assert Observation.load(tmp_path / "o").equals(obs)
+    # the prediction side is unchanged: the row camera's own canopy, predicted, scores its
+    # distance from the pool
+    assert ForwardModel(obs).loss(SOY_TRUTH, 11) == pytest.approx(
+        loss(obs.stats, views[0].stats, obs.preset).total, rel=1e-9
+    )
+    # maize: every view is binned over the row camera's own canopy (its resolved depth range)
+    maize = generate_canopy("maize", {"num_nodes": 9.0}, default_layout("maize"), seed=11)
+    m1 = observe_canopy(maize, preset("maize", **SMALL))
+    m3 = observe_canopy(maize, preset("maize", **SMALL, views_along=3, view_step=1.0))
+    assert m3.preset.depth_range == m1.preset.depth_range and m3.stats.spec == m1.stats.spec
+    assert len(m3.meta["views"]) == 3
+
+
 def test_pipeline_bench_says_whose_miss_an_answer_is():
     """``bench pipeline --fit`` scores the answer and the truth, and their basins' floors under
     each side's loss, on the same fresh canopies against the observation and against the true

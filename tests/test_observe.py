@@ -111,11 +111,59 @@ def test_preset_overrides_move_derived_ranges_and_round_trip():
         ("maize", {"render_height": 0}, "render_height"),
         ("maize", {"sobel_bins": 2.5}, "integer"),
         ("maize", {"vfov_deg": float("nan")}, "vfov_deg"),
+        ("soybean", {"views_along": 2}, "odd"),
+        ("soybean", {"views_along": 1.5}, "integer"),
+        ("soybean", {"views_across": -1}, "non-negative"),
+        ("soybean", {"view_step": 0}, "positive"),
     ],
 )
 def test_bad_presets_raise_config_error(crop, kw, words):
     with pytest.raises(ConfigError, match=words):
         preset(crop, **kw)
+
+
+def test_pooled_row_cameras_offsets_and_records():
+    """The cameras an observation pools (``views_along``, ``view_step``, ``views_across``):
+    the row camera first, then along the row, then each neighbouring row; the record keeps
+    them, and one written before the fields existed reads as the single row camera."""
+    assert SOY.n_views == 1 and SOY.view_offsets() == [(0.0, 0.0)]
+    p = preset("soybean", views_along=3, view_step=0.4)
+    assert p.n_views == 3 and p.view_offsets() == [(0.0, 0.0), (-0.4, 0.0), (0.4, 0.0)]
+    q = preset("soybean", views_along=3, views_across=1)
+    assert q.n_views == 9 and q.view_offsets(0.7)[3:6] == [(0.0, -0.7), (-0.5, -0.7), (0.5, -0.7)]
+    with pytest.raises(ConfigError, match="row spacing"):
+        q.view_offsets()
+    assert type(q).from_dict(q.to_dict()) == q
+    old = SOY.to_dict()
+    for k in ("views_along", "views_across", "view_step"):
+        del old[k]
+    assert type(SOY).from_dict(old) == SOY
+    # a camera moves along its own image axes: along the row, then across it
+    cam = SOY.row_camera(center_xy=(1.0, 2.0), row_direction=(0.0, 1.0)).shifted(0.5, 0.2)
+    np.testing.assert_allclose(cam.center, [1.2, 2.5, 1.0], atol=1e-12)
+
+
+def test_pooled_statistics_are_required_and_share_one_spec():
+    """A preset that pools several cameras cannot be filled from the row camera's depth map
+    alone (that would be one camera's statistics under a many-camera name); statistics of
+    different presets are not averaged."""
+    from cropcraft_core.observe import mean_stats
+
+    cam = CAM.scaled(0.25)
+    small = {"image_width": cam.width, "image_height": cam.height}
+    p = preset("soybean", **small, views_along=3)
+    with pytest.raises(ConfigError, match="pools 3 row cameras"):
+        Observation("soybean", cam, plane(0.6, cam), full(cam), preset=p)
+    one = Observation("soybean", cam, plane(0.6, cam), full(cam), preset=preset("soybean", **small))
+    pooled = Observation("soybean", cam, plane(0.6, cam), full(cam), stats=one.stats, preset=p)
+    assert pooled.stats.equals(one.stats) and mean_stats([one.stats]) is one.stats
+    other = Observation(
+        "soybean", cam, plane(0.6, cam), full(cam), preset=preset("soybean", **small, depth_bins=10)
+    )
+    with pytest.raises(ConfigError, match="different presets"):
+        mean_stats([one.stats, other.stats])
+    with pytest.raises(ConfigError, match="at least one"):
+        mean_stats([])
 
 
 def test_depth_range_over_the_canopy_is_resolved_by_the_observation(tmp_path):

@@ -11,13 +11,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from cropcraft_core.config import CanopyLayout, default_layout, resolve_params
 from cropcraft_core.geometry import PinholeCamera
-from cropcraft_core.observe import HistogramStats, Observation
+from cropcraft_core.observe import (
+    HistogramStats,
+    Observation,
+    compute_stats,
+    mean_stats,
+    resolve_depth_range,
+)
 from cropcraft_core.procedural import Canopy, generate_canopy, max_reach, view_region
 from cropcraft_core.render.raster import render_depth
 
@@ -89,33 +95,38 @@ class ForwardModel:
         return loss(self.observation.stats, self.stats(params, seed), self.observation.preset).total
 
 
-def mean_stats(stats: Sequence[HistogramStats]) -> HistogramStats:
-    """Bin-by-bin mean of statistics computed with one spec."""
-    first = stats[0]
-    return replace(
-        first,
-        depth=np.mean([s.depth for s in stats], axis=0),
-        lateral=np.mean([s.lateral for s in stats], axis=0),
-        sobel=np.mean([s.sobel for s in stats], axis=0),
-        mask_area=float(np.mean([s.mask_area for s in stats])),
-        n_foreground=int(round(np.mean([s.n_foreground for s in stats]))),
-    )
-
-
 def observe_canopy(
     canopy: Canopy, observation_preset, camera: PinholeCamera | None = None, meta=None
 ) -> Observation:
     """A synthetic observation: ``canopy`` rendered from the row camera (default: the preset's,
     over the origin) with no background, its mask the finite depth and no box (``box_mask``
-    False, so neither are the predictions cut) — the paper's synthetic-scene protocol."""
+    False, so neither are the predictions cut) — the paper's synthetic-scene protocol.
+
+    Where the preset pools several row cameras (``views_along``, ``views_across``), the
+    canopy is also rendered from each of them (:meth:`ObservePreset.view_offsets`, the rows
+    ``canopy.layout.row_spacing`` apart) and the observation's statistics are their bin-by-bin
+    mean, binned with the row camera's preset (for maize, its depth range resolved over the
+    row camera's own canopy); the depth map, mask and camera stay the row camera's, and
+    ``meta["views"]`` lists the offsets."""
     cam = camera or observation_preset.row_camera()
-    d = render_depth(canopy.mesh.vertices, canopy.mesh.faces, cam).depth
+
+    def depth(c: PinholeCamera) -> np.ndarray:
+        return render_depth(canopy.mesh.vertices, canopy.mesh.faces, c).depth
+
+    d = depth(cam)
+    meta = dict(meta or {})
+    stats = None
+    p = observation_preset
+    if observation_preset.n_views > 1:
+        offsets = observation_preset.view_offsets(canopy.layout.row_spacing)
+        p = resolve_depth_range(observation_preset, d[np.isfinite(d)])
+        views = []
+        for dx, dy in offsets:
+            c = cam.shifted(dx, dy)
+            dv = d if (dx, dy) == (0.0, 0.0) else depth(c)
+            views.append(compute_stats(dv, c, np.isfinite(dv), p, sobel=True))
+        stats = mean_stats(views)
+        meta["views"] = [list(o) for o in offsets]
     return Observation(
-        canopy.crop,
-        cam,
-        d,
-        np.isfinite(d),
-        preset=observation_preset,
-        meta=dict(meta or {}),
-        box_mask=False,
+        canopy.crop, cam, d, np.isfinite(d), stats=stats, preset=p, meta=meta, box_mask=False
     )

@@ -109,6 +109,14 @@ class PinholeCamera:
             w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.cam_to_world
         )
 
+    def shifted(self, dx: float, dy: float) -> PinholeCamera:
+        """The same camera moved ``dx`` along its own image x axis and ``dy`` along its image y
+        axis (a row camera: ``dx`` along the row, ``dy`` across it), in the pose's units; the
+        intrinsics and orientation are kept."""
+        m = np.array(self.cam_to_world, dtype=np.float64, copy=True)
+        m[:3, 3] += float(dx) * m[:3, 0] + float(dy) * m[:3, 1]
+        return PinholeCamera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, m)
+
     # ----------------------------------------------------------------- geometry
     def to_camera(self, points: np.ndarray) -> np.ndarray:
         """(n, 3) world points → (n, 3) camera coordinates."""

@@ -7,7 +7,7 @@ a procedural render's (``Observation.loss_of(depth)`` does both steps). All sett
 per-crop presets: ``preset("soybean", **overrides)``.
 """
 
-from cropcraft_core.observe.histograms import HistogramStats, bin_edges, compute_stats
+from cropcraft_core.observe.histograms import HistogramStats, bin_edges, compute_stats, mean_stats
 from cropcraft_core.observe.loss import LossBreakdown, loss
 from cropcraft_core.observe.observation import (
     NO_SURFACE_WARN,
@@ -44,6 +44,7 @@ __all__ = [
     "coverage_warning",
     "no_surface_fraction",
     "loss",
+    "mean_stats",
     "observation_mask",
     "predicted_mask",
     "preset",

@@ -54,14 +54,15 @@ blur makes maize ~17 ms).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
 import numba
 import numpy as np
 
-from cropcraft_core.errors import InputError
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.observe.presets import ObservePreset
 
@@ -142,6 +143,28 @@ class HistogramStats:
                 for k in ("depth", "lateral", "sobel")
             )
         )
+
+
+def mean_stats(stats: Sequence[HistogramStats]) -> HistogramStats:
+    """Bin-by-bin mean of statistics computed with one spec (several canopies of a prediction,
+    or several row cameras of an observation). ``ConfigError`` for none or mixed specs."""
+    stats = list(stats)
+    if not stats:
+        raise ConfigError("mean_stats needs at least one set of statistics")
+    first = stats[0]
+    if any(s.spec != first.spec for s in stats[1:]):
+        raise ConfigError("mean_stats: the statistics were computed with different presets")
+    if len(stats) == 1:
+        return first
+    return replace(
+        first,
+        depth=np.mean([s.depth for s in stats], axis=0),
+        lateral=np.mean([s.lateral for s in stats], axis=0),
+        sobel=np.mean([s.sobel for s in stats], axis=0),
+        mask_area=float(np.mean([s.mask_area for s in stats])),
+        n_foreground=int(round(np.mean([s.n_foreground for s in stats]))),
+        has_sobel=all(s.has_sobel for s in stats),
+    )
 
 
 def _freeze(x: Any) -> Any:

@@ -282,6 +282,13 @@ class Observation:
             raise InputError(f"meta must be a JSON-serialisable mapping: {e}") from None
         d, m = _readonly(d), _readonly(m)
         stats = self.stats
+        if stats is None and p.n_views > 1:
+            raise ConfigError(
+                f"the preset pools {p.n_views} row cameras (views_along={p.views_along}, "
+                f"views_across={p.views_across}) but only the row camera's depth map was given: "
+                "build the observation with its pooled statistics (fit.observe_canopy, the "
+                "observe stage)"
+            )
         if stats is None:  # always with the derivative histogram (computed once, for reports)
             stats = compute_stats(d, self.camera, m, p, sobel=True)
         elif not isinstance(stats, HistogramStats):

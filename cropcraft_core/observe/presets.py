@@ -161,6 +161,18 @@ class ObservePreset:
     the observation's own mask is cut by it (``Observation.box_mask``). False: the paper's
     predicted mask, every rendered pixel, which counts the low leaves the observation drops on
     the predicted side only (README, "Where the fit departs from the paper")."""
+    views_along: int = 1
+    """Row cameras along the row whose statistics the observation pools (bin by bin): an odd
+    number, centred on the row camera, ``view_step`` apart. 1: the paper's single camera.
+    One row camera sees one draw of the canopy, and on some scenes that draw is far from its
+    parameters' average (benchmarks/RESULTS.md, *#views*); the prediction's statistics are
+    the same wherever along a uniform canopy the camera stands, so only the observation needs
+    the extra views."""
+    view_step: float = 0.5
+    """Distance between the pooled row cameras along the row, metres."""
+    views_across: int = 0
+    """Neighbouring rows pooled on each side of the row camera's row (each with the same
+    cameras along it), one row spacing apart; 0: the camera's own row only."""
 
     def __post_init__(self) -> None:
         if self.crop not in _BASE:
@@ -186,6 +198,17 @@ class ObservePreset:
             raise ConfigError(
                 f"mask_predictions must be true or false, got {self.mask_predictions!r}"
             )
+        for name in ("views_along", "views_across"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(f"{name} must be a non-negative integer, got {v!r}")
+        if self.views_along % 2 == 0:
+            raise ConfigError(
+                f"views_along must be odd (centred on the row camera), got {self.views_along}"
+            )
+        _finite("view_step", self.view_step, minimum=0.0)
+        if self.view_step <= 0:
+            raise ConfigError(f"view_step must be positive, got {self.view_step}")
         lo, hi, _ = self.depth_range
         if not hi > lo:
             raise ConfigError(
@@ -232,6 +255,29 @@ class ObservePreset:
             ("blur_sigma", float(lp.blur_sigma)),
             ("normalisation", lp.normalisation),
         )
+
+    # ----------------------------------------------------------------- views
+    @property
+    def n_views(self) -> int:
+        """How many row cameras the observation's statistics pool."""
+        return self.views_along * (2 * self.views_across + 1)
+
+    def view_offsets(self, row_spacing: float | None = None) -> list[tuple[float, float]]:
+        """The pooled cameras' offsets (along, across) from the row camera in metres, the row
+        camera's own (0, 0) first; ``row_spacing`` (m) places the neighbouring rows and is
+        needed only when ``views_across`` > 0."""
+        half = self.views_along // 2
+        along = [0.0] + [s * k * self.view_step for k in range(1, half + 1) for s in (-1, 1)]
+        across = [0.0]
+        if self.views_across:
+            if row_spacing is None or not math.isfinite(row_spacing) or row_spacing <= 0:
+                raise ConfigError(
+                    f"views_across={self.views_across} needs the row spacing, got {row_spacing!r}"
+                )
+            across += [
+                s * k * row_spacing for k in range(1, self.views_across + 1) for s in (-1, 1)
+            ]
+        return [(float(a), float(c)) for c in across for a in along]
 
     # ----------------------------------------------------------------- camera
     def row_camera(
@@ -316,7 +362,7 @@ _OBS_FIELDS = {f.name: f for f in fields(ObservePreset) if f.name not in ("crop"
 _LOSS_FIELDS = {f.name: f for f in fields(LossPreset)}
 _BOOL_FIELDS = {"mask_predictions"}
 _INT_FIELDS = {"image_width", "image_height", "depth_bins", "lateral_bins", "sobel_bins"}
-_INT_FIELDS |= {"blur_kernel"}
+_INT_FIELDS |= {"blur_kernel", "views_along", "views_across"}
 _OPTIONAL_FIELDS = {"depth_max", "lateral_max", "mask_l_min", "depth_top_margin"}
 
 
