@@ -277,7 +277,12 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "poses": dict(cfg["poses"]),
         "surfaces": surfaces,
         "rowfit": {**cfg["rowfit"], **layout},
-        "observe": dict(cfg["observe"]),
+        # pooled over neighbouring rows, the observation needs their spacing; otherwise it is
+        # keyed as before the setting existed
+        "observe": {
+            **cfg["observe"],
+            **(layout if int(cfg["observe"]["preset"].get("views_across", 0)) > 0 else {}),
+        },
         # every row is observed alike: the observe stage's settings, and the row spacing
         "observe_rows": {
             **cfg["observe"],

@@ -34,6 +34,8 @@ def _observe(
     unseen = no_surface_fraction(backend.render_supported(camera_in_scene.scaled(scale)))
     if limit is not None and unseen > limit:
         return None, unseen
+    from tasks.fit_seed import layout_of
+
     obs = Observation.from_surfaces(
         crop,
         backend.render,
@@ -44,6 +46,9 @@ def _observe(
         image_scale=scale,
         preset_overrides=config.get("preset"),
         meta={"scene": scene, "no_surface_fraction": unseen, **meta},
+        # the planting row spacing places the neighbouring rows a pooled observation adds
+        # (ObservePreset.views_across; the flow passes the layout only then)
+        row_spacing=layout_of(crop, config).row_spacing,
     )
     return obs, unseen
 
@@ -66,7 +71,11 @@ def observe(
     two-view mesh before its one-view fill; ``cropcraft_core.observe.coverage_warning``).
 
     config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5) and
-    ``preset`` (ObservePreset overrides). Depth is converted to metres with the row fit's scale.
+    ``preset`` (ObservePreset overrides; ``views_along``/``views_across`` pool the statistics
+    over several row cameras, :func:`cropcraft_core.observe.observe_views`), and ``layout``
+    (its row spacing places the neighbouring rows; the flow passes it only when they are
+    pooled). Depth is converted to metres with the row fit's scale. The no-surface share is
+    the row camera's own; the other pooled views are not checked for coverage.
     """
     from cropcraft_core.geometry.camera import PinholeCamera
 

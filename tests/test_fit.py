@@ -97,6 +97,46 @@ def test_an_observation_pools_row_cameras_along_the_row_and_over_neighbouring_ro
     assert len(m3.meta["views"]) == 3
 
 
+def test_surfaces_in_their_own_units_pool_the_same_views():
+    """``Observation.from_surfaces`` moves the scene-frame camera by the metric offsets over
+    the scale, so surfaces in their own units (here 2 per metre) give each pooled view exactly
+    what a metric render of it gives."""
+    from cropcraft_core.observe import Observation, mean_stats
+    from cropcraft_core.render.raster import render_depth
+
+    canopy = generate_canopy("soybean", SOY_TRUTH, default_layout("soybean"), seed=11)
+    v, f = canopy.mesh.vertices, canopy.mesh.faces
+    p = preset("soybean", **SMALL, views_along=3, view_step=0.3, views_across=1)
+    cam = p.row_camera()
+    scene = cam.cam_to_world.copy()
+    scene[:3, 3] *= 2.0
+    cam_scene = type(cam)(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, scene)
+
+    def render(c):
+        return render_depth(v * 2.0, f, c).depth, None
+
+    obs = Observation.from_surfaces(
+        "soybean",
+        render,
+        cam,
+        cam_scene,
+        0.5,
+        1.0,
+        preset_overrides={**SMALL, "views_along": 3, "view_step": 0.3, "views_across": 1},
+        row_spacing=0.76,
+    )
+    one = preset("soybean", **SMALL)
+    views = []
+    for dx, dy in p.view_offsets(0.76):
+        c = cam.shifted(dx, dy)
+        views.append(Observation.from_depth("soybean", render_depth(v, f, c).depth, c, preset=one))
+    expected = mean_stats([o.stats for o in views])
+    for k in ("depth", "lateral", "sobel"):
+        np.testing.assert_allclose(getattr(obs.stats, k), getattr(expected, k), atol=1e-12)
+    assert obs.stats.mask_area == pytest.approx(expected.mask_area, abs=1e-12)
+    assert obs.box_mask and len(obs.meta["views"]) == 9
+
+
 def test_pipeline_bench_says_whose_miss_an_answer_is():
     """``bench pipeline --fit`` scores the answer and the truth, and their basins' floors under
     each side's loss, on the same fresh canopies against the observation and against the true

@@ -397,6 +397,24 @@ def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
     )
 
 
+def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
+    """Pooling the observation over neighbouring rows needs the planting row spacing, so the
+    observe stage then hashes the layout; otherwise its key is what it was before pooling
+    existed (the stored observations are served), and pooling along the row alone keys by
+    the preset."""
+    from flows.scene import resolve_config, stage_configs
+
+    def observe(overrides):
+        return stage_configs(resolve_config(CROP, overrides), CROP)["observe"]
+
+    default = observe({})
+    assert default == {"image_scale": 1.0, "preset": {}}
+    along = observe({"observe.preset.views_along": 3})
+    assert along["preset"] == {"views_along": 3} and "layout" not in along
+    rows = observe({"observe.preset.views_across": 1, "layout.row_spacing": 0.5})
+    assert rows["layout"] == {"row_spacing": 0.5}
+
+
 def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
     """Maize (drone photos) splats points capped at their spacing; soybean keeps the fused
     surface; a user's setting wins over the crop's, and the crops' surfaces stages hash apart."""

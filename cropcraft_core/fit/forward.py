@@ -17,13 +17,7 @@ import numpy as np
 
 from cropcraft_core.config import CanopyLayout, default_layout, resolve_params
 from cropcraft_core.geometry import PinholeCamera
-from cropcraft_core.observe import (
-    HistogramStats,
-    Observation,
-    compute_stats,
-    mean_stats,
-    resolve_depth_range,
-)
+from cropcraft_core.observe import HistogramStats, Observation, mean_stats, observe_views
 from cropcraft_core.procedural import Canopy, generate_canopy, max_reach, view_region
 from cropcraft_core.render.raster import render_depth
 
@@ -100,33 +94,22 @@ def observe_canopy(
 ) -> Observation:
     """A synthetic observation: ``canopy`` rendered from the row camera (default: the preset's,
     over the origin) with no background, its mask the finite depth and no box (``box_mask``
-    False, so neither are the predictions cut) — the paper's synthetic-scene protocol.
-
-    Where the preset pools several row cameras (``views_along``, ``views_across``), the
-    canopy is also rendered from each of them (:meth:`ObservePreset.view_offsets`, the rows
-    ``canopy.layout.row_spacing`` apart) and the observation's statistics are their bin-by-bin
-    mean, binned with the row camera's preset (for maize, its depth range resolved over the
-    row camera's own canopy); the depth map, mask and camera stay the row camera's, and
-    ``meta["views"]`` lists the offsets."""
+    False, so neither are the predictions cut) — the paper's synthetic-scene protocol. Where
+    the preset pools several row cameras (``views_along``, ``views_across``), the canopy is
+    rendered from each, its rows ``canopy.layout.row_spacing`` apart
+    (:func:`~cropcraft_core.observe.observe_views`)."""
     cam = camera or observation_preset.row_camera()
 
-    def depth(c: PinholeCamera) -> np.ndarray:
-        return render_depth(canopy.mesh.vertices, canopy.mesh.faces, c).depth
+    def view(dx: float, dy: float):
+        c = cam.shifted(dx, dy)
+        d = render_depth(canopy.mesh.vertices, canopy.mesh.faces, c).depth
+        return c, d, np.isfinite(d), None
 
-    d = depth(cam)
-    meta = dict(meta or {})
-    stats = None
-    p = observation_preset
-    if observation_preset.n_views > 1:
-        offsets = observation_preset.view_offsets(canopy.layout.row_spacing)
-        p = resolve_depth_range(observation_preset, d[np.isfinite(d)])
-        views = []
-        for dx, dy in offsets:
-            c = cam.shifted(dx, dy)
-            dv = d if (dx, dy) == (0.0, 0.0) else depth(c)
-            views.append(compute_stats(dv, c, np.isfinite(dv), p, sobel=True))
-        stats = mean_stats(views)
-        meta["views"] = [list(o) for o in offsets]
-    return Observation(
-        canopy.crop, cam, d, np.isfinite(d), stats=stats, preset=p, meta=meta, box_mask=False
+    return observe_views(
+        canopy.crop,
+        observation_preset,
+        view,
+        canopy.layout.row_spacing,
+        meta=meta,
+        box_mask=False,
     )

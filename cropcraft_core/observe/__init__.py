@@ -16,6 +16,7 @@ from cropcraft_core.observe.observation import (
     coverage_warning,
     no_surface_fraction,
     observation_mask,
+    observe_views,
     predicted_mask,
 )
 from cropcraft_core.observe.presets import (
@@ -46,6 +47,7 @@ __all__ = [
     "loss",
     "mean_stats",
     "observation_mask",
+    "observe_views",
     "predicted_mask",
     "preset",
     "resolve_depth_range",

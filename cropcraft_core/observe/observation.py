@@ -53,6 +53,7 @@ from cropcraft_core.observe.histograms import (
     check_mask,
     compute_stats,
     lateral_factor,
+    mean_stats,
 )
 from cropcraft_core.observe.loss import LossBreakdown, loss
 from cropcraft_core.observe.presets import CROPS, ObservePreset, preset, resolve_depth_range
@@ -343,6 +344,7 @@ class Observation:
         image_scale: float = 1.0,
         preset_overrides: dict | None = None,
         meta: dict | None = None,
+        row_spacing: float | None = None,
     ) -> Observation:
         """The observation of fitted visible surfaces through the row camera.
 
@@ -351,13 +353,13 @@ class Observation:
         the same camera in the metric world frame, ``scale`` metres per scene unit (depths are
         converted with it). ``image_scale`` resizes both cameras (e.g. 0.5); the preset is the
         crop's with the row fit's ``render_height``, the camera's size and
-        ``preset_overrides``.
+        ``preset_overrides``. Where the preset pools several row cameras
+        (:func:`observe_views`), each is rendered the same way (``row_spacing``, metres, places
+        the neighbouring rows).
         """
         if image_scale != 1.0:
             camera_world = camera_world.scaled(image_scale)
             camera_scene = camera_scene.scaled(image_scale)
-        depth, rgb = render(camera_scene)
-        depth_m = np.asarray(depth, np.float64) * float(scale)
         p = preset(
             crop,
             **{
@@ -367,7 +369,16 @@ class Observation:
                 **dict(preset_overrides or {}),
             },
         )
-        return cls.from_depth(crop, depth_m, camera_world, rgb=rgb, preset=p, meta=meta)
+        check_row_camera(camera_world, p)
+        k = 1.0 / float(scale)  # scene units per metre
+
+        def view(dx: float, dy: float):
+            cam = camera_world.shifted(dx, dy)
+            depth, rgb = render(camera_scene.shifted(dx * k, dy * k))
+            depth_m = np.asarray(depth, np.float64) * float(scale)
+            return cam, depth_m, observation_mask(depth_m, rgb, cam, p), rgb
+
+        return observe_views(crop, p, view, row_spacing, meta=meta)
 
     # ----------------------------------------------------------------- comparison
     def predicted_stats(self, depth: np.ndarray, mask: np.ndarray | None = None) -> HistogramStats:
@@ -513,6 +524,65 @@ class Observation:
             and self.meta == other.meta
             and self.box_mask == other.box_mask
         )
+
+
+#: ``view(dx, dy) -> (camera, depth, mask, rgb)``: the row camera moved ``dx`` metres along
+#: the row and ``dy`` across it, what it sees (z-depth in metres), its foreground mask and RGB
+#: (or ``None``). :func:`observe_views` calls it once per pooled camera.
+ViewRenderer = Callable[[float, float], tuple[PinholeCamera, np.ndarray, np.ndarray, Any]]
+
+
+def observe_views(
+    crop: str,
+    p: ObservePreset,
+    view: ViewRenderer,
+    row_spacing: float | None = None,
+    meta: dict | None = None,
+    box_mask: bool = True,
+) -> Observation:
+    """The observation of the row camera (``view(0, 0)``), its statistics pooled over the
+    preset's cameras (:meth:`ObservePreset.view_offsets`; neighbouring rows ``row_spacing``
+    metres apart) as their bin-by-bin mean (:func:`mean_stats`). Every view is binned with the
+    row camera's preset (a depth range fitted to the canopy, maize's default, is resolved over
+    the row camera's own foreground); the depth map, mask, RGB and camera are the row camera's,
+    and ``meta["views"]`` lists the offsets. With the paper's single camera it is exactly
+    ``Observation(crop, camera, depth, mask, rgb, preset=p)``.
+
+    Why: one row camera sees one draw of the canopy, and on some scenes that draw lies far
+    from its parameters' average, so the fit follows the draw (benchmarks/RESULTS.md,
+    *#views*). A procedural prediction's statistics do not depend on where along a uniform
+    canopy, or over which of its rows, the camera stands, so the predictions stay one camera."""
+    cam, depth, mask, rgb = view(0.0, 0.0)
+    meta = dict(meta or {})
+    if p.n_views == 1:
+        return Observation(crop, cam, depth, mask, rgb=rgb, preset=p, meta=meta, box_mask=box_mask)
+    offsets = p.view_offsets(row_spacing)
+    d = check_depth(depth, cam)
+    m = check_mask(mask, d.shape)
+    if not m.any():
+        raise InputError(
+            "foreground mask is empty: no plant pixels in the row camera's view (check the mask "
+            "thresholds, the render height and the row camera)"
+        )
+    resolved = resolve_depth_range(p, d[m])
+    views = [compute_stats(d, cam, m, resolved, sobel=True)]
+    for dx, dy in offsets[1:]:
+        cv, dv, mv, _ = view(dx, dy)
+        views.append(
+            compute_stats(check_depth(dv, cv), cv, check_mask(mv, d.shape), resolved, sobel=True)
+        )
+    meta["views"] = [list(o) for o in offsets]
+    return Observation(
+        crop,
+        cam,
+        d,
+        m,
+        rgb=rgb,
+        stats=mean_stats(views),
+        preset=resolved,
+        meta=meta,
+        box_mask=box_mask,
+    )
 
 
 def _preset_for(crop: str) -> ObservePreset:
