@@ -504,6 +504,8 @@ class _Scenes:
         tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
         if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
             tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
+        if cfg.loss_estimator != "pooled":  # another objective: its own checkpoints
+            tag += f"-{cfg.loss_estimator}"
         # another loss or other statistics: another fit, its own checkpoints
         if self.preset_overrides:
             tag += "-p" + config_hash(self.preset_overrides)[:8]
@@ -799,6 +801,11 @@ def main(argv: list[str] | None = None) -> int:
         "--gp-output", choices=["none", "log"], help="override what BO's GP models (FitConfig)"
     )
     ap.add_argument(
+        "--estimator",
+        choices=["pooled", "unbiased"],
+        help="override how an evaluation's loss over several canopies is estimated (FitConfig)",
+    )
+    ap.add_argument(
         "--local-share",
         type=float,
         help="override the share of each BO seed's evaluations spent last on Nelder-Mead",
@@ -868,6 +875,7 @@ def main(argv: list[str] | None = None) -> int:
         "gp_output": a.gp_output,
         "local_share": a.local_share,
         "combine": a.combine,
+        "loss_estimator": a.estimator,
     }
     if a.finished_only and not a.checkpoint_dir:
         raise SystemExit("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")

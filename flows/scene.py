@@ -68,6 +68,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "refit_every": 10,
         "gp_output": "none",  # what BO's GP models: the loss ("none") or its logarithm ("log")
         "local_share": None,  # share of each seed's evaluations spent last on Nelder-Mead
+        # "pooled" (the loss of the canopies' mean statistics) or "unbiased" (without their
+        # draw variance; FitConfig.loss_estimator)
+        "loss_estimator": "pooled",
         # (None: the crop's, FitConfig)
         "canopies_per_eval": None,  # None: the crop's default (FitConfig)
         "combine": None,  # None: the crop's (FitConfig); "median", "mean" (paper's), "reevaluate",
@@ -244,6 +247,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     fit = dict(cfg["fit"])
     if not fit.get("box"):  # the whole box hashes as before the setting existed
         fit.pop("box", None)
+    if fit.get("loss_estimator", "pooled") == "pooled":  # likewise the paper's estimator
+        fit.pop("loss_estimator", None)
     agg_only: dict[str, Any] = {}
     if crop is not None:
         resolved = FitConfig(**fit).resolved(crop)

@@ -137,6 +137,44 @@ def test_surfaces_in_their_own_units_pool_the_same_views():
     assert obs.box_mask and len(obs.meta["views"]) == 9
 
 
+def test_the_unbiased_estimator_is_the_mean_cross_term_of_the_canopies():
+    """``loss_estimator="unbiased"``: over K canopies the loss's U-statistic, the mean over
+    pairs j != k of the bilinear form of (s_j - o) and (s_k - o), computed here by hand; one
+    canopy is the loss itself, and the checks take the canopies two at a time."""
+    from cropcraft_core.fit.select import _per_canopy
+
+    obs, _ = observation("soybean", SOY_TRUTH)
+    pooled, unbiased = ForwardModel(obs), ForwardModel(obs, estimator="unbiased")
+    p, o, w = SOY_TRUTH, obs.stats, obs.preset.loss
+    seeds = [3, 4, 5]
+    s = [pooled.stats(p, k) for k in seeds]
+
+    def form(a, b):
+        return (
+            (a.depth - o.depth) @ (b.depth - o.depth)
+            + w.lambda_lateral * (a.lateral - o.lateral) @ (b.lateral - o.lateral)
+            + w.lambda_sobel * (a.sobel - o.sobel) @ (b.sobel - o.sobel)
+            + w.lambda_mask * (a.mask_area - o.mask_area) * (b.mask_area - o.mask_area)
+        )
+
+    pairs = [form(s[j], s[k]) for j in range(3) for k in range(3) if j != k]
+    assert unbiased.loss(p, seeds) == pytest.approx(np.mean(pairs), rel=1e-9)
+    assert form(s[0], s[0]) == pytest.approx(pooled.loss(p, 3), rel=1e-9)
+    assert unbiased.loss(p, 3) == pooled.loss(p, 3)
+    # the pooled loss carries the draw variance the unbiased one leaves out
+    assert pooled.loss(p, seeds) > unbiased.loss(p, seeds)
+    np.testing.assert_allclose(
+        _per_canopy(unbiased, p, [3, 4, 5, 6]),
+        [form(s[0], s[1]), unbiased.loss(p, [5, 6])],
+        rtol=1e-9,
+    )
+    assert len(_per_canopy(pooled, p, [3, 4, 5, 6])) == 4
+    with pytest.raises(ConfigError, match="loss estimator"):
+        ForwardModel(obs, estimator="median")
+    with pytest.raises(ConfigError, match="loss_estimator"):
+        FitConfig(loss_estimator="median").validate()
+
+
 def test_pipeline_bench_says_whose_miss_an_answer_is():
     """``bench pipeline --fit`` scores the answer and the truth, and their basins' floors under
     each side's loss, on the same fresh canopies against the observation and against the true

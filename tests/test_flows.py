@@ -381,7 +381,10 @@ def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
         return stage_configs(resolve_config(CROP, overrides), CROP)
 
     default = configs({})["fit_seed"]
-    assert not {"combine", "polish_evals", "reevaluate_canopies"} & set(default)
+    assert not {"combine", "polish_evals", "reevaluate_canopies", "loss_estimator"} & set(default)
+    unbiased = configs({"fit.loss_estimator": "unbiased"})
+    assert unbiased["fit_seed"] == {**default, "loss_estimator": "unbiased"}
+    assert unbiased["aggregate"]["loss_estimator"] == "unbiased"
     for o in ({"fit.combine": "reevaluate"}, {"fit.polish_evals": 30}):
         assert configs(o)["fit_seed"] == default
     floors = configs({"fit.combine": "floors"})

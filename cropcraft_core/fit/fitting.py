@@ -23,7 +23,7 @@ import numpy as np
 from cropcraft_core.config import CanopyLayout
 from cropcraft_core.config.params import ParamBox, is_range
 from cropcraft_core.errors import ConfigError
-from cropcraft_core.fit.forward import ForwardModel
+from cropcraft_core.fit.forward import ESTIMATORS, ForwardModel
 from cropcraft_core.observe import Observation
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
 from cropcraft_core.optimize.baselines import run_random, run_trust_region
@@ -138,6 +138,14 @@ class FitConfig:
     true parameters over 6 draws: loss 0.123 ± 0.064 with K = 1, 0.079 ± 0.023 with K = 2,
     0.072 ± 0.028 with K = 4; maize's loss noise is ~0.0002, so K = 1)."""
 
+    loss_estimator: str = "pooled"
+    """How an evaluation's loss over several canopies is estimated (``ForwardModel.estimator``):
+    ``pooled`` (the loss of their mean statistics: the paper's and the default) or
+    ``unbiased`` (its U-statistic, without the predictions' own draw variance, which favours
+    parameters whose canopies vary less). Applies to the seeds' objective (with
+    ``canopies_per_eval`` >= 2), the re-scoring and polish, and the guard's and floors'
+    checks (canopies taken in pairs, ``select._per_canopy``)."""
+
     def resolved(self, crop: str) -> FitConfig:
         """This config with every setting left to ``crop``'s default (None) written out:
         ``combine`` (``default_combine``), ``canopies_per_eval`` (``DEFAULT_CANOPIES``) and
@@ -192,6 +200,11 @@ class FitConfig:
             raise ConfigError(
                 f"unknown gp_output {self.gp_output!r}: "
                 f"choose one of {', '.join(OUTPUT_TRANSFORMS)}"
+            )
+        if self.loss_estimator not in ESTIMATORS:
+            raise ConfigError(
+                f"unknown loss_estimator {self.loss_estimator!r}: "
+                f"choose one of {', '.join(ESTIMATORS)}"
             )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
@@ -265,7 +278,7 @@ def fit_seed(
     cfg = (config or FitConfig()).validate()
     if cfg.method == "mlp":
         raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
-    forward = ForwardModel(observation, layout)
+    forward = ForwardModel(observation, layout, cfg.loss_estimator)
     box = cfg.param_box(observation.crop)
     objective = make_objective(
         forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop), box
@@ -372,7 +385,7 @@ def combine(
             )
         from cropcraft_core.fit.select import floors, guard, select
 
-        forward = ForwardModel(observation, layout)
+        forward = ForwardModel(observation, layout, config.loss_estimator)
         if rule == "floors":
             fl = floors(forward, results, config.reevaluate_canopies, config.polish_evals, box)
             final, std = fl.x, agg.std_x

@@ -16,10 +16,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cropcraft_core.config import CanopyLayout, default_layout, resolve_params
+from cropcraft_core.errors import ConfigError
 from cropcraft_core.geometry import PinholeCamera
 from cropcraft_core.observe import HistogramStats, Observation, mean_stats, observe_views
 from cropcraft_core.procedural import Canopy, generate_canopy, max_reach, view_region
 from cropcraft_core.render.raster import render_depth
+
+#: :attr:`ForwardModel.estimator` values.
+ESTIMATORS = ("pooled", "unbiased")
 
 
 def row_frame_camera(camera: PinholeCamera) -> PinholeCamera:
@@ -42,11 +46,19 @@ class ForwardModel:
 
     observation: Observation
     layout: CanopyLayout | None = None
+    estimator: str = "pooled"
+    """How the loss of several canopies is estimated (:meth:`loss`): ``pooled`` (the loss of
+    their mean statistics) or ``unbiased`` (its U-statistic, which removes the predictions'
+    own draw variance)."""
     timings: dict[str, float] = field(
         default_factory=lambda: {"generate": 0.0, "render": 0.0, "stats": 0.0, "calls": 0}
     )
 
     def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ConfigError(
+                f"unknown loss estimator {self.estimator!r}: choose one of {', '.join(ESTIMATORS)}"
+            )
         crop = self.observation.crop
         self.layout = (self.layout or default_layout(crop)).with_(row_azimuth_deg=0.0)
         self.camera = row_frame_camera(self.observation.camera)
@@ -84,9 +96,25 @@ class ForwardModel:
         return out[0] if len(out) == 1 else mean_stats(out)
 
     def loss(self, params: Mapping[str, float], seed: int | Sequence[int]) -> float:
+        """The loss of the canopies built with ``seed`` (one or several). ``pooled``: the loss
+        of their mean statistics, whose expectation over canopies is the squared distance of
+        the parameters' expected statistics from the observation plus the trace of one
+        canopy's statistics' covariance over K, so that parameters whose canopies vary less
+        from draw to draw score lower at the same distance. ``unbiased`` (K >= 2): the
+        U-statistic ``(K L(mean) - mean_k L(s_k)) / (K - 1)``, i.e. the mean over pairs of
+        canopies j != k of the loss's bilinear form of ``s_j - o`` and ``s_k - o`` (the loss is
+        a weighted sum of squares), whose expectation is that distance alone; it can be
+        negative. With one canopy both are the loss."""
         from cropcraft_core.observe import loss
 
-        return loss(self.observation.stats, self.stats(params, seed), self.observation.preset).total
+        o, p = self.observation.stats, self.observation.preset
+        seeds = [seed] if isinstance(seed, int | np.integer) else list(seed)
+        if self.estimator == "pooled" or len(seeds) < 2:
+            return loss(o, self.stats(params, seeds), p).total
+        each = [self.stats(params, s) for s in seeds]
+        k = len(each)
+        per = float(np.mean([loss(o, s, p).total for s in each]))
+        return float((k * loss(o, mean_stats(each), p).total - per) / (k - 1))
 
 
 def observe_canopy(

@@ -283,7 +283,13 @@ GUARD_SE = 2.0
 
 def _per_canopy(forward: ForwardModel, params: dict, canopy_seeds: Sequence[int]) -> np.ndarray:
     """The loss of ``params`` on each of ``canopy_seeds`` alone (one render each), so that two
-    points scored on the same canopies can be compared pair by pair."""
+    points scored on the same canopies can be compared pair by pair. Under the ``unbiased``
+    estimator the canopies are taken two at a time (one value per pair, the pair's
+    U-statistic: a single canopy's loss carries its draw variance), so there are half as
+    many values."""
+    if forward.estimator == "unbiased":
+        pairs = [list(canopy_seeds[k : k + 2]) for k in range(0, len(canopy_seeds) - 1, 2)]
+        return np.array([forward.loss(params, pair) for pair in pairs], dtype=np.float64)
     return np.array([forward.loss(params, [c]) for c in canopy_seeds], dtype=np.float64)
 
 
