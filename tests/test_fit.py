@@ -173,6 +173,8 @@ def test_the_unbiased_estimator_is_the_mean_cross_term_of_the_canopies():
         ForwardModel(obs, estimator="median")
     with pytest.raises(ConfigError, match="loss_estimator"):
         FitConfig(loss_estimator="median").validate()
+    with pytest.raises(ConfigError, match="can be negative"):
+        FitConfig(loss_estimator="unbiased", gp_output="log").validate()
 
 
 def test_pipeline_bench_says_whose_miss_an_answer_is():

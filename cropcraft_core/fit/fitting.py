@@ -206,6 +206,11 @@ class FitConfig:
                 f"unknown loss_estimator {self.loss_estimator!r}: "
                 f"choose one of {', '.join(ESTIMATORS)}"
             )
+        if self.loss_estimator == "unbiased" and self.gp_output == "log":
+            raise ConfigError(
+                "gp_output='log' models the loss's logarithm, but the unbiased loss estimator "
+                "can be negative: use gp_output='none' with it"
+            )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
         if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
