@@ -93,7 +93,7 @@ class ForwardModel:
             out.append(self.observation.predicted_stats(d))
             self.timings["stats"] += time.perf_counter() - t
             self.timings["calls"] += 1
-        return out[0] if len(out) == 1 else mean_stats(out)
+        return mean_stats(out)  # one canopy's statistics as they are
 
     def loss(self, params: Mapping[str, float], seed: int | Sequence[int]) -> float:
         """The loss of the canopies built with ``seed`` (one or several). ``pooled``: the loss

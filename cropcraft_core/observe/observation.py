@@ -38,7 +38,7 @@ import io
 import json
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -557,31 +557,22 @@ def observe_views(
     if p.n_views == 1:
         return Observation(crop, cam, depth, mask, rgb=rgb, preset=p, meta=meta, box_mask=box_mask)
     offsets = p.view_offsets(row_spacing)
-    d = check_depth(depth, cam)
-    m = check_mask(mask, d.shape)
-    if not m.any():
-        raise InputError(
-            "foreground mask is empty: no plant pixels in the row camera's view (check the mask "
-            "thresholds, the render height and the row camera)"
-        )
-    resolved = resolve_depth_range(p, d[m])
-    views = [compute_stats(d, cam, m, resolved, sobel=True)]
+    # the row camera's own observation checks its input and resolves the bins the views share
+    own = replace(p, views_along=1, views_across=0)
+    first = Observation(crop, cam, depth, mask, rgb=rgb, preset=own, meta=meta, box_mask=box_mask)
+    stats = [first.stats]
     for dx, dy in offsets[1:]:
         cv, dv, mv, _ = view(dx, dy)
-        views.append(
-            compute_stats(check_depth(dv, cv), cv, check_mask(mv, d.shape), resolved, sobel=True)
+        stats.append(
+            compute_stats(
+                check_depth(dv, cv), cv, check_mask(mv, dv.shape), first.preset, sobel=True
+            )
         )
-    meta["views"] = [list(o) for o in offsets]
-    return Observation(
-        crop,
-        cam,
-        d,
-        m,
-        rgb=rgb,
-        stats=mean_stats(views),
-        preset=resolved,
-        meta=meta,
-        box_mask=box_mask,
+    return replace(
+        first,
+        stats=mean_stats(stats),
+        preset=replace(first.preset, views_along=p.views_along, views_across=p.views_across),
+        meta={**first.meta, "views": [list(o) for o in offsets]},
     )
 
 
