@@ -808,6 +808,12 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         "observation": {
             "no_surface_fraction": seen,
             "warning": None if seen is None else coverage_warning(seen),
+            # pooled row cameras (observe.preset.views_*): how many, and those left out
+            **{
+                k: records["observe"]["summary"][k]
+                for k in ("views_pooled", "views_left_out")
+                if k in records["observe"]["summary"]
+            },
         },
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None

@@ -27,8 +27,11 @@ def _observe(
     ``camera`` (``camera_in_scene``: the same in the surfaces' frame): the share of its view
     without a fully supported surface (before a fill), then ``Observation.from_surfaces`` at
     the stage's ``image_scale`` and ``preset``; the observation is None when that share is over
-    ``limit``."""
-    from cropcraft_core.observe import Observation, no_surface_fraction
+    ``limit``. A view the preset pools beside the row camera
+    (``views_along``/``views_across``) that shows more than ``NO_SURFACE_WARN`` without a
+    supported surface, and more than the row camera's own view, lies (partly) outside the
+    reconstruction and is left out of the pool (``meta["views_left_out"]``)."""
+    from cropcraft_core.observe import NO_SURFACE_WARN, Observation, no_surface_fraction
 
     scale = float(config.get("image_scale", 1.0))
     unseen = no_surface_fraction(backend.render_supported(camera_in_scene.scaled(scale)))
@@ -49,8 +52,18 @@ def _observe(
         # the planting row spacing places the neighbouring rows a pooled observation adds
         # (ObservePreset.views_across; the flow passes the layout only then)
         row_spacing=layout_of(crop, config).row_spacing,
+        no_surface=lambda cam: no_surface_fraction(backend.render_supported(cam)),
+        max_no_surface=max(NO_SURFACE_WARN, unseen),
     )
     return obs, unseen
+
+
+def _views_summary(obs: Any) -> dict[str, Any]:
+    """The pooled row cameras of ``obs`` for a stage record's summary: how many were pooled
+    and which were left out (outside the reconstruction); empty for the single camera."""
+    if "views" not in obs.meta:
+        return {}
+    return {"views_pooled": len(obs.meta["views"]), "views_left_out": obs.meta["views_left_out"]}
 
 
 def _npz(obs: Any) -> bytes:
@@ -75,7 +88,8 @@ def observe(
     over several row cameras, :func:`cropcraft_core.observe.observe_views`), and ``layout``
     (its row spacing places the neighbouring rows; the flow passes it only when they are
     pooled). Depth is converted to metres with the row fit's scale. The no-surface share is
-    the row camera's own; the other pooled views are not checked for coverage.
+    the row camera's own; a pooled view less covered than both it and ``NO_SURFACE_WARN`` is
+    left out of the pool (the summary's ``views_pooled`` and ``views_left_out``).
     """
     from cropcraft_core.geometry.camera import PinholeCamera
 
@@ -108,6 +122,7 @@ def observe(
             "foreground_fraction": float(np.mean(obs.mask)),
             "no_surface_fraction": unseen,
             "render_height_m": float(rf["render_height"]),
+            **_views_summary(obs),
         },
         t.seconds,
     )
@@ -186,6 +201,7 @@ def observe_rows(
                 if obs is None:
                     continue
                 entry["foreground_fraction"] = float(np.mean(obs.mask))
+                entry.update(_views_summary(obs))
                 key = artefact(scene, "observe_rows", "observation.npz", row=view.index)
                 hashes[key] = store.put_bytes(key, _npz(obs))
                 artefacts[f"observation@{view.index}"] = key

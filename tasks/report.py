@@ -106,6 +106,14 @@ def report(
             "scale source": rf.get("scale_source"),
             "libraries (fit)": _libraries(upstream["aggregate"].get("environment")),
         }
+        views = upstream["observe"]["summary"]
+        if "views_pooled" in views:  # the observation pools several row cameras
+            left = views["views_left_out"]
+            pooled = f"{views['views_pooled']} of {views['views_pooled'] + len(left)}"
+            if left:
+                where = ", ".join(f"{dx:+.2f} m along, {dy:+.2f} m across" for dx, dy, _ in left)
+                pooled += f" (left out, outside the reconstruction: {where})"
+            info["row cameras pooled"] = pooled
         if "observe_rows" in upstream:
             listed = upstream["observe_rows"]["summary"]["rows"]
             info["neighbour rows fitted"] = (

@@ -137,6 +137,64 @@ def test_surfaces_in_their_own_units_pool_the_same_views():
     assert obs.box_mask and len(obs.meta["views"]) == 9
 
 
+def test_a_pooled_view_outside_the_reconstruction_is_left_out():
+    """With ``no_surface``/``max_no_surface``, ``Observation.from_surfaces`` measures each pooled
+    view's share without a reconstructed surface and leaves out those over the limit: here the
+    reconstruction holds the row camera's strip only (a ground strip 1 m wide, in scene units
+    of 2 per metre), so the neighbouring rows' six views are left out and the pool is the mean
+    of the three along the row."""
+    from cropcraft_core.observe import Observation, mean_stats, no_surface_fraction
+    from cropcraft_core.render.raster import render_depth
+
+    canopy = generate_canopy("soybean", SOY_TRUTH, default_layout("soybean"), seed=11)
+    v, f = canopy.mesh.vertices, canopy.mesh.faces
+    strip = np.array([[-4.0, -0.5, 0.0], [4.0, -0.5, 0.0], [4.0, 0.5, 0.0], [-4.0, 0.5, 0.0]])
+    strip_f = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    overrides = {**SMALL, "views_along": 3, "view_step": 0.3, "views_across": 1}
+    cam = preset("soybean", **overrides, render_height=1.0).row_camera()
+    scene = cam.cam_to_world.copy()
+    scene[:3, 3] *= 2.0
+    cam_scene = type(cam)(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, scene)
+
+    def build(**check):
+        return Observation.from_surfaces(
+            "soybean",
+            lambda c: (render_depth(v * 2.0, f, c).depth, None),
+            cam,
+            cam_scene,
+            0.5,
+            1.0,
+            preset_overrides=overrides,
+            row_spacing=0.76,
+            **check,
+        )
+
+    obs = build(
+        no_surface=lambda c: no_surface_fraction(render_depth(strip * 2.0, strip_f, c).depth),
+        max_no_surface=0.18,
+    )
+    assert obs.meta["views"] == [[0.0, 0.0], [-0.3, 0.0], [0.3, 0.0]]
+    assert obs.meta["views_no_surface"] == [0.0, 0.0]
+    left = obs.meta["views_left_out"]
+    assert [(dx, dy) for dx, dy, _ in left] == [
+        (a, c) for c in (-0.76, 0.76) for a in (0.0, -0.3, 0.3)
+    ]
+    assert all(0.5 < share < 1.0 for *_, share in left)
+    one = preset("soybean", **SMALL)
+    along = [
+        Observation.from_depth("soybean", render_depth(v, f, c).depth, c, preset=one).stats
+        for c in (cam, cam.shifted(-0.3, 0.0), cam.shifted(0.3, 0.0))
+    ]
+    expected = mean_stats(along)
+    for k in ("depth", "lateral", "sobel"):
+        np.testing.assert_allclose(getattr(obs.stats, k), getattr(expected, k), atol=1e-12)
+    # without the check every view is pooled, as before
+    full = build()
+    assert len(full.meta["views"]) == 9 and "views_left_out" not in full.meta
+    with pytest.raises(ConfigError, match="give both or neither"):
+        build(max_no_surface=0.18)
+
+
 def test_the_unbiased_estimator_is_the_mean_cross_term_of_the_canopies():
     """``loss_estimator="unbiased"``: over K canopies the loss's U-statistic, the mean over
     pairs j != k of the bilinear form of (s_j - o) and (s_k - o), computed here by hand; one

@@ -879,6 +879,32 @@ def test_benchmark_flow_names_a_method_it_cannot_map(prefect_harness, tmp_path):
         run_benchmark("threads", crop="maize", methods=["bo", "mlp"], store=str(tmp_path))
 
 
+def test_pooled_row_cameras_outside_the_reconstruction_are_left_out(base_run, scene_dir):
+    """``observe.preset.views_*`` pools the observation over row cameras; on the test scene's
+    small reconstruction, views that show more without a surface than the row camera's own
+    view (and than 18 %) are left out: the observe record, the scene's summary, the stored
+    observation and the report say which, and every kept view's share is within the limit."""
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    limit = max(0.18, base_run["first"]["observation"]["no_surface_fraction"])
+    overrides = {**OVERRIDES, "observe.preset.views_along": 3, "observe.preset.views_across": 1}
+    out = _run("plotA", base_run["store"], scene_dir, overrides)
+    seen = out["observation"]
+    left = seen["views_left_out"]
+    assert seen["views_pooled"] + len(left) == 9 and left and seen["views_pooled"] > 1
+    assert all(share > limit for *_, share in left)
+    obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
+    assert obs.meta["views_left_out"] == left and len(obs.meta["views"]) == seen["views_pooled"]
+    assert all(share <= limit for share in obs.meta["views_no_surface"])
+    assert {tuple(o) for o in obs.meta["views"]}.isdisjoint((dx, dy) for dx, dy, _ in left)
+    html = store.get_bytes(f"{scene}/report/report.html").decode()
+    assert f"{seen['views_pooled']} of 9 (left out, outside the reconstruction" in html
+    # the single camera's observation is served again from its own key
+    back = _run("plotA", base_run["store"], scene_dir)
+    assert "views_pooled" not in back["observation"]
+    assert back["params"] == base_run["first"]["params"]
+
+
 def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached(
     base_run, scene_dir
 ):

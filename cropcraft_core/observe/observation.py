@@ -345,6 +345,8 @@ class Observation:
         preset_overrides: dict | None = None,
         meta: dict | None = None,
         row_spacing: float | None = None,
+        no_surface: Callable[[PinholeCamera], float] | None = None,
+        max_no_surface: float | None = None,
     ) -> Observation:
         """The observation of fitted visible surfaces through the row camera.
 
@@ -355,7 +357,12 @@ class Observation:
         crop's with the row fit's ``render_height``, the camera's size and
         ``preset_overrides``. Where the preset pools several row cameras
         (:func:`observe_views`), each is rendered the same way (``row_spacing``, metres, places
-        the neighbouring rows).
+        the neighbouring rows). ``no_surface(camera_scene) -> share`` then measures, for each
+        view beside the row camera, the share of its view without a reconstructed surface
+        (e.g. :func:`no_surface_fraction` of ``SurfaceBackend.render_supported``); a view over
+        ``max_no_surface`` lies (partly) outside the reconstruction and is left out of the pool
+        (its lost pixels would read as gaps), listed in ``meta["views_left_out"]`` as
+        ``[dx, dy, share]``; ``meta["views_no_surface"]`` holds the pooled views' shares.
         """
         if image_scale != 1.0:
             camera_world = camera_world.scaled(image_scale)
@@ -370,15 +377,35 @@ class Observation:
             },
         )
         check_row_camera(camera_world, p)
+        if (no_surface is None) != (max_no_surface is None):
+            raise ConfigError("no_surface and max_no_surface go together: give both or neither")
         k = 1.0 / float(scale)  # scene units per metre
+        shares: dict[tuple[float, float], float] = {}
 
         def view(dx: float, dy: float):
+            cam_scene = camera_scene.shifted(dx * k, dy * k)
+            if no_surface is not None and (dx, dy) != (0.0, 0.0):
+                shares[dx, dy] = share = float(no_surface(cam_scene))
+                if share > max_no_surface:
+                    return None
             cam = camera_world.shifted(dx, dy)
-            depth, rgb = render(camera_scene.shifted(dx * k, dy * k))
+            depth, rgb = render(cam_scene)
             depth_m = np.asarray(depth, np.float64) * float(scale)
             return cam, depth_m, observation_mask(depth_m, rgb, cam, p), rgb
 
-        return observe_views(crop, p, view, row_spacing, meta=meta)
+        obs = observe_views(crop, p, view, row_spacing, meta=meta)
+        if no_surface is None or p.n_views == 1:
+            return obs
+        pooled = [tuple(o) for o in obs.meta["views"][1:]]
+        left = [[dx, dy, f] for (dx, dy), f in shares.items() if (dx, dy) not in pooled]
+        return replace(
+            obs,
+            meta={
+                **obs.meta,
+                "views_no_surface": [shares[o] for o in pooled],
+                "views_left_out": left,
+            },
+        )
 
     # ----------------------------------------------------------------- comparison
     def predicted_stats(self, depth: np.ndarray, mask: np.ndarray | None = None) -> HistogramStats:
@@ -528,8 +555,9 @@ class Observation:
 
 #: ``view(dx, dy) -> (camera, depth, mask, rgb)``: the row camera moved ``dx`` metres along
 #: the row and ``dy`` across it, what it sees (z-depth in metres), its foreground mask and RGB
-#: (or ``None``). :func:`observe_views` calls it once per pooled camera.
-ViewRenderer = Callable[[float, float], tuple[PinholeCamera, np.ndarray, np.ndarray, Any]]
+#: (or ``None``), or ``None`` to leave that camera out of the pool (it sees past what was
+#: observed). :func:`observe_views` calls it once per pooled camera.
+ViewRenderer = Callable[[float, float], tuple[PinholeCamera, np.ndarray, np.ndarray, Any] | None]
 
 
 def observe_views(
@@ -545,14 +573,18 @@ def observe_views(
     metres apart) as their bin-by-bin mean (:func:`mean_stats`). Every view is binned with the
     row camera's preset (a depth range fitted to the canopy, maize's default, is resolved over
     the row camera's own foreground); the depth map, mask, RGB and camera are the row camera's,
-    and ``meta["views"]`` lists the offsets. With the paper's single camera it is exactly
-    ``Observation(crop, camera, depth, mask, rgb, preset=p)``.
+    and ``meta["views"]`` lists the offsets pooled (a view that ``view`` leaves out, returning
+    None, is not: the pool's mean over the rest still estimates the field's). With the paper's
+    single camera it is exactly ``Observation(crop, camera, depth, mask, rgb, preset=p)``.
 
     Why: one row camera sees one draw of the canopy, and on some scenes that draw lies far
     from its parameters' average, so the fit follows the draw (benchmarks/RESULTS.md,
     *#views*). A procedural prediction's statistics do not depend on where along a uniform
     canopy, or over which of its rows, the camera stands, so the predictions stay one camera."""
-    cam, depth, mask, rgb = view(0.0, 0.0)
+    row = view(0.0, 0.0)
+    if row is None:
+        raise ConfigError("the row camera's own view cannot be left out of its observation")
+    cam, depth, mask, rgb = row
     meta = dict(meta or {})
     if p.n_views == 1:
         return Observation(crop, cam, depth, mask, rgb=rgb, preset=p, meta=meta, box_mask=box_mask)
@@ -560,19 +592,23 @@ def observe_views(
     # the row camera's own observation checks its input and resolves the bins the views share
     own = replace(p, views_along=1, views_across=0)
     first = Observation(crop, cam, depth, mask, rgb=rgb, preset=own, meta=meta, box_mask=box_mask)
-    stats = [first.stats]
+    stats, pooled = [first.stats], [offsets[0]]
     for dx, dy in offsets[1:]:
-        cv, dv, mv, _ = view(dx, dy)
+        seen = view(dx, dy)
+        if seen is None:  # outside what was observed
+            continue
+        cv, dv, mv, _ = seen
         stats.append(
             compute_stats(
                 check_depth(dv, cv), cv, check_mask(mv, dv.shape), first.preset, sobel=True
             )
         )
+        pooled.append((dx, dy))
     return replace(
         first,
         stats=mean_stats(stats),
         preset=replace(first.preset, views_along=p.views_along, views_across=p.views_across),
-        meta={**first.meta, "views": [list(o) for o in offsets]},
+        meta={**first.meta, "views": [list(o) for o in pooled]},
     )
 
 
