@@ -744,22 +744,15 @@ def _run_flow(a: argparse.Namespace, methods: list[str], overrides: dict) -> dic
 
 
 def _parse_preset(crop: str, items: list[str]) -> dict:
-    """``["lambda_lateral=0.25", ...]`` → ``{"lambda_lateral": 0.25}``, checked by building the
-    preset (an unknown key or a bad value exits with the preset's own message)."""
-    from cropcraft_core.errors import CropCraftError
-    from flows.service_cli import parse_value
+    """``["lambda_lateral=0.25", ...]`` → ``{"lambda_lateral": 0.25}`` (``parse_preset``; an
+    unknown key or a bad value exits with the preset's own message)."""
+    from cropcraft_core.errors import ConfigError
+    from flows.service_cli import parse_preset
 
-    out: dict = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise SystemExit(f"bench accuracy: --preset takes KEY=VALUE, got {item!r}")
-        out[key.strip()] = parse_value(value)
     try:
-        preset(crop, **out)
-    except (CropCraftError, TypeError, ValueError) as exc:
-        raise SystemExit(f"bench accuracy: --preset: {exc}") from None
-    return out
+        return parse_preset(crop, items)
+    except ConfigError as exc:
+        raise SystemExit(f"bench accuracy: {exc}") from None
 
 
 def _scene_list(text: str) -> tuple[int, ...]:

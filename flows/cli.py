@@ -169,6 +169,8 @@ def _fit_config(args: argparse.Namespace):
         n_initial=min(args.initial, args.evals),
         combine=args.combine,
         polish_evals=args.polish_evals,
+        **({} if args.canopies is None else {"canopies_per_eval": args.canopies}),
+        **({} if args.estimator is None else {"loss_estimator": args.estimator}),
     )
     if args.method == "poisson":
         if cfg.box:
@@ -188,6 +190,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if not Path(args.geometry).is_file():
         raise InputError(f"{args.geometry}: no such file")
     cfg = _fit_config(args)
+    from flows.service_cli import parse_preset
+
+    preset_overrides = parse_preset(args.crop, args.preset)
     layout = _layout(args.crop, args)
     check_output_dir(args.out)
     from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
@@ -218,6 +223,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             neighbours=n,
             row_answer=args.rows_answer,
             executor=ex,
+            preset_overrides=preset_overrides,
         )
     _print_summary(args.out, metrics)
     if n:
@@ -329,6 +335,26 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="reevaluate, guarded, floors: Nelder-Mead evaluations refining the best re-scored "
         "candidate (guarded's median; floors: every candidate) (60; 0: none)",
+    )
+    f.add_argument(
+        "--preset",
+        action="append",
+        metavar="KEY=VALUE",
+        help="observation preset setting (repeatable), e.g. views_along=3 views_across=1 to "
+        "pool the statistics over 3 row cameras along the row and the rows on each side "
+        "(views beyond the geometry are left out)",
+    )
+    f.add_argument(
+        "--canopies",
+        type=int,
+        metavar="K",
+        help="procedural canopies averaged per evaluation (default: the crop's)",
+    )
+    f.add_argument(
+        "--estimator",
+        choices=["pooled", "unbiased"],
+        help="the loss over several canopies: of their mean statistics (pooled, the paper's) "
+        "or its U-statistic without the draw variance (unbiased; opt-in)",
     )
     from flows.service_cli import add_param_option
 

@@ -134,6 +134,26 @@ def parse_value(raw: str) -> Any:
         return raw
 
 
+def parse_preset(crop: str, items: list[str] | None) -> dict[str, Any]:
+    """``["views_along=3", "lambda_lateral=0.25"]`` → the observation preset's overrides,
+    checked by building ``crop``'s preset with them (an unknown key or a bad value is a
+    ``ConfigError`` with the preset's own message)."""
+    from cropcraft_core.errors import CropCraftError
+    from cropcraft_core.observe import preset
+
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--preset takes KEY=VALUE, got {item!r}")
+        out[key.strip()] = parse_value(raw)
+    try:
+        preset(crop, **out)
+    except (CropCraftError, TypeError, ValueError) as exc:
+        raise ConfigError(f"--preset: {exc}") from None
+    return out
+
+
 def parse_sets(items: list[str]) -> dict[str, Any]:
     """``["fit.n_evals=200", "surfaces.backend=tsdf"]`` → ``{"fit.n_evals": 200, ...}``."""
     out: dict[str, Any] = {}

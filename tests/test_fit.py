@@ -174,7 +174,7 @@ def test_a_pooled_view_outside_the_reconstruction_is_left_out():
         max_no_surface=0.18,
     )
     assert obs.meta["views"] == [[0.0, 0.0], [-0.3, 0.0], [0.3, 0.0]]
-    assert obs.meta["views_no_surface"] == [0.0, 0.0]
+    assert obs.meta["views_outside"] == [0.0, 0.0]
     left = obs.meta["views_left_out"]
     assert [(dx, dy) for dx, dy, _ in left] == [
         (a, c) for c in (-0.76, 0.76) for a in (0.0, -0.3, 0.3)
@@ -191,7 +191,7 @@ def test_a_pooled_view_outside_the_reconstruction_is_left_out():
     # without the check every view is pooled, as before
     full = build()
     assert len(full.meta["views"]) == 9 and "views_left_out" not in full.meta
-    with pytest.raises(ConfigError, match="give both or neither"):
+    with pytest.raises(ConfigError, match="both the measure and its limit"):
         build(max_no_surface=0.18)
 
 

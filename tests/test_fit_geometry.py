@@ -119,6 +119,35 @@ def test_canopy_rows_and_camera(canopy_ply):
     assert obs.stats.mask_area > 0.2
 
 
+def test_pooled_row_cameras_beyond_the_geometry_are_left_out(canopy_ply):
+    """``preset_overrides`` with ``views_along``/``views_across`` pool the observation over row
+    cameras; on this 2.4 m wide plot the best row is an outer one, so the row beyond it lies
+    outside the geometry: its three views are left out (their ground over 18 % beyond the
+    scan), and the pool is the mean of the six single-camera observations kept."""
+    from cropcraft_core.fit.geometry import _observe
+    from cropcraft_core.observe import mean_stats
+
+    views = {"views_along": 3, "views_across": 1}
+    obs, rowfit = observe_geometry(
+        canopy_ply, "soybean", n_points=50_000, row_spacing=0.76, preset_overrides=views
+    )
+    left = obs.meta["views_left_out"]
+    assert len(obs.meta["views"]) + len(left) == 9 and len(left) == 3
+    assert len({dy for _, dy, _ in left}) == 1 and all(share > 0.18 for *_, share in left)
+    assert all(share <= 0.18 for share in obs.meta["views_outside"])
+    geo = load_geometry(canopy_ply, 50_000, 0)
+    kept = [
+        _observe(geo, rowfit, "soybean", rowfit.camera.shifted(dx, dy)).stats
+        for dx, dy in obs.meta["views"]
+    ]
+    expected = mean_stats(kept)
+    for k in ("depth", "lateral", "sobel"):
+        np.testing.assert_allclose(getattr(obs.stats, k), getattr(expected, k), atol=1e-12)
+    assert obs.stats.mask_area == pytest.approx(expected.mask_area, abs=1e-12)
+    assert obs.preset.n_views == 9  # what was asked; meta says what was pooled
+    np.testing.assert_array_equal(obs.depth, _observe(geo, rowfit, "soybean", rowfit.camera).depth)
+
+
 def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
     out = tmp_path / "fit"
     rc = main(
@@ -149,6 +178,18 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
     assert fit["fit"]["params"]["num_nodes"] == 7.0  # known: not fitted
     assert 0.8 <= fit["fit"]["params"]["leaf_length"] <= 1.2
     assert fit["fit"]["config"]["box"] == {"num_nodes": 7.0, "leaf_length": [0.8, 1.2]}
+    assert "views" not in fit["observation"]  # the paper's single row camera
+    # the opt-in arm: pooled row cameras, the unbiased loss over three canopies
+    pooled = tmp_path / "pooled"
+    argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(pooled)]
+    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--polish-evals", "0"]
+    argv += ["--preset", "views_along=3", "--preset", "views_across=1"]
+    assert main([*argv, "--canopies", "3", "--estimator", "unbiased"]) == 0
+    fit = json.loads((pooled / "fit.json").read_text())
+    assert fit["fit"]["config"]["loss_estimator"] == "unbiased"
+    assert fit["fit"]["config"]["canopies_per_eval"] == 3
+    seen = fit["observation"]
+    assert len(seen["views"]) + len(seen["views_left_out"]) == 9 and seen["views_left_out"]
 
 
 def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_rows(
@@ -245,3 +286,7 @@ def test_cli_fit_bad_inputs(tmp_path, capsys):
     )
     assert main([*args, "--param", "num_nodes=4:6:8"]) == 2
     assert "more than two numbers" in capsys.readouterr().err
+    assert main([*args, "--preset", "views_along=2"]) == 2
+    assert "views_along" in capsys.readouterr().err
+    assert main([*args, "--preset", "view_along=3"]) == 2
+    assert "view_along" in capsys.readouterr().err

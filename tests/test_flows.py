@@ -895,7 +895,7 @@ def test_pooled_row_cameras_outside_the_reconstruction_are_left_out(base_run, sc
     assert all(share > limit for *_, share in left)
     obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
     assert obs.meta["views_left_out"] == left and len(obs.meta["views"]) == seen["views_pooled"]
-    assert all(share <= limit for share in obs.meta["views_no_surface"])
+    assert all(share <= limit for share in obs.meta["views_outside"])
     assert {tuple(o) for o in obs.meta["views"]}.isdisjoint((dx, dy) for dx, dy, _ in left)
     html = store.get_bytes(f"{scene}/report/report.html").decode()
     assert f"{seen['views_pooled']} of 9 (left out, outside the reconstruction" in html

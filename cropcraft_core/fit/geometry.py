@@ -21,7 +21,13 @@ import numpy as np
 
 from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry import CanopyMesh, Organ, PinholeCamera
-from cropcraft_core.observe import Observation, observation_mask, preset
+from cropcraft_core.observe import (
+    NO_SURFACE_WARN,
+    Observation,
+    observation_mask,
+    observe_views,
+    preset,
+)
 from cropcraft_core.render.raster import render_depth
 
 SOIL_RGB = np.array([0.45, 0.33, 0.22])
@@ -115,9 +121,11 @@ def observe_geometry(
     n_points: int = 200_000,
     seed: int = 0,
     row_spacing: float | None = None,
+    preset_overrides: dict | None = None,
 ) -> tuple[Observation, object]:
     """Row-fit ``source`` (a path, or a :class:`Geometry` already loaded) and render its
-    observation. Returns (observation, row fit)."""
+    observation (the crop's preset with ``preset_overrides``, e.g. pooled row cameras:
+    :func:`_observe`). Returns (observation, row fit)."""
     from cropcraft_core.rowfit import fit_ground_and_rows
     from cropcraft_core.rowfit import preset as rowfit_preset
 
@@ -125,7 +133,7 @@ def observe_geometry(
     # the paper's scene boxes are in NeRF units; a metric geometry is used whole
     rp = rowfit_preset(crop, box_center=None, box_size=None, row_spacing=row_spacing)
     rowfit = fit_ground_and_rows(geo.points, geo.colors, crop, preset=rp, rng=seed)
-    return _observe(geo, rowfit, crop, rowfit.camera), rowfit
+    return _observe(geo, rowfit, crop, rowfit.camera, preset_overrides, row_spacing), rowfit
 
 
 def _depth(geo: Geometry, rowfit, cam: PinholeCamera) -> np.ndarray:
@@ -138,11 +146,38 @@ def _depth(geo: Geometry, rowfit, cam: PinholeCamera) -> np.ndarray:
     return splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam)
 
 
-def _observe(geo: Geometry, rowfit, crop: str, cam: PinholeCamera, **meta) -> Observation:
-    """The observation of ``geo`` (in ``rowfit``'s scene frame) from the world camera ``cam``."""
-    p = preset(crop, render_height=float(rowfit.render_height))
-    depth = _depth(geo, rowfit, cam)
-    mask = observation_mask(depth, None, cam, p)
+def _observe(
+    geo: Geometry,
+    rowfit,
+    crop: str,
+    cam: PinholeCamera,
+    preset_overrides: dict | None = None,
+    row_spacing: float | None = None,
+    **meta,
+) -> Observation:
+    """The observation of ``geo`` (in ``rowfit``'s scene frame) from the world camera ``cam``,
+    under the crop's preset with ``preset_overrides``. Where that pools several row cameras
+    (``views_along``, ``views_across``; neighbouring rows ``row_spacing`` apart, by default the
+    crop's), a view whose ground lies beyond the geometry over more than 18 % and more than the
+    row camera's own (:func:`outside_fraction`) is left out of the pool
+    (:func:`~cropcraft_core.observe.observe_views`)."""
+    p = preset(crop, **{"render_height": float(rowfit.render_height), **(preset_overrides or {})})
+
+    def view(dx: float, dy: float):
+        c = cam.shifted(dx, dy)
+        depth = _depth(geo, rowfit, c)
+        return c, depth, observation_mask(depth, None, c, p), None
+
+    check = {}
+    if p.n_views > 1:
+        from cropcraft_core.config import default_layout
+
+        row_spacing = row_spacing or default_layout(crop).row_spacing
+        limit = max(NO_SURFACE_WARN, outside_fraction(geo, rowfit, cam))
+        check = {
+            "coverage": lambda dx, dy: outside_fraction(geo, rowfit, cam.shifted(dx, dy)),
+            "max_outside": limit,
+        }
     meta = {
         **geo.meta,
         "rowfit": {
@@ -153,7 +188,7 @@ def _observe(geo: Geometry, rowfit, crop: str, cam: PinholeCamera, **meta) -> Ob
         },
         **meta,
     }
-    return Observation(crop, cam, depth, mask, preset=p, meta=meta)
+    return observe_views(crop, p, view, row_spacing, meta=meta, **check)
 
 
 def outside_fraction(geo: Geometry, rowfit, cam: PinholeCamera, cell_m: float = 0.1) -> float:
@@ -189,13 +224,15 @@ def neighbour_observations(
     row_spacing: float,
     neighbours: int,
     max_no_surface: float = 0.18,
+    preset_overrides: dict | None = None,
 ) -> tuple[dict[int, Observation], list[dict]]:
     """Observations of ``geo`` over the best row's neighbours (``rowfit`` from
     :func:`observe_geometry`; ``cropcraft_core.rowfit.neighbours``): ``({index: observation},
     tried)``, a neighbour left out where more than ``max_no_surface`` of its view's ground
     lies beyond the geometry (:func:`outside_fraction`); ``tried`` lists every one
     considered. The cameras sit k row spacings from the best row's (no snapping onto fitted
-    rows: :func:`~cropcraft_core.rowfit.neighbour_row_views`)."""
+    rows: :func:`~cropcraft_core.rowfit.neighbour_row_views`); each is observed as the best
+    row is (``preset_overrides``)."""
     from cropcraft_core.rowfit import neighbour_row_views
 
     kept: dict[int, Observation] = {}
@@ -205,7 +242,9 @@ def neighbour_observations(
         ok = bool(unseen <= max_no_surface)
         tried.append({**view.to_dict(), "outside_fraction": unseen, "kept": ok})
         if ok:
-            kept[view.index] = _observe(geo, rowfit, crop, view.camera, row=view.to_dict())
+            kept[view.index] = _observe(
+                geo, rowfit, crop, view.camera, preset_overrides, row_spacing, row=view.to_dict()
+            )
     return kept, tried
 
 
@@ -260,6 +299,7 @@ def fit_geometry(
     neighbours: int = 0,
     row_answer: str = "best",
     executor=None,
+    preset_overrides: dict | None = None,
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
     write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
@@ -269,7 +309,8 @@ def fit_geometry(
     is then ``row_answer``'s (``rows_answer``: the best row's, or the rows' mean), and
     ``fit.json`` keeps the best row's own fit as ``best_row_fit``. ``executor``: where the
     seeds run (:func:`~cropcraft_core.fit.fitting.fit_observation`), every row's at once
-    (:func:`~cropcraft_core.fit.fitting.fit_observations`)."""
+    (:func:`~cropcraft_core.fit.fitting.fit_observations`). ``preset_overrides``: the
+    observation preset's (e.g. ``views_along``/``views_across`` pool row cameras)."""
     import json
 
     from cropcraft_core.bundle import check_output_dir, write_bundle
@@ -288,14 +329,18 @@ def fit_geometry(
             raise ConfigError("neighbour rows are fitted by the model fits, not by poisson")
         return _poisson_to_files(path, crop, out, seed)
     geo = load_geometry(path, seed=seed)
-    obs, rowfit = observe_geometry(geo, crop, seed=seed, row_spacing=layout.row_spacing)
+    obs, rowfit = observe_geometry(
+        geo, crop, seed=seed, row_spacing=layout.row_spacing, preset_overrides=preset_overrides
+    )
     if not neighbours:
         res = fit_observation(obs, cfg, layout=layout, executor=executor)
         answer = res.to_dict()
     else:
         from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
-        others, tried = neighbour_observations(geo, crop, rowfit, layout.row_spacing, neighbours)
+        others, tried = neighbour_observations(
+            geo, crop, rowfit, layout.row_spacing, neighbours, preset_overrides=preset_overrides
+        )
         # the rows' seeds share the executor: the best row's answer is the one it gets alone
         res, *rest = fit_observations([obs, *others.values()], cfg, layout, executor)
         fits = {0: res.to_dict()}  # every row's fit.json, by row index

@@ -359,10 +359,8 @@ class Observation:
         (:func:`observe_views`), each is rendered the same way (``row_spacing``, metres, places
         the neighbouring rows). ``no_surface(camera_scene) -> share`` then measures, for each
         view beside the row camera, the share of its view without a reconstructed surface
-        (e.g. :func:`no_surface_fraction` of ``SurfaceBackend.render_supported``); a view over
-        ``max_no_surface`` lies (partly) outside the reconstruction and is left out of the pool
-        (its lost pixels would read as gaps), listed in ``meta["views_left_out"]`` as
-        ``[dx, dy, share]``; ``meta["views_no_surface"]`` holds the pooled views' shares.
+        (e.g. :func:`no_surface_fraction` of ``SurfaceBackend.render_supported``), and a view
+        over ``max_no_surface`` is left out of the pool (:func:`observe_views`' ``coverage``).
         """
         if image_scale != 1.0:
             camera_world = camera_world.scaled(image_scale)
@@ -377,34 +375,22 @@ class Observation:
             },
         )
         check_row_camera(camera_world, p)
-        if (no_surface is None) != (max_no_surface is None):
-            raise ConfigError("no_surface and max_no_surface go together: give both or neither")
         k = 1.0 / float(scale)  # scene units per metre
-        shares: dict[tuple[float, float], float] = {}
 
         def view(dx: float, dy: float):
-            cam_scene = camera_scene.shifted(dx * k, dy * k)
-            if no_surface is not None and (dx, dy) != (0.0, 0.0):
-                shares[dx, dy] = share = float(no_surface(cam_scene))
-                if share > max_no_surface:
-                    return None
             cam = camera_world.shifted(dx, dy)
-            depth, rgb = render(cam_scene)
+            depth, rgb = render(camera_scene.shifted(dx * k, dy * k))
             depth_m = np.asarray(depth, np.float64) * float(scale)
             return cam, depth_m, observation_mask(depth_m, rgb, cam, p), rgb
 
-        obs = observe_views(crop, p, view, row_spacing, meta=meta)
-        if no_surface is None or p.n_views == 1:
-            return obs
-        pooled = [tuple(o) for o in obs.meta["views"][1:]]
-        left = [[dx, dy, f] for (dx, dy), f in shares.items() if (dx, dy) not in pooled]
-        return replace(
-            obs,
-            meta={
-                **obs.meta,
-                "views_no_surface": [shares[o] for o in pooled],
-                "views_left_out": left,
-            },
+        coverage = None
+        if no_surface is not None:
+
+            def coverage(dx: float, dy: float) -> float:
+                return no_surface(camera_scene.shifted(dx * k, dy * k))
+
+        return observe_views(
+            crop, p, view, row_spacing, meta=meta, coverage=coverage, max_outside=max_no_surface
         )
 
     # ----------------------------------------------------------------- comparison
@@ -555,9 +541,8 @@ class Observation:
 
 #: ``view(dx, dy) -> (camera, depth, mask, rgb)``: the row camera moved ``dx`` metres along
 #: the row and ``dy`` across it, what it sees (z-depth in metres), its foreground mask and RGB
-#: (or ``None``), or ``None`` to leave that camera out of the pool (it sees past what was
-#: observed). :func:`observe_views` calls it once per pooled camera.
-ViewRenderer = Callable[[float, float], tuple[PinholeCamera, np.ndarray, np.ndarray, Any] | None]
+#: (or ``None``). :func:`observe_views` calls it once per pooled camera.
+ViewRenderer = Callable[[float, float], tuple[PinholeCamera, np.ndarray, np.ndarray, Any]]
 
 
 def observe_views(
@@ -567,24 +552,30 @@ def observe_views(
     row_spacing: float | None = None,
     meta: dict | None = None,
     box_mask: bool = True,
+    coverage: Callable[[float, float], float] | None = None,
+    max_outside: float | None = None,
 ) -> Observation:
     """The observation of the row camera (``view(0, 0)``), its statistics pooled over the
     preset's cameras (:meth:`ObservePreset.view_offsets`; neighbouring rows ``row_spacing``
     metres apart) as their bin-by-bin mean (:func:`mean_stats`). Every view is binned with the
     row camera's preset (a depth range fitted to the canopy, maize's default, is resolved over
     the row camera's own foreground); the depth map, mask, RGB and camera are the row camera's,
-    and ``meta["views"]`` lists the offsets pooled (a view that ``view`` leaves out, returning
-    None, is not: the pool's mean over the rest still estimates the field's). With the paper's
-    single camera it is exactly ``Observation(crop, camera, depth, mask, rgb, preset=p)``.
+    and ``meta["views"]`` lists the offsets pooled. With the paper's single camera it is
+    exactly ``Observation(crop, camera, depth, mask, rgb, preset=p)``.
+
+    ``coverage(dx, dy) -> share``: the share of that camera's view that lies outside what was
+    observed (no reconstructed surface, or no geometry under it); a view beside the row camera
+    over ``max_outside`` is left out of the pool, since its lost pixels would read as gaps (the
+    mean over the rest still estimates the field's). ``meta["views_left_out"]`` lists those
+    as ``[dx, dy, share]``, ``meta["views_outside"]`` the pooled ones' shares.
 
     Why: one row camera sees one draw of the canopy, and on some scenes that draw lies far
     from its parameters' average, so the fit follows the draw (benchmarks/RESULTS.md,
     *#views*). A procedural prediction's statistics do not depend on where along a uniform
     canopy, or over which of its rows, the camera stands, so the predictions stay one camera."""
-    row = view(0.0, 0.0)
-    if row is None:
-        raise ConfigError("the row camera's own view cannot be left out of its observation")
-    cam, depth, mask, rgb = row
+    if (coverage is None) != (max_outside is None):
+        raise ConfigError("a coverage check needs both the measure and its limit, or neither")
+    cam, depth, mask, rgb = view(0.0, 0.0)
     meta = dict(meta or {})
     if p.n_views == 1:
         return Observation(crop, cam, depth, mask, rgb=rgb, preset=p, meta=meta, box_mask=box_mask)
@@ -592,12 +583,15 @@ def observe_views(
     # the row camera's own observation checks its input and resolves the bins the views share
     own = replace(p, views_along=1, views_across=0)
     first = Observation(crop, cam, depth, mask, rgb=rgb, preset=own, meta=meta, box_mask=box_mask)
-    stats, pooled = [first.stats], [offsets[0]]
+    stats, pooled, shares, left = [first.stats], [offsets[0]], [], []
     for dx, dy in offsets[1:]:
-        seen = view(dx, dy)
-        if seen is None:  # outside what was observed
-            continue
-        cv, dv, mv, _ = seen
+        if coverage is not None:
+            share = float(coverage(dx, dy))
+            if not share <= max_outside:  # outside what was observed (or unmeasurable)
+                left.append([dx, dy, share])
+                continue
+            shares.append(share)
+        cv, dv, mv, _ = view(dx, dy)
         stats.append(
             compute_stats(
                 check_depth(dv, cv), cv, check_mask(mv, dv.shape), first.preset, sobel=True
@@ -608,7 +602,11 @@ def observe_views(
         first,
         stats=mean_stats(stats),
         preset=replace(first.preset, views_along=p.views_along, views_across=p.views_across),
-        meta={**first.meta, "views": [list(o) for o in pooled]},
+        meta={
+            **first.meta,
+            "views": [list(o) for o in pooled],
+            **({} if coverage is None else {"views_outside": shares, "views_left_out": left}),
+        },
     )
 
 
