@@ -198,7 +198,8 @@ def test_a_pooled_view_outside_the_reconstruction_is_left_out():
 def test_the_unbiased_estimator_is_the_mean_cross_term_of_the_canopies():
     """``loss_estimator="unbiased"``: over K canopies the loss's U-statistic, the mean over
     pairs j != k of the bilinear form of (s_j - o) and (s_k - o), computed here by hand; one
-    canopy is the loss itself, and the checks take the canopies two at a time."""
+    canopy is the loss itself, and the checks compare the U-statistic's jackknife
+    pseudo-values over all the canopies (every pair counted), whose mean is the U-statistic."""
     from cropcraft_core.fit.select import _per_canopy
 
     obs, _ = observation("soybean", SOY_TRUTH)
@@ -221,12 +222,19 @@ def test_the_unbiased_estimator_is_the_mean_cross_term_of_the_canopies():
     assert unbiased.loss(p, 3) == pooled.loss(p, 3)
     # the pooled loss carries the draw variance the unbiased one leaves out
     assert pooled.loss(p, seeds) > unbiased.loss(p, seeds)
-    np.testing.assert_allclose(
-        _per_canopy(unbiased, p, [3, 4, 5, 6]),
-        [form(s[0], s[1]), unbiased.loss(p, [5, 6])],
-        rtol=1e-9,
-    )
+    four = s + [pooled.stats(p, 6)]
+
+    def u(keep):
+        return np.mean([form(four[j], four[k]) for j in keep for k in keep if j != k])
+
+    every = u(range(4))
+    by_hand = [4 * every - 3 * u([i for i in range(4) if i != j]) for j in range(4)]
+    values = _per_canopy(unbiased, p, [3, 4, 5, 6])
+    np.testing.assert_allclose(values, by_hand, rtol=1e-9, atol=1e-12)
+    assert values.mean() == pytest.approx(unbiased.loss(p, [3, 4, 5, 6]), rel=1e-9)
     assert len(_per_canopy(pooled, p, [3, 4, 5, 6])) == 4
+    with pytest.raises(ConfigError, match="at least 3 canopies"):
+        _per_canopy(unbiased, p, [3, 4])
     with pytest.raises(ConfigError, match="loss estimator"):
         ForwardModel(obs, estimator="median")
     with pytest.raises(ConfigError, match="loss_estimator"):

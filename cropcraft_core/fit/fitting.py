@@ -144,7 +144,7 @@ class FitConfig:
     ``unbiased`` (its U-statistic, without the predictions' own draw variance, which favours
     parameters whose canopies vary less). Applies to the seeds' objective (with
     ``canopies_per_eval`` >= 2), the re-scoring and polish, and the guard's and floors'
-    checks (canopies taken in pairs, ``select._per_canopy``)."""
+    checks (the U-statistic's jackknife pseudo-values, ``select._per_canopy``)."""
 
     def resolved(self, crop: str) -> FitConfig:
         """This config with every setting left to ``crop``'s default (None) written out:

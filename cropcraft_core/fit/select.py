@@ -87,7 +87,7 @@ from scipy.optimize import minimize
 
 from cropcraft_core.config.params import ParamBox
 from cropcraft_core.errors import ConfigError
-from cropcraft_core.fit.forward import ForwardModel
+from cropcraft_core.fit.forward import ForwardModel, unbiased_pseudovalues
 from cropcraft_core.optimize import SeedResult, aggregate
 from cropcraft_core.optimize import gp as gpmod
 from cropcraft_core.optimize.bo import first_simplex
@@ -283,13 +283,15 @@ GUARD_SE = 2.0
 
 def _per_canopy(forward: ForwardModel, params: dict, canopy_seeds: Sequence[int]) -> np.ndarray:
     """The loss of ``params`` on each of ``canopy_seeds`` alone (one render each), so that two
-    points scored on the same canopies can be compared pair by pair. Under the ``unbiased``
-    estimator the canopies are taken two at a time (one value per pair, the pair's
-    U-statistic: a single canopy's loss carries its draw variance), so there are half as
-    many values."""
+    points scored on the same canopies can be compared canopy by canopy: their mean is the
+    loss's estimate and their standard deviation over sqrt(n) its standard error. Under the
+    ``unbiased`` estimator a single canopy's loss carries its draw variance, so the values are
+    the jackknife pseudo-values of the U-statistic over all the canopies
+    (:func:`~cropcraft_core.fit.forward.unbiased_pseudovalues`: every pair of canopies
+    counts)."""
     if forward.estimator == "unbiased":
-        pairs = [list(canopy_seeds[k : k + 2]) for k in range(0, len(canopy_seeds) - 1, 2)]
-        return np.array([forward.loss(params, pair) for pair in pairs], dtype=np.float64)
+        each = [forward.stats(params, int(c)) for c in canopy_seeds]
+        return unbiased_pseudovalues(forward.observation, each)
     return np.array([forward.loss(params, [c]) for c in canopy_seeds], dtype=np.float64)
 
 
