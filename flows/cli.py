@@ -169,7 +169,7 @@ def _fit_config(args: argparse.Namespace):
         n_initial=min(args.initial, args.evals),
         combine=args.combine,
         polish_evals=args.polish_evals,
-        **({} if args.canopies is None else {"canopies_per_eval": args.canopies}),
+        canopies_per_eval=args.canopies,  # None: the crop's
         **({} if args.estimator is None else {"loss_estimator": args.estimator}),
     )
     if args.method == "poisson":

@@ -31,7 +31,7 @@ def _observe(
     (``views_along``/``views_across``) that shows more than ``NO_SURFACE_WARN`` without a
     supported surface, and more than the row camera's own view, lies (partly) outside the
     reconstruction and is left out of the pool (``meta["views_left_out"]``)."""
-    from cropcraft_core.observe import NO_SURFACE_WARN, Observation, no_surface_fraction
+    from cropcraft_core.observe import Observation, no_surface_fraction
 
     scale = float(config.get("image_scale", 1.0))
     unseen = no_surface_fraction(backend.render_supported(camera_in_scene.scaled(scale)))
@@ -52,8 +52,8 @@ def _observe(
         # the planting row spacing places the neighbouring rows a pooled observation adds
         # (ObservePreset.views_across; the flow passes the layout only then)
         row_spacing=layout_of(crop, config).row_spacing,
+        # each pooled view's share without a supported surface, against the row camera's
         no_surface=lambda cam: no_surface_fraction(backend.render_supported(cam)),
-        max_no_surface=max(NO_SURFACE_WARN, unseen),
     )
     return obs, unseen
 

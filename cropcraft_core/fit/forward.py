@@ -117,40 +117,33 @@ class ForwardModel:
 def unbiased_loss(observation: Observation, each: Sequence[HistogramStats]) -> float:
     """The loss's U-statistic over the statistics ``each`` of K >= 2 canopies of one parameter
     point: ``(K L(mean) - mean_k L(s_k)) / (K - 1)`` (:meth:`ForwardModel.loss`, ``unbiased``)."""
-    return float(unbiased_pseudovalues(observation, each, jackknife=False)[0])
-
-
-def unbiased_pseudovalues(
-    observation: Observation, each: Sequence[HistogramStats], jackknife: bool = True
-) -> np.ndarray:
-    """The jackknife pseudo-values ``K U - (K - 1) U_(-j)`` of the loss's U-statistic ``U``
-    over the statistics ``each`` of K >= 3 canopies (``U_(-j)``: without canopy j). Their mean
-    is ``U`` exactly and their standard deviation over sqrt(K) its jackknife standard error,
-    so they compare two parameter points scored on the same canopies value by value, every
-    pair of canopies counted (taking disjoint pairs instead keeps K/2 of the K(K-1)/2 cross
-    terms, and near the observation, where the cross terms are pure draw noise, their mean
-    varies about K/4 times more). ``jackknife=False``: just ``[U]`` (K >= 2)."""
     from cropcraft_core.observe import loss
 
     o, p = observation.stats, observation.preset
     k = len(each)
-    if k < (3 if jackknife else 2):
-        why = " for its jackknife" if jackknife else ""
-        raise ConfigError(
-            f"the unbiased loss needs at least {3 if jackknife else 2} canopies{why}, got {k}"
-        )
-    single = np.array([loss(o, s, p).total for s in each], dtype=np.float64)
+    if k < 2:
+        raise ConfigError(f"the unbiased loss needs at least 2 canopies, got {k}")
+    per = float(np.mean([loss(o, s, p).total for s in each]))
+    return float((k * loss(o, mean_stats(each), p).total - per) / (k - 1))
 
-    def u(keep: list[int]) -> float:
-        m = len(keep)
-        pooled = loss(o, mean_stats([each[i] for i in keep]), p).total
-        return (m * pooled - float(single[keep].mean())) / (m - 1)
 
-    full = u(list(range(k)))
-    if not jackknife:
-        return np.array([full])
+def unbiased_pseudovalues(observation: Observation, each: Sequence[HistogramStats]) -> np.ndarray:
+    """The jackknife pseudo-values ``K U - (K - 1) U_(-j)`` of the loss's U-statistic ``U``
+    (:func:`unbiased_loss`) over the statistics ``each`` of K >= 3 canopies (``U_(-j)``:
+    without canopy j). Their mean is ``U`` exactly and their standard deviation over sqrt(K)
+    its jackknife standard error, so they compare two parameter points scored on the same
+    canopies value by value, every pair of canopies counted (taking disjoint pairs instead
+    keeps K/2 of the K(K-1)/2 cross terms, and near the observation, where the cross terms
+    are pure draw noise, their mean varies about K/4 times more)."""
+    k = len(each)
+    if k < 3:
+        raise ConfigError(f"the unbiased loss needs at least 3 canopies for its jackknife, got {k}")
+    full = unbiased_loss(observation, each)
     return np.array(
-        [k * full - (k - 1) * u([i for i in range(k) if i != j]) for j in range(k)],
+        [
+            k * full - (k - 1) * unbiased_loss(observation, [*each[:j], *each[j + 1 :]])
+            for j in range(k)
+        ],
         dtype=np.float64,
     )
 

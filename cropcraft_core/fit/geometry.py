@@ -21,13 +21,7 @@ import numpy as np
 
 from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry import CanopyMesh, Organ, PinholeCamera
-from cropcraft_core.observe import (
-    NO_SURFACE_WARN,
-    Observation,
-    observation_mask,
-    observe_views,
-    preset,
-)
+from cropcraft_core.observe import Observation, observation_mask, observe_views, preset
 from cropcraft_core.render.raster import render_depth
 
 SOIL_RGB = np.array([0.45, 0.33, 0.22])
@@ -168,16 +162,10 @@ def _observe(
         depth = _depth(geo, rowfit, c)
         return c, depth, observation_mask(depth, None, c, p), None
 
-    check = {}
     if p.n_views > 1:
         from cropcraft_core.config import default_layout
 
         row_spacing = row_spacing or default_layout(crop).row_spacing
-        limit = max(NO_SURFACE_WARN, outside_fraction(geo, rowfit, cam))
-        check = {
-            "coverage": lambda dx, dy: outside_fraction(geo, rowfit, cam.shifted(dx, dy)),
-            "max_outside": limit,
-        }
     meta = {
         **geo.meta,
         "rowfit": {
@@ -188,7 +176,14 @@ def _observe(
         },
         **meta,
     }
-    return observe_views(crop, p, view, row_spacing, meta=meta, **check)
+    return observe_views(
+        crop,
+        p,
+        view,
+        row_spacing,
+        meta=meta,
+        coverage=lambda dx, dy: outside_fraction(geo, rowfit, cam.shifted(dx, dy)),
+    )
 
 
 def outside_fraction(geo: Geometry, rowfit, cam: PinholeCamera, cell_m: float = 0.1) -> float:

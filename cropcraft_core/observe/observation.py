@@ -360,7 +360,8 @@ class Observation:
         the neighbouring rows). ``no_surface(camera_scene) -> share`` then measures, for each
         view beside the row camera, the share of its view without a reconstructed surface
         (e.g. :func:`no_surface_fraction` of ``SurfaceBackend.render_supported``), and a view
-        over ``max_no_surface`` is left out of the pool (:func:`observe_views`' ``coverage``).
+        over ``max_no_surface`` is left out of the pool (:func:`observe_views`' ``coverage``
+        and ``max_outside``; by default the row camera's own share or 18 %, the larger).
         """
         if image_scale != 1.0:
             camera_world = camera_world.scaled(image_scale)
@@ -566,15 +567,20 @@ def observe_views(
     ``coverage(dx, dy) -> share``: the share of that camera's view that lies outside what was
     observed (no reconstructed surface, or no geometry under it); a view beside the row camera
     over ``max_outside`` is left out of the pool, since its lost pixels would read as gaps (the
-    mean over the rest still estimates the field's). ``meta["views_left_out"]`` lists those
-    as ``[dx, dy, share]``, ``meta["views_outside"]`` the pooled ones' shares.
+    mean over the rest still estimates the field's). ``max_outside`` defaults to the
+    ``observe_rows`` stage's rule: :data:`NO_SURFACE_WARN` or the row camera's own share
+    (``coverage(0, 0)``), the larger, so a view no worse covered than the row camera is kept.
+    ``meta["views_left_out"]`` lists those left out as ``[dx, dy, share]``,
+    ``meta["views_outside"]`` the pooled ones' shares.
 
     Why: one row camera sees one draw of the canopy, and on some scenes that draw lies far
     from its parameters' average, so the fit follows the draw (benchmarks/RESULTS.md,
     *#views*). A procedural prediction's statistics do not depend on where along a uniform
     canopy, or over which of its rows, the camera stands, so the predictions stay one camera."""
-    if (coverage is None) != (max_outside is None):
-        raise ConfigError("a coverage check needs both the measure and its limit, or neither")
+    if coverage is None and max_outside is not None:
+        raise ConfigError(
+            "max_outside without coverage: a coverage check needs both the measure and its limit"
+        )
     cam, depth, mask, rgb = view(0.0, 0.0)
     meta = dict(meta or {})
     if p.n_views == 1:
@@ -584,6 +590,8 @@ def observe_views(
     own = replace(p, views_along=1, views_across=0)
     first = Observation(crop, cam, depth, mask, rgb=rgb, preset=own, meta=meta, box_mask=box_mask)
     stats, pooled, shares, left = [first.stats], [offsets[0]], [], []
+    if coverage is not None and max_outside is None:
+        max_outside = max(NO_SURFACE_WARN, float(coverage(0.0, 0.0)))
     for dx, dy in offsets[1:]:
         if coverage is not None:
             share = float(coverage(dx, dy))
