@@ -83,7 +83,9 @@ STAGE_VERSIONS: dict[str, int] = {
     "rowfit": 4,
     # 2: maize's depth bins start just above the observed canopy (depth_top_margin 0.25);
     # soybean's observations come out the same bytes, so their fits stay cached
-    "observe": 2,
+    # 3: a pooled row camera outside the reconstruction is left out of the pool (session 50);
+    # single-camera observations come out the same bytes, so their fits stay cached
+    "observe": 3,
     "observe_rows": 2,
     # 2: predictions are cut by the observation's box (height >= 0.1 m, |y| limit) like the
     # observation itself; before, the low leaves it drops counted on the predicted side only
