@@ -149,6 +149,7 @@ def observe_rows(
     row spacing).
     """
     from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.observe import NO_SURFACE_WARN
     from cropcraft_core.rowfit import Row, camera_to_scene, neighbour_row_views
     from tasks.fit_seed import layout_of
 
@@ -162,7 +163,7 @@ def observe_rows(
         # a neighbour no worse covered than the best row itself (whose answer is kept anyway)
         # is kept too
         best = upstream["observe"]["summary"].get("no_surface_fraction") or 0.0
-        limit = max(float(config.get("max_no_surface", 0.18)), float(best))
+        limit = max(float(config.get("max_no_surface", NO_SURFACE_WARN)), float(best))
         rows = [
             Row(np.asarray(r["direction"], float), np.asarray(r["point"], float), r["n_inliers"])
             for r in rf["rows"]

@@ -21,7 +21,13 @@ import numpy as np
 
 from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.geometry import CanopyMesh, Organ, PinholeCamera
-from cropcraft_core.observe import Observation, observation_mask, observe_views, preset
+from cropcraft_core.observe import (
+    NO_SURFACE_WARN,
+    Observation,
+    observation_mask,
+    observe_views,
+    preset,
+)
 from cropcraft_core.render.raster import render_depth
 
 SOIL_RGB = np.array([0.45, 0.33, 0.22])
@@ -218,7 +224,7 @@ def neighbour_observations(
     rowfit,
     row_spacing: float,
     neighbours: int,
-    max_no_surface: float = 0.18,
+    max_no_surface: float = NO_SURFACE_WARN,
     preset_overrides: dict | None = None,
 ) -> tuple[dict[int, Observation], list[dict]]:
     """Observations of ``geo`` over the best row's neighbours (``rowfit`` from
