@@ -51,6 +51,8 @@ SEASON_COLUMNS = (
     # not a trait: the share of the row camera's view the reconstruction left empty (a flag on
     # the date's LAI; ``observe.coverage_warning``)
     ("no_surface_fraction", "row_view_no_surface_fraction"),
+    # the surfaces' cover against the photos' (consistency stage): extra − unreconstructed
+    ("photo_net_cover", "photo_net_cover_fraction"),
     # where the date was also fitted over its neighbour rows (``rows.neighbours``): how many
     # rows, and the lowest and highest of their LAI answers (the date's LAI is row 0's)
     ("n_rows_fitted", "rows_fitted"),

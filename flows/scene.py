@@ -2,6 +2,7 @@
 
     ingest → poses → surfaces → rowfit → observe → fit_seed × n (mapped) → aggregate
            → generate → metrics → export → report
+                                      ↘ consistency (the surfaces against the photos) → report
 
 Each stage is one task of ``tasks/`` (read the store, call ``cropcraft_core``, write the store,
 return a small record); this module only validates the request, resolves the configuration,
@@ -56,6 +57,10 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "surfaces": {"backend": "tsdf", "bbox": "auto", "n_points": 100_000},
     # the paper's row-fit scene box is in nerfstudio's normalised frame; ours is the surfaces'
     "rowfit": {"seed": 0, "scale": None, "preset": {"box_center": None, "box_size": None}},
+    # the surfaces against the photos at the photos' own cameras (a diagnostic; nothing the fit
+    # reads): photos compared, height (m) from which a surface is raised, the |net| cover
+    # share past which a run warns (cropcraft_core.surfaces.consistency)
+    "consistency": {"max_views": 12, "min_height": 0.02, "warn": 0.15},
     "observe": {"image_scale": 1.0, "preset": {}},
     "fit": {
         "method": "bo",
@@ -200,6 +205,14 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError("give poses.camera_height or poses.camera_distance, not both")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
+    c = cfg["consistency"]
+    mv = c["max_views"]
+    if not isinstance(mv, int) or isinstance(mv, bool) or mv < 1:
+        raise ConfigError(f"consistency.max_views must be a whole number >= 1, got {mv!r}")
+    for key in ("min_height", "warn"):
+        v = c[key]
+        if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < 1:
+            raise ConfigError(f"consistency.{key} must be a number in [0, 1), got {v!r}")
     from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
 
     n = cfg["rows"]["neighbours"]
@@ -282,6 +295,12 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "poses": dict(cfg["poses"]),
         "surfaces": surfaces,
         "rowfit": {**cfg["rowfit"], **layout},
+        # the row fit's colour rule for the photos' plant (None: the crop's)
+        "consistency": {
+            "max_views": cfg["consistency"]["max_views"],
+            "min_height": cfg["consistency"]["min_height"],
+            "plant_a_below": cfg["rowfit"]["preset"].get("plant_a_below"),
+        },
         # pooled over neighbouring rows, the observation needs their spacing; otherwise it is
         # keyed as before the setting existed
         "observe": {
@@ -302,7 +321,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
-        "report": {**cfg["report"], **layout},
+        "report": {**cfg["report"], **layout, "warn": cfg["consistency"]["warn"]},
     }
 
 
@@ -760,6 +779,10 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     r["poses"] = ex.run("poses", up, poses_uri=req.poses)
     r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
     r["rowfit"] = ex.run("rowfit", {"surfaces": r["surfaces"], "poses": r["poses"]})
+    r["consistency"] = ex.run(
+        "consistency",
+        {k: r[k] for k in ("ingest", "poses", "surfaces", "rowfit")},
+    )
     r["observe"] = ex.run("observe", {"surfaces": r["surfaces"], "rowfit": r["rowfit"]})
     jobs: dict[int | None, dict] = {None: {"observe": r["observe"]}}
     if req.config["rows"]["neighbours"]:
@@ -792,6 +815,20 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     return r
 
 
+def _consistency(record: dict | None, limit: float) -> dict | None:
+    """The consistency stage's shares and their warning (None without the record)."""
+    if record is None:
+        return None
+    from cropcraft_core.surfaces.consistency import consistency_warning
+
+    c = record["summary"]
+    keys = ("views", "photo_plant", "unreconstructed", "extra", "net")
+    return {
+        **{k: c.get(k) for k in keys},
+        "warning": consistency_warning(c.get("unreconstructed"), c.get("extra"), limit),
+    }
+
+
 def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]) -> dict:
     """The small result of a scene run: where everything is, the key numbers, stage states."""
     store = SceneStore(req.store_root)
@@ -815,6 +852,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
                 if k in records["observe"]["summary"]
             },
         },
+        # the surfaces against the photos at the photos' cameras (older stores: None)
+        "consistency": _consistency(records.get("consistency"), req.config["consistency"]["warn"]),
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,
@@ -887,8 +926,9 @@ def reconstruct_scene(
     ex = _PrefectRun(req, result_storage(req.store_root))
     records = _wire(ex, req)
     out = summarize(req, records, ex.states)
-    if out["observation"]["warning"]:
-        ex.log.warning("%s: %s", req.scene.prefix, out["observation"]["warning"])
+    for warning in (out["observation"]["warning"], (out["consistency"] or {}).get("warning")):
+        if warning:
+            ex.log.warning("%s: %s", req.scene.prefix, warning)
     out["flow_seconds"] = time.perf_counter() - t0
     try:
         from prefect.runtime import flow_run

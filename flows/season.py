@@ -33,6 +33,13 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
+def _net_cover(store: SceneStore, prefix: str) -> float | None:
+    """The date's net cover of its surfaces against its photos (the consistency stage's
+    ``extra − unreconstructed``; None where it was not computed)."""
+    key = f"{prefix}/consistency/consistency.json"
+    return store.get_json(key).get("net") if store.isfile(key) else None
+
+
 def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
     """The date's LAI over the rows it was fitted on (``rows/rows.json``): ``n_rows_fitted``,
     ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when the answer it records is
@@ -76,9 +83,9 @@ def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
     and ``summary.png``, with each date's share of the row view without a reconstructed
-    surface, the parameters its fit was given and (where fitted over several rows) its LAI's
-    range over the rows beside its traits. Returns the keys and the
-    rows."""
+    surface, its surfaces' net cover against its photos, the parameters its fit was given and
+    (where fitted over several rows) its LAI's range over the rows beside its traits. Returns
+    the keys and the rows."""
     from cropcraft_core.report import given_text, season_csv, season_plot_png, season_rows
 
     per_date = {}
@@ -91,6 +98,7 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
                 **store.get_json(key),
                 "parameters_given": given_text((fit.get("config") or {}).get("box")),
                 "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
+                "photo_net_cover": _net_cover(store, d.scene.prefix),
                 **_rows(store, d.scene),
             }
     rows = season_rows(per_date)

@@ -250,6 +250,15 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
     print(f"row view without a fully supported surface: {100 * seen:.1f} %")
     if out["observation"].get("warning"):
         print(f"WARNING  {out['observation']['warning']}")
+    c = out.get("consistency")
+    if c and c.get("net") is not None:
+        print(
+            f"surfaces against {c['views']} photos: no surface under "
+            f"{100 * c['unreconstructed']:.1f} % of their plant, raised surface over their soil "
+            f"{100 * c['extra']:.1f} % (net cover {100 * c['net']:+.1f} %)"
+        )
+        if c.get("warning"):
+            print(f"WARNING  {c['warning']}")
 
 
 # --------------------------------------------------------------------------- run

@@ -106,6 +106,21 @@ def report(
             "scale source": rf.get("scale_source"),
             "libraries (fit)": _libraries(upstream["aggregate"].get("environment")),
         }
+        cons = (upstream.get("consistency") or {}).get("summary") or {}
+        if cons.get("net") is not None:
+            from cropcraft_core.surfaces.consistency import consistency_warning
+
+            line = (
+                f"no surface under {_percent(cons['unreconstructed'])} of the plant they show, "
+                f"raised surface over their soil {_percent(cons['extra'])} of it (net cover "
+                f"{100 * cons['net']:+.1f} %)"
+            )
+            warning = consistency_warning(
+                cons["unreconstructed"], cons["extra"], float(config.get("warn", 0.15))
+            )
+            info[f"surfaces against {cons['views']} photos"] = (
+                f"{line}. WARNING: {warning}" if warning else line
+            )
         views = upstream["observe"]["summary"]
         if "views_pooled" in views:  # the observation pools several row cameras
             left = views["views_left_out"]

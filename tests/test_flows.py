@@ -44,7 +44,7 @@ OVERRIDES = {
     "fit.polish_evals": 4,
     "metrics.gap_fraction": False,
 }
-N_TASKS = 10 + N_SEEDS  # ten single stages + the mapped seeds
+N_TASKS = 11 + N_SEEDS  # eleven single stages + the mapped seeds
 LATE_STAGES = ("aggregate", "generate", "metrics", "export", "report")
 
 
@@ -157,6 +157,15 @@ def test_scene_flow_produces_everything(base_run):
     assert seen > float(np.mean(~np.isfinite(obs.depth)))
     assert out["observation"]["warning"] == coverage_warning(seen)
     assert f"{100 * seen:.1f} %" in html and "row view without surface" in html
+    # the surfaces against the photos at the photos' cameras: stored with every view's shares,
+    # summarised (shares of the photos' plant), in the report
+    cons = store.get_json(f"{scene}/consistency/consistency.json")
+    c = out["consistency"]
+    assert 10 <= c["views"] == len(cons["views"]) == len(cons["per_view"]) <= 12
+    assert 0 < c["photo_plant"] < 1 and 0 <= c["unreconstructed"] <= 1 and c["extra"] >= 0
+    assert c["net"] == pytest.approx(c["extra"] - c["unreconstructed"]) == cons["net"]
+    assert (c["warning"] is not None) == (abs(c["net"]) >= 0.15)
+    assert f"surfaces against {c['views']} photos" in html and f"{100 * c['net']:+.1f} %" in html
     for name in ("canopy.ply", "canopy.glb", "canopy.helios.xml", "preview.png", "metrics.json"):
         assert store.isfile(f"{scene}/export/bundle/{name}")
     manifest = store.load_manifest(SceneKey.parse(scene))
@@ -185,8 +194,10 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
     assert row["parameters_given"] == ""  # the whole box was searched
     head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
-    assert head.split(",")[-4:] == [
+    assert row["photo_net_cover_fraction"] == pytest.approx(out["consistency"]["net"])
+    assert head.split(",")[-5:] == [
         "row_view_no_surface_fraction",
+        "photo_net_cover_fraction",
         "rows_fitted",
         "lai_rows_min_m2_m2",
         "lai_rows_max_m2_m2",
@@ -718,6 +729,12 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.n_eval": 3}, store)
     with pytest.raises(ConfigError, match="fit.method=mlp: the scene flow maps optimiser seeds"):
         prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.method": "mlp"}, store)
+    for bad, match in (
+        ({"consistency.max_views": 0}, "consistency.max_views"),
+        ({"consistency.warn": 1.5}, "consistency.warn"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)
     monkeypatch.setenv("AWS_ACCESS_KEY_ID", "x")
     monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "y")
     monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_dead_port()}")
