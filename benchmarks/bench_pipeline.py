@@ -181,6 +181,7 @@ def run(a: argparse.Namespace) -> dict:
     from cropcraft_core.sfm import import_transforms_json, ingest_images, level_poses, run_sfm
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
     from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
+    from cropcraft_core.surfaces.consistency import photo_consistency
     from cropcraft_core.synth import make_scene
 
     w, h = a.resolution
@@ -301,6 +302,24 @@ def run(a: argparse.Namespace) -> dict:
     out["hist_truth"] = h_true.round(4).tolist()
     out["depth_bins"] = list(obs.preset.depth_range)
     out["mask_area"] = area
+    # the surfaces against the photos at the photos' cameras (the flow's consistency stage),
+    # beside the truth's figures: how far its net cover follows the reconstruction's miss
+    t = time.perf_counter()
+    cons = photo_consistency(
+        backend.render,
+        images,
+        poses.cameras,
+        fit.ground_normal,
+        fit.ground_offset,
+        scale=fit.scale,
+        bbox=backend.bbox,
+        plant_a_below=fit.preset.plant_a_below,
+    ).to_dict()
+    out["consistency"] = {
+        **{k: cons[k] for k in ("photo_plant", "holes", "unreconstructed", "extra", "net")},
+        "views": len(cons["views"]),
+        "seconds": time.perf_counter() - t,
+    }
     if getattr(backend, "raw_depth_maps", None):
         out["holes"] = _holes(
             root, poses, truth_poses, backend, fit, scene_from_true, a.image_scale, d_true, obs
@@ -824,6 +843,13 @@ def _print(out: dict) -> None:
         print(
             f"  depth histogram L1 with the true scale instead of the rows': "
             f"{out['hist_l1_true_scale']:.4f} (the reconstruction's share)"
+        )
+    c = out.get("consistency")
+    if c and c["net"] is not None:
+        print(
+            f"  surfaces against {c['views']} photos: no surface under "
+            f"{100 * c['unreconstructed']:.1f} % of their plant, raised over their soil "
+            f"{100 * c['extra']:.1f} %, net cover {100 * c['net']:+.1f} %"
         )
     if out.get("holes"):
         h = out["holes"]
