@@ -2,7 +2,7 @@
 
     ingest → poses → surfaces → rowfit → observe → fit_seed × n (mapped) → aggregate
            → generate → metrics → export → report
-                                      ↘ consistency (the surfaces against the photos) → report
+    rowfit → consistency (the surfaces against the photos, beside the fit) → report
 
 Each stage is one task of ``tasks/`` (read the store, call ``cropcraft_core``, write the store,
 return a small record); this module only validates the request, resolves the configuration,
@@ -59,8 +59,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "rowfit": {"seed": 0, "scale": None, "preset": {"box_center": None, "box_size": None}},
     # the surfaces against the photos at the photos' own cameras (a diagnostic; nothing the fit
     # reads): photos compared, height (m) from which a surface is raised, the |net| cover
-    # share past which a run warns (cropcraft_core.surfaces.consistency)
-    "consistency": {"max_views": 12, "min_height": 0.02, "warn": 0.15},
+    # share past which a run warns (None: the crop's, cropcraft_core.surfaces.consistency.
+    # NET_WARN: soybean 0.15, maize none)
+    "consistency": {"max_views": 12, "min_height": 0.02, "warn": None},
     "observe": {"image_scale": 1.0, "preset": {}},
     "fit": {
         "method": "bo",
@@ -211,6 +212,8 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError(f"consistency.max_views must be a whole number >= 1, got {mv!r}")
     for key in ("min_height", "warn"):
         v = c[key]
+        if v is None and key == "warn":
+            continue
         if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < 1:
             raise ConfigError(f"consistency.{key} must be a number in [0, 1), got {v!r}")
     from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
@@ -321,7 +324,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
-        "report": {**cfg["report"], **layout, "warn": cfg["consistency"]["warn"]},
+        "report": {**cfg["report"], **layout, "warn": _net_warn(cfg, crop)},
     }
 
 
@@ -815,7 +818,17 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     return r
 
 
-def _consistency(record: dict | None, limit: float) -> dict | None:
+def _net_warn(cfg: Mapping[str, Any], crop: str | None) -> float | None:
+    """``consistency.warn``, or the crop's (``NET_WARN``) where it is None."""
+    warn = cfg["consistency"]["warn"]
+    if warn is None and crop is not None:
+        from cropcraft_core.surfaces.consistency import NET_WARN
+
+        warn = NET_WARN.get(crop)
+    return warn
+
+
+def _consistency(record: dict | None, limit: float | None) -> dict | None:
     """The consistency stage's shares and their warning (None without the record)."""
     if record is None:
         return None
@@ -853,7 +866,9 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
             },
         },
         # the surfaces against the photos at the photos' cameras (older stores: None)
-        "consistency": _consistency(records.get("consistency"), req.config["consistency"]["warn"]),
+        "consistency": _consistency(
+            records.get("consistency"), _net_warn(req.config, req.scene.crop)
+        ),
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,

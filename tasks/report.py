@@ -116,7 +116,7 @@ def report(
                 f"{100 * cons['net']:+.1f} %)"
             )
             warning = consistency_warning(
-                cons["unreconstructed"], cons["extra"], float(config.get("warn", 0.15))
+                cons["unreconstructed"], cons["extra"], config.get("warn")
             )
             info[f"surfaces against {cons['views']} photos"] = (
                 f"{line}. WARNING: {warning}" if warning else line

@@ -140,9 +140,12 @@ def test_views_are_spread_over_the_photos():
         pick_views(0)
 
 
-def test_warning_threshold_is_on_the_net_cover():
-    assert consistency_warning(0.20, 0.06) is None  # net −0.14
-    assert "low" in consistency_warning(0.25, 0.05)  # net −0.20
-    assert "high" in consistency_warning(0.0, NET_WARN)
-    assert consistency_warning(None, 0.3) is None
+def test_warning_threshold_is_on_the_net_cover_and_per_crop():
+    soy = NET_WARN["soybean"]
+    assert consistency_warning(0.20, 0.06, soy) is None  # net −0.14
+    assert "low" in consistency_warning(0.25, 0.05, soy)  # net −0.20
+    assert "high" in consistency_warning(0.0, soy, soy)
+    assert consistency_warning(None, 0.3, soy) is None
     assert consistency_warning(0.3, 0.0, limit=0.5) is None
+    # maize reports its shares but does not warn: there the sign did not follow the LAI
+    assert NET_WARN["maize"] is None and consistency_warning(0.0, 0.5, NET_WARN["maize"]) is None
