@@ -29,7 +29,12 @@ def consistency(
 
     from cropcraft_core.rowfit import preset as rowfit_preset
     from cropcraft_core.sfm.poses import Poses
-    from cropcraft_core.surfaces.consistency import photo_consistency, pick_views
+    from cropcraft_core.surfaces.consistency import (
+        MAX_VIEWS,
+        MIN_HEIGHT_M,
+        photo_consistency,
+        pick_views,
+    )
 
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
@@ -42,7 +47,7 @@ def consistency(
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
         poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
-        views = pick_views(len(poses.names), int(config.get("max_views", 12)))
+        views = pick_views(len(poses.names), int(config.get("max_views", MAX_VIEWS)))
         images: list[np.ndarray] = [np.zeros((0, 0, 3), np.uint8)] * len(poses.names)
         with store.open_local(key_of(upstream["ingest"], "images")) as image_dir:
             for i in views:
@@ -59,7 +64,7 @@ def consistency(
                 scale=float(rf["scale"]),
                 bbox=backend.bbox,
                 plant_a_below=float(a_below),
-                min_height_m=float(config.get("min_height", 0.02)),
+                min_height_m=float(config.get("min_height", MIN_HEIGHT_M)),
                 views=views,
             )
         key = artefact(scene, "consistency", "consistency.json")

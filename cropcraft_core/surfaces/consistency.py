@@ -23,7 +23,10 @@ flow's defaults; ``benchmarks/RESULTS.md#consistency``) ``net`` over 12 of their
 pipeline's error less a perfect reconstruction's from the same row camera) was +9 / −20 / −33
 / +11 / −6 points: cover lost or added in the photos' views pulls the fitted LAI low or high.
 It says nothing of the method's own error from one row camera, which can cancel it or add to
-it (the canopy at −0.21 read +4 % through the whole pipeline).
+it (the canopy at −0.21 read +4 % through the whole pipeline), nor of every error of the
+reconstruction: on a sixth canopy net read +0.01 while the reconstruction moved its LAI +71
+points (a small error that made two basins of the loss tie). A warning means cover lost or
+added; its absence does not clear the reconstruction.
 :data:`NET_WARN` holds, per crop, the share past which the scene's summary and report warn.
 Maize has none: on one drone scene (true poses, the points backend) net read +0.16 (extra
 0.17: splatted leaf edges over the soil between the thin leaves) while the reconstruction's
@@ -59,7 +62,8 @@ Render = Callable[[PinholeCamera], tuple[np.ndarray, np.ndarray]]
 
 @dataclasses.dataclass(frozen=True)
 class PhotoConsistency:
-    """The comparison's result (module docstring); shares are in [0, 1]."""
+    """The comparison's result (module docstring). Shares of the plot's pixels are in [0, 1];
+    ``extra`` is over the photos' plant and can exceed 1 (a reconstruction twice the plant)."""
 
     views: tuple[int, ...]
     """Indices of the photos compared."""
