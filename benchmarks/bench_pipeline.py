@@ -800,6 +800,8 @@ def print_rules(fit: dict) -> None:
 
 
 def _print(out: dict) -> None:
+    from cropcraft_core.surfaces.consistency import describe
+
     sec = out["seconds"]
     print(f"photos → observation, {out['views']} views {out['resolution']}, poses {out['poses']}")
     print(f"  {'stage':<24}{'seconds':>10}")
@@ -847,9 +849,7 @@ def _print(out: dict) -> None:
     c = out.get("consistency")
     if c and c["net"] is not None:
         print(
-            f"  surfaces against {c['views']} photos: no surface under "
-            f"{100 * c['unreconstructed']:.1f} % of their plant, raised over their soil "
-            f"{100 * c['extra']:.1f} %, net cover {100 * c['net']:+.1f} %"
+            f"  surfaces against {c['views']} photos: {describe(c['unreconstructed'], c['extra'])}"
         )
     if out.get("holes"):
         h = out["holes"]

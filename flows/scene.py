@@ -303,6 +303,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             "max_views": cfg["consistency"]["max_views"],
             "min_height": cfg["consistency"]["min_height"],
             "plant_a_below": cfg["rowfit"]["preset"].get("plant_a_below"),
+            "warn": _net_warn(cfg, crop),
         },
         # pooled over neighbouring rows, the observation needs their spacing; otherwise it is
         # keyed as before the setting existed
@@ -324,7 +325,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         "generate": {**cfg["generate"], **layout},
         "metrics": dict(cfg["metrics"]),
         "export": dict(cfg["export"]),
-        "report": {**cfg["report"], **layout, "warn": _net_warn(cfg, crop)},
+        "report": {**cfg["report"], **layout},
     }
 
 
@@ -828,18 +829,12 @@ def _net_warn(cfg: Mapping[str, Any], crop: str | None) -> float | None:
     return warn
 
 
-def _consistency(record: dict | None, limit: float | None) -> dict | None:
-    """The consistency stage's shares and their warning (None without the record)."""
+def _consistency(record: dict | None) -> dict | None:
+    """The consistency stage's shares and warning (None without the record)."""
     if record is None:
         return None
-    from cropcraft_core.surfaces.consistency import consistency_warning
-
-    c = record["summary"]
-    keys = ("views", "photo_plant", "unreconstructed", "extra", "net")
-    return {
-        **{k: c.get(k) for k in keys},
-        "warning": consistency_warning(c.get("unreconstructed"), c.get("extra"), limit),
-    }
+    keys = ("views", "photo_plant", "unreconstructed", "extra", "net", "warning")
+    return {k: record["summary"].get(k) for k in keys}
 
 
 def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]) -> dict:
@@ -866,9 +861,7 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
             },
         },
         # the surfaces against the photos at the photos' cameras (older stores: None)
-        "consistency": _consistency(
-            records.get("consistency"), _net_warn(req.config, req.scene.crop)
-        ),
+        "consistency": _consistency(records.get("consistency")),
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,

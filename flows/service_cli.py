@@ -252,11 +252,9 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
         print(f"WARNING  {out['observation']['warning']}")
     c = out.get("consistency")
     if c and c.get("net") is not None:
-        print(
-            f"surfaces against {c['views']} photos: no surface under "
-            f"{100 * c['unreconstructed']:.1f} % of their plant, raised surface over their soil "
-            f"{100 * c['extra']:.1f} % (net cover {100 * c['net']:+.1f} %)"
-        )
+        from cropcraft_core.surfaces.consistency import describe
+
+        print(f"surfaces against {c['views']} photos: {describe(c['unreconstructed'], c['extra'])}")
         if c.get("warning"):
             print(f"WARNING  {c['warning']}")
 

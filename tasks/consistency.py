@@ -19,11 +19,13 @@ def consistency(
     inside the surfaces' scene box); stores ``{scene}/consistency/consistency.json`` (every
     view's shares too). The record's summary carries ``unreconstructed`` (photo plant with no
     reconstructed surface), ``extra`` (raised surface over photo soil), both as shares of the
-    photos' plant pixels, and ``net`` (their difference). A diagnostic: nothing downstream
-    reads it but the report and the run's summary, so the fit's cache keys do not depend on it.
+    photos' plant pixels, ``net`` (their difference) and ``warning`` (``consistency_warning``
+    at ``warn``, or None). A diagnostic: nothing downstream reads it but the report and the
+    run's summary, so the fit's cache keys do not depend on it.
 
     config: ``max_views``, ``min_height`` (m above the ground from which a surface is raised),
-    ``plant_a_below`` (None: the crop's row-fit colour rule).
+    ``plant_a_below`` (None: the crop's row-fit colour rule), ``warn`` (the |net| limit; None:
+    no warning).
     """
     from PIL import Image
 
@@ -81,6 +83,7 @@ def consistency(
             "unreconstructed": result.unreconstructed,
             "extra": result.extra,
             "net": result.net,
+            "warning": result.warning(config.get("warn")),
         },
         t.seconds,
     )

@@ -108,16 +108,10 @@ def report(
         }
         cons = (upstream.get("consistency") or {}).get("summary") or {}
         if cons.get("net") is not None:
-            from cropcraft_core.surfaces.consistency import consistency_warning
+            from cropcraft_core.surfaces.consistency import describe
 
-            line = (
-                f"no surface under {_percent(cons['unreconstructed'])} of the plant they show, "
-                f"raised surface over their soil {_percent(cons['extra'])} of it (net cover "
-                f"{100 * cons['net']:+.1f} %)"
-            )
-            warning = consistency_warning(
-                cons["unreconstructed"], cons["extra"], config.get("warn")
-            )
+            line = describe(cons["unreconstructed"], cons["extra"])
+            warning = cons.get("warning")
             info[f"surfaces against {cons['views']} photos"] = (
                 f"{line}. WARNING: {warning}" if warning else line
             )

@@ -17,6 +17,7 @@ from cropcraft_core.surfaces.base import SurfacesError  # noqa: E402
 from cropcraft_core.surfaces.consistency import (  # noqa: E402
     NET_WARN,
     consistency_warning,
+    describe,
     photo_consistency,
     pick_views,
 )
@@ -131,6 +132,13 @@ def test_bad_input_is_named():
     far = np.array([[50.0, 50.0, -0.1], [51.0, 51.0, 1.0]])
     with pytest.raises(SurfacesError, match="none of the 3 photos"):
         photo_consistency(truth.render, imgs, cams, UP, GROUND, bbox=far)
+
+
+def test_the_shares_in_words():
+    text = describe(0.074, 0.083)
+    assert (
+        "no surface under 7.4 %" in text and "soil 8.3 %" in text and "(net cover +0.9 %)" in text
+    )
 
 
 def test_views_are_spread_over_the_photos():

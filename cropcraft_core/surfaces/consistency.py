@@ -125,6 +125,15 @@ def consistency_warning(
     )
 
 
+def describe(unreconstructed: float, extra: float) -> str:
+    """The shares in words, for the run's output, the report and the benchmark."""
+    return (
+        f"no surface under {100 * unreconstructed:.1f} % of the plant they show, raised "
+        f"surface over their soil {100 * extra:.1f} % of it (net cover "
+        f"{100 * (extra - unreconstructed):+.1f} %)"
+    )
+
+
 def _share(num: int, den: int) -> float | None:
     return None if den == 0 else num / den
 
