@@ -136,22 +136,26 @@ def truth_mask(obs, d_true: np.ndarray) -> np.ndarray:
 
 def truth_stats(obs, d_true: np.ndarray):
     """Statistics of the true canopy mesh's depth ``d_true`` from the observation's camera,
-    as a perfect reconstruction would give them (:func:`truth_mask`)."""
-    return obs.predicted_stats(d_true, truth_mask(obs, d_true))
+    as a perfect reconstruction would give them (:func:`truth_mask`; not blurred as the
+    observation's predictions may be)."""
+    from cropcraft_core.observe import compute_stats
+
+    return compute_stats(d_true, obs.camera, truth_mask(obs, d_true), obs.preset)
 
 
 def true_mesh_observation(obs, d_true: np.ndarray):
     """The observation a perfect reconstruction would give: the true mesh's depth ``d_true``
     (NaN where nothing) as ``obs``'s camera sees it, with ``obs``'s preset (its depth bins
-    included) and :func:`truth_mask`; its statistics are :func:`truth_stats`'s."""
-    from cropcraft_core.observe import Observation
+    included; its predictions not blurred, as nothing softened the true mesh) and
+    :func:`truth_mask`; its statistics are :func:`truth_stats`'s."""
+    from cropcraft_core.observe import Observation, with_overrides
 
     return Observation(
         obs.crop,
         obs.camera,
         d_true,
         truth_mask(obs, d_true),
-        preset=obs.preset,
+        preset=with_overrides(obs.preset, prediction_blur_m=0.0),
         meta={**obs.meta, "source": "the true mesh from the observation's camera"},
         box_mask=obs.box_mask,
     )
@@ -266,7 +270,7 @@ def run(a: argparse.Namespace) -> dict:
             backend.save(keep / "surfaces")
 
         t = time.perf_counter()
-        obs = _observe(crop, fit, backend, a.image_scale)
+        obs = _observe(crop, fit, backend, a.image_scale, a.prediction_blur)
         sec["observe"] = time.perf_counter() - t
     sec["images_to_observation"] = sum(
         sec[k] for k in ("ingest", "poses", "surfaces", "rowfit", "observe")
@@ -331,7 +335,7 @@ def run(a: argparse.Namespace) -> dict:
     if not metric:
         true_fit = fit_rows_with_scale(points, colors, crop, pre, rng=0, metric_scale=true_scale)
         ts_obs, ts_true, _ = observation_vs_truth(
-            _observe(crop, true_fit, backend, a.image_scale),
+            _observe(crop, true_fit, backend, a.image_scale, a.prediction_blur),
             _truth_depth(truth, true_fit, scene_from_true, a.image_scale),
         )
         # what the L1 would be with a perfect scale cue: the reconstruction's own share of it
@@ -391,9 +395,11 @@ def _content_frame(points, fit, scene_from_true, true_mesh, crop: str):
     )
 
 
-def _observe(crop: str, fit, backend, image_scale: float):
-    """The observation the scene flow's observe stage makes from this row fit."""
+def _observe(crop: str, fit, backend, image_scale: float, prediction_blur=0.0):
+    """The observation the scene flow's observe stage makes from this row fit (its
+    predictions blurred as the stage's ``prediction_blur`` says)."""
     from cropcraft_core.observe import Observation
+    from cropcraft_core.surfaces import prediction_blur_m
 
     return Observation.from_surfaces(
         crop,
@@ -403,6 +409,9 @@ def _observe(crop: str, fit, backend, image_scale: float):
         fit.scale,
         fit.render_height,
         image_scale=image_scale,
+        preset_overrides={
+            "prediction_blur_m": prediction_blur_m(backend, fit.scale, prediction_blur)
+        },
     )
 
 
@@ -932,6 +941,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--surfaces", action="append", default=[], help="SurfacesConfig KEY=VALUE")
     ap.add_argument("--image-scale", type=float, default=1.0, help="row-camera resolution")
+    ap.add_argument(
+        "--prediction-blur",
+        default=0.0,
+        type=lambda v: v if v == "auto" else float(v),
+        help="blur of the fit's predictions, as the scene flow's observe.prediction_blur: "
+        "metres (0: none, the default) or 'auto' (the surfaces' own softening)",
+    )
     ap.add_argument(
         "--bbox",
         type=lambda v: v if v == "auto" else json.loads(v),

@@ -62,7 +62,11 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # share past which a run warns (None: the crop's, cropcraft_core.surfaces.consistency.
     # NET_WARN: soybean 0.15, maize none)
     "consistency": {"max_views": 12, "min_height": 0.02, "warn": None},
-    "observe": {"image_scale": 1.0, "preset": {}},
+    # prediction_blur: metres by which the fit blurs its predictions (0: none, the paper's);
+    # "auto": the surfaces' own softening of depth steps (tsdf: 0.8 voxel;
+    # cropcraft_core.surfaces.prediction_blur_m). Not the default: better on three of six
+    # canopies, worse on three (benchmarks/RESULTS.md, #blur)
+    "observe": {"image_scale": 1.0, "prediction_blur": 0.0, "preset": {}},
     "fit": {
         "method": "bo",
         "n_seeds": 10,
@@ -206,6 +210,18 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError("give poses.camera_height or poses.camera_distance, not both")
     if not 0 < float(cfg["observe"]["image_scale"]) <= 4:
         raise ConfigError("observe.image_scale must be in (0, 4]")
+    if "prediction_blur_m" in cfg["observe"]["preset"]:
+        raise ConfigError(
+            "observe.preset.prediction_blur_m is set by the observe stage: set "
+            "observe.prediction_blur ('auto' or metres) instead"
+        )
+    blur = cfg["observe"]["prediction_blur"]
+    if blur != "auto" and (
+        isinstance(blur, bool) or not isinstance(blur, int | float) or not blur >= 0
+    ):
+        raise ConfigError(
+            f"observe.prediction_blur must be 'auto' or a number of metres >= 0, got {blur!r}"
+        )
     c = cfg["consistency"]
     mv = c["max_views"]
     if not isinstance(mv, int) or isinstance(mv, bool) or mv < 1:
@@ -285,6 +301,9 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             {k: fit[k] for k in ("reevaluate_canopies", "polish_evals")}, combine="floors"
         )
     agg = {**fit, **agg_only}
+    observe = dict(cfg["observe"])
+    if observe.get("prediction_blur") == 0:  # unblurred predictions keyed as before the setting
+        observe.pop("prediction_blur")
     surfaces = dict(cfg["surfaces"])
     if crop is not None and surfaces.get("bbox") == "auto":
         try:
@@ -308,12 +327,12 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         # pooled over neighbouring rows, the observation needs their spacing; otherwise it is
         # keyed as before the setting existed
         "observe": {
-            **cfg["observe"],
+            **observe,
             **(layout if int(cfg["observe"]["preset"].get("views_across", 0)) > 0 else {}),
         },
         # every row is observed alike: the observe stage's settings, and the row spacing
         "observe_rows": {
-            **cfg["observe"],
+            **observe,
             "max_side": cfg["rows"]["neighbours"],
             "max_no_surface": cfg["rows"]["max_no_surface"],
             "snap_fraction": cfg["rows"]["snap"],

@@ -32,6 +32,7 @@ def _observe(
     supported surface, and more than the row camera's own view, lies (partly) outside the
     reconstruction and is left out of the pool (``meta["views_left_out"]``)."""
     from cropcraft_core.observe import Observation, no_surface_fraction
+    from cropcraft_core.surfaces import prediction_blur_m
 
     scale = float(config.get("image_scale", 1.0))
     unseen = no_surface_fraction(backend.render_supported(camera_in_scene.scaled(scale)))
@@ -47,7 +48,14 @@ def _observe(
         float(rf["scale"]),
         float(rf["render_height"]),
         image_scale=scale,
-        preset_overrides=config.get("preset"),
+        preset_overrides={
+            **dict(config.get("preset") or {}),
+            # the fused surfaces soften depth steps the procedural leaves keep sharp: the fit
+            # blurs its predictions alike (ObservePreset.prediction_blur_m)
+            "prediction_blur_m": prediction_blur_m(
+                backend, float(rf["scale"]), config.get("prediction_blur", 0.0)
+            ),
+        },
         meta={"scene": scene, "no_surface_fraction": unseen, **meta},
         # the planting row spacing places the neighbouring rows a pooled observation adds
         # (ObservePreset.views_across; the flow passes the layout only then)
@@ -83,7 +91,10 @@ def observe(
     without a fully supported surface (``SurfaceBackend.render_supported``: for tsdf, the
     two-view mesh before its one-view fill; ``cropcraft_core.observe.coverage_warning``).
 
-    config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5) and
+    config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5),
+    ``prediction_blur`` (metres, 0 = none, the default; or ``"auto"``: the surfaces
+    backend's own softening of depth steps, ``cropcraft_core.surfaces.prediction_blur_m``;
+    the summary's ``prediction_blur_m`` and ``prediction_blur_px``) and
     ``preset`` (ObservePreset overrides; ``views_along``/``views_across`` pool the statistics
     over several row cameras, :func:`cropcraft_core.observe.observe_views`), and ``layout``
     (its row spacing places the neighbouring rows; the flow passes it only when they are
@@ -122,6 +133,8 @@ def observe(
             "foreground_fraction": float(np.mean(obs.mask)),
             "no_surface_fraction": unseen,
             "render_height_m": float(rf["render_height"]),
+            "prediction_blur_m": float(obs.preset.prediction_blur_m),
+            "prediction_blur_px": float(obs.prediction_blur_px),
             **_views_summary(obs),
         },
         t.seconds,
@@ -144,7 +157,7 @@ def observe_rows(
 
     config: ``max_side`` (neighbours tried on each side), ``max_no_surface``,
     ``snap_fraction`` (None: k row spacings from the best row; else onto a fitted row within
-    that fraction of a spacing), ``image_scale``
+    that fraction of a spacing), ``image_scale``, ``prediction_blur``
     and ``preset`` (the observe stage's, so every row is observed alike) and ``layout`` (its
     row spacing).
     """

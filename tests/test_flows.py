@@ -157,6 +157,8 @@ def test_scene_flow_produces_everything(base_run):
     assert seen > float(np.mean(~np.isfinite(obs.depth)))
     assert out["observation"]["warning"] == coverage_warning(seen)
     assert f"{100 * seen:.1f} %" in html and "row view without surface" in html
+    # the paper's sharp predictions unless asked (observe.prediction_blur)
+    assert obs.preset.prediction_blur_m == 0 and obs.prediction_blur_px == 0
     # the surfaces against the photos at the photos' cameras: stored with every view's shares,
     # summarised (shares of the photos' plant), in the report
     cons = store.get_json(f"{scene}/consistency/consistency.json")
@@ -312,6 +314,31 @@ def test_a_new_default_answer_rule_reaggregates_cached_seeds(base_run, scene_dir
     assert fit["config"]["combine"] == other
 
 
+def test_blurred_predictions_reobserve_and_refit_only(base_run, scene_dir):
+    """``observe.prediction_blur=auto``: the observation's preset carries the fused surfaces'
+    own softening (tsdf: 0.8 voxel, in metres by the row fit's scale), in the observe record's
+    summary too; the observe stage and every seed run again, nothing upstream does."""
+    from cropcraft_core.surfaces import SurfacesConfig
+    from cropcraft_core.surfaces.tsdf import EDGE_BLUR_VOXELS
+
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    out = _run(
+        "plotA", base_run["store"], scene_dir, {**OVERRIDES, "observe.prediction_blur": "auto"}
+    )
+    executed = set(_executed(out["states"]))
+    assert "observe" in executed and sum(k.startswith("fit_seed") for k in executed) == N_SEEDS
+    assert not executed & {"ingest", "poses", "surfaces", "rowfit", "consistency"}
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
+    scale = store.get_json(f"{scene}/rowfit/rowfit.json")["scale"]
+    blur = EDGE_BLUR_VOXELS * SurfacesConfig().voxel_size * scale
+    assert obs.preset.prediction_blur_m == pytest.approx(blur) and blur > 0
+    z = float(np.median(obs.depth[obs.mask]))
+    assert obs.prediction_blur_px == pytest.approx(blur * obs.camera.fy / z)
+    _run("plotA", base_run["store"], scene_dir)  # back to the default for the tests after
+
+
 def test_a_new_default_canopy_count_refits_the_seeds(base_run, scene_dir, monkeypatch):
     """The seeds' cache key names the canopies per evaluation a default config resolves to
     (``DEFAULT_CANOPIES``): written out it is the same run, and a release changing the crop's
@@ -427,6 +454,9 @@ def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
     assert along["preset"] == {"views_along": 3} and "layout" not in along
     rows = observe({"observe.preset.views_across": 1, "layout.row_spacing": 0.5})
     assert rows["layout"] == {"row_spacing": 0.5}
+    # unblurred predictions (the default) keep the key; a blur is a key of its own
+    assert observe({"observe.prediction_blur": 0}) == default
+    assert observe({"observe.prediction_blur": "auto"})["prediction_blur"] == "auto"
 
 
 def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
@@ -732,6 +762,9 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
     for bad, match in (
         ({"consistency.max_views": 0}, "consistency.max_views"),
         ({"consistency.warn": 1.5}, "consistency.warn"),
+        ({"observe.prediction_blur": -0.01}, "observe.prediction_blur must be"),
+        ({"observe.prediction_blur": "voxel"}, "observe.prediction_blur must be"),
+        ({"observe.preset.prediction_blur_m": 0.01}, "set observe.prediction_blur"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)

@@ -24,6 +24,7 @@ from cropcraft_core.observe import (
     LossPreset,
     Observation,
     bin_edges,
+    blur_depth,
     compute_stats,
     loss,
     observation_mask,
@@ -115,6 +116,8 @@ def test_preset_overrides_move_derived_ranges_and_round_trip():
         ("soybean", {"views_along": 1.5}, "integer"),
         ("soybean", {"views_across": -1}, "non-negative"),
         ("soybean", {"view_step": 0}, "positive"),
+        ("soybean", {"prediction_blur_m": -0.001}, "prediction_blur_m"),
+        ("soybean", {"prediction_blur_m": float("inf")}, "prediction_blur_m"),
     ],
 )
 def test_bad_presets_raise_config_error(crop, kw, words):
@@ -521,6 +524,60 @@ def test_a_prediction_is_cut_by_the_box_the_observation_was_cut_by():
     s = Observation("soybean", CAM, scene, np.isfinite(scene), box_mask=False)
     assert s.loss_of(scene).total == 0.0
     assert s.predicted_stats(scene).equals(compute_stats(scene, CAM, np.isfinite(scene), SOY))
+
+
+def test_blur_depth_averages_finite_pixels_only():
+    """A step between two overlapping leaves becomes a ramp over a few sigma; a leaf's edge
+    over the background keeps its depth (the background never enters the mean), NaN stays
+    NaN, and a constant leaf stays constant."""
+    d = np.full((60, 80), np.nan, np.float32)
+    d[10:50, 10:40] = 0.5  # upper leaf
+    d[10:50, 40:70] = 0.7  # lower leaf, touching it at column 40
+    b = blur_depth(d, 3.0)
+    assert np.array_equal(np.isnan(b), np.isnan(d)) and b.dtype == np.float32
+    row = b[30, 10:70]
+    assert np.all(np.diff(row) >= -1e-6)  # a monotone ramp from 0.5 to 0.7
+    assert 0.55 < b[30, 39] < 0.6 < b[30, 40] < 0.65  # the step's two sides meet half-way
+    assert np.allclose(b[30, 10:25], 0.5, atol=1e-6)  # 15 px = 5 sigma from the step
+    assert np.allclose(b[30, 56:70], 0.7, atol=1e-6)
+    assert np.allclose(b[10:50, 12], 0.5, atol=1e-6)  # edge over the background: unchanged
+    flat = np.where(np.isfinite(d), np.float32(0.6), np.nan)
+    assert np.allclose(blur_depth(flat, 5.0)[np.isfinite(d)], 0.6, atol=1e-6)
+    assert np.array_equal(blur_depth(d, 0), d, equal_nan=True)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ConfigError, match="blur sigma"):
+            blur_depth(d, bad)
+
+
+def test_prediction_blur_is_applied_to_predictions_only(tmp_path):
+    """``prediction_blur_m``: the observation's own statistics are unchanged; a prediction's
+    are those of its depth blurred by the metres' pixels at the observed canopy's median
+    depth, over the mask of the unblurred depth; it is saved with the preset, and records
+    written before it read as no blur."""
+    d = canopy()
+    sharp = Observation.from_depth("soybean", d, CAM)
+    soft = Observation.from_depth(
+        "soybean", d, CAM, preset=preset("soybean", prediction_blur_m=0.005)
+    )
+    assert soft.stats.equals(sharp.stats) and sharp.prediction_blur_px == 0.0
+    z = float(np.median(d[soft.mask]))
+    assert soft.prediction_blur_px == pytest.approx(0.005 * CAM.fy / z)
+    pred = canopy(seed=1)
+    expected = compute_stats(
+        blur_depth(pred, soft.prediction_blur_px), CAM, predicted_mask(pred, CAM, SOY), SOY
+    )
+    assert soft.predicted_stats(pred).equals(expected)
+    assert not soft.predicted_stats(pred).equals(sharp.predicted_stats(pred))
+    # the blur moves the derivatives (steps between leaves soften) far more than the mask
+    assert soft.predicted_stats(pred).mask_area == sharp.predicted_stats(pred).mask_area
+    soft.save(tmp_path / "soft")
+    back = Observation.load(tmp_path / "soft")
+    assert back.preset.prediction_blur_m == 0.005 and back.predicted_stats(pred).equals(expected)
+    sharp.save(tmp_path / "old")
+    rec = json.loads((tmp_path / "old" / "observation.json").read_text())
+    del rec["preset"]["prediction_blur_m"]  # as written before the field existed
+    (tmp_path / "old" / "observation.json").write_text(json.dumps(rec))
+    assert Observation.load(tmp_path / "old").preset.prediction_blur_m == 0.0
 
 
 def test_box_mask_round_trips_and_records_without_it_read_as_cut(tmp_path):

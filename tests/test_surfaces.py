@@ -1012,3 +1012,20 @@ except ImportError as exc:
     )
     assert out.returncode == 0, out.stderr
     assert "raycast: No module named 'open3d'" in out.stdout
+
+
+def test_prediction_blur_is_the_backends_own_softening_in_metres():
+    """``auto``: tsdf's fused surfaces soften depth steps over 0.8 voxel (scene units, then
+    metres by the row fit's scale); the other backends' softening is taken as none until
+    measured; a number of metres is used as given, anything else is a named error."""
+    from cropcraft_core.surfaces import prediction_blur_m
+    from cropcraft_core.surfaces.tsdf import EDGE_BLUR_VOXELS
+
+    tsdf = make_backend(SurfacesConfig(backend="tsdf", voxel_size=0.01))
+    assert tsdf.edge_blur == pytest.approx(EDGE_BLUR_VOXELS * 0.01)
+    assert prediction_blur_m(tsdf, 0.5) == pytest.approx(EDGE_BLUR_VOXELS * 0.005)
+    assert prediction_blur_m(tsdf, 0.5, 0.002) == 0.002 and prediction_blur_m(tsdf, 2, 0) == 0
+    assert prediction_blur_m(make_backend(SurfacesConfig(backend="points")), 1.0) == 0.0
+    for bad in (-0.001, float("nan"), "voxel", True, None):
+        with pytest.raises(ConfigError, match="prediction blur must be 'auto' or a number"):
+            prediction_blur_m(tsdf, 1.0, bad)

@@ -7,7 +7,13 @@ a procedural render's (``Observation.loss_of(depth)`` does both steps). All sett
 per-crop presets: ``preset("soybean", **overrides)``.
 """
 
-from cropcraft_core.observe.histograms import HistogramStats, bin_edges, compute_stats, mean_stats
+from cropcraft_core.observe.histograms import (
+    HistogramStats,
+    bin_edges,
+    blur_depth,
+    compute_stats,
+    mean_stats,
+)
 from cropcraft_core.observe.loss import LossBreakdown, loss
 from cropcraft_core.observe.observation import (
     NO_SURFACE_WARN,
@@ -40,6 +46,7 @@ __all__ = [
     "Observation",
     "ObservePreset",
     "bin_edges",
+    "blur_depth",
     "check_row_camera",
     "compute_stats",
     "coverage_warning",

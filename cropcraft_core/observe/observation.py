@@ -34,6 +34,7 @@ string array ``record``. :meth:`Observation.load` reads either.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -49,6 +50,7 @@ from cropcraft_core.errors import ConfigError, InputError, OutputError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.observe.histograms import (
     HistogramStats,
+    blur_depth,
     check_depth,
     check_mask,
     compute_stats,
@@ -399,12 +401,26 @@ class Observation:
         """Statistics of a procedural render from this observation's camera: (H, W) z-depth,
         NaN where nothing is seen; ``mask`` defaults to :func:`predicted_mask`: finite depth,
         cut by the preset's box when the observation's mask is (``box_mask``) unless the preset
-        says otherwise (``mask_predictions=False``, the paper's rule)."""
+        says otherwise (``mask_predictions=False``, the paper's rule). Where the preset asks
+        (``prediction_blur_m``), the depth is blurred (:func:`blur_depth`,
+        :attr:`prediction_blur_px`) after the mask is taken and before the statistics."""
         if mask is None:
             cut = self.box_mask and self.preset.mask_predictions
             box = (self.camera, self.preset) if cut else (None, None)
             mask = predicted_mask(depth, *box)
+        if self.prediction_blur_px > 0:
+            depth = blur_depth(depth, self.prediction_blur_px)
         return compute_stats(depth, self.camera, mask, self.preset)
+
+    @functools.cached_property
+    def prediction_blur_px(self) -> float:
+        """The preset's ``prediction_blur_m`` in this camera's pixels at the observed canopy's
+        median z-depth (0 when the preset asks for no blur)."""
+        blur_m = float(self.preset.prediction_blur_m)
+        if blur_m == 0:
+            return 0.0
+        z = float(np.median(self.depth[self.mask]))
+        return blur_m * float(self.camera.fy) / z
 
     def loss_of(self, depth: np.ndarray, mask: np.ndarray | None = None) -> LossBreakdown:
         """The loss of a procedural render (see :meth:`predicted_stats`) against this

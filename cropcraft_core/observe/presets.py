@@ -161,6 +161,14 @@ class ObservePreset:
     the observation's own mask is cut by it (``Observation.box_mask``). False: the paper's
     predicted mask, every rendered pixel, which counts the low leaves the observation drops on
     the predicted side only (README, "Where the fit departs from the paper")."""
+    prediction_blur_m: float = 0.0
+    """Standard deviation, metres at the observed canopy's median depth, of a Gaussian blur of
+    each predicted depth map before its statistics (:func:`~cropcraft_core.observe.blur_depth`:
+    normalised over the rendered pixels, so an edge pixel averages its own and its rendered
+    neighbours' depths and the predicted mask is unchanged); 0 = none, the paper's prediction.
+    An error model for observations of fused surfaces, whose leaf edges ramp over about a voxel
+    where a procedural leaf's edge is a step (benchmarks/RESULTS.md, *#blur*); the observe
+    stage sets it from the surfaces backend (``observe.prediction_blur``)."""
     views_along: int = 1
     """Row cameras along the row whose statistics the observation pools (bin by bin): an odd
     number, centred on the row camera, ``view_step`` apart. 1: the paper's single camera.
@@ -194,6 +202,7 @@ class ObservePreset:
             _finite("mask_l_min", self.mask_l_min)
         for name in ("mask_top_band", "mask_min_height", "mask_max_lateral"):
             _finite(name, getattr(self, name), minimum=0.0)
+        _finite("prediction_blur_m", self.prediction_blur_m, minimum=0.0)
         if not isinstance(self.mask_predictions, bool):
             raise ConfigError(
                 f"mask_predictions must be true or false, got {self.mask_predictions!r}"

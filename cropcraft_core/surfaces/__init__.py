@@ -14,6 +14,7 @@ from cropcraft_core.surfaces.base import (
     SurfacesError,
     load_surfaces,
     make_backend,
+    prediction_blur_m,
     resolve_bbox,
 )
 
@@ -26,5 +27,6 @@ __all__ = [
     "SurfacesError",
     "load_surfaces",
     "make_backend",
+    "prediction_blur_m",
     "resolve_bbox",
 ]

@@ -27,6 +27,7 @@ is z-depth along the optical axis, NaN where a ray meets nothing.
 from __future__ import annotations
 
 import json
+import math
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -456,6 +457,14 @@ class SurfaceBackend(ABC):
         """(depth (H, W) float32 z-depth in metres, NaN where empty; rgb (H, W, 3) uint8) seen
         by ``camera``."""
 
+    @property
+    def edge_blur(self) -> float:
+        """The scale (scene units, a Gaussian's standard deviation) over which these surfaces
+        soften a depth step that the real leaves have sharp: the observe stage blurs the
+        fit's predictions by it (``ObservePreset.prediction_blur_m``, its ``auto`` setting).
+        0 here: a backend's softening is taken as none until measured (tsdf's is)."""
+        return 0.0
+
     def render_supported(self, camera: PinholeCamera) -> np.ndarray:
         """(H, W) float32 z-depth of only the surfaces the backend reconstructed with full
         support, NaN elsewhere: what ``render`` shows less whatever it filled in (tsdf: the fill
@@ -582,6 +591,25 @@ def make_backend(config: SurfacesConfig | None = None, mesh: Any = None) -> Surf
     raise ConfigError(  # unreachable: SurfacesConfig checks the name
         f"unknown surfaces backend {config.backend!r}: choose one of {', '.join(BACKENDS)}"
     )
+
+
+def prediction_blur_m(backend: SurfaceBackend, scale: float, setting: Any = "auto") -> float:
+    """The blur (metres) of a fit's predictions against an observation of ``backend``'s
+    surfaces (``ObservePreset.prediction_blur_m``): ``setting`` ``"auto"`` = the backend's own
+    :attr:`~SurfaceBackend.edge_blur` (scene units) times ``scale`` (metres per scene unit, the
+    row fit's), or a number of metres (0: none, the paper's prediction)."""
+    if setting == "auto":
+        return float(backend.edge_blur) * float(scale)
+    if (
+        isinstance(setting, bool)
+        or not isinstance(setting, int | float)
+        or not math.isfinite(setting)
+        or setting < 0
+    ):
+        raise ConfigError(
+            f"prediction blur must be 'auto' or a number of metres >= 0, got {setting!r}"
+        )
+    return float(setting)
 
 
 def load_surfaces(folder: str | os.PathLike) -> SurfaceBackend:
