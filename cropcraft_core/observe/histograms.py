@@ -295,7 +295,7 @@ def blur_depth(depth: np.ndarray, sigma_px: float) -> np.ndarray:
     predicted mask) is unchanged and a leaf's edge averages only leaf depths, never the
     background's. ``sigma_px`` 0 returns the depth as float32 unchanged.
 
-    This is how a fused reconstruction softens depth steps between overlapping leaves
+    A model of how a fused reconstruction softens the leaves' depth near their edges
     (``ObservePreset.prediction_blur_m``)."""
     if not math.isfinite(sigma_px) or sigma_px < 0:
         raise ConfigError(f"blur sigma must be a finite number >= 0, got {sigma_px!r}")

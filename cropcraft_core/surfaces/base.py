@@ -460,8 +460,8 @@ class SurfaceBackend(ABC):
     @property
     def edge_blur(self) -> float:
         """The scale (scene units, a Gaussian's standard deviation) over which these surfaces
-        soften a depth step that the real leaves have sharp: the observe stage blurs the
-        fit's predictions by it (``ObservePreset.prediction_blur_m``, its ``auto`` setting).
+        soften the leaves' depth near their edges: the observe stage blurs the fit's
+        predictions by it (``ObservePreset.prediction_blur_m``, its ``auto`` setting).
         0 here: a backend's softening is taken as none until measured (tsdf's is)."""
         return 0.0
 

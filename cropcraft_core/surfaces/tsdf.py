@@ -725,11 +725,12 @@ def _o3d_intrinsic(cam: PinholeCamera) -> o3d.core.Tensor:
     return o3d.core.Tensor(k, o3d.core.float64)
 
 
-#: The fused surfaces' softening of depth steps, in voxels (:attr:`TsdfSurfaces.edge_blur`): the
-#: fit blurs its predictions by it with ``observe.prediction_blur=auto`` (not the default;
-#: benchmarks/RESULTS.md, *#blur*). The fused leaves' depth steps are gentler than the real
-#: ones (a canopy's Sobel histogram low and flat where its true mesh's peaks high), and a
-#: canopy of many small leaves mimics that. At 0.8 voxel (6 mm at the default 7.5 mm voxel;
+#: The fused surfaces' softening of the leaves near their edges, in voxels
+#: (:attr:`TsdfSurfaces.edge_blur`): the fit blurs its predictions by it with
+#: ``observe.prediction_blur=auto`` (not the default; benchmarks/RESULTS.md, *#blur*). The
+#: fused leaves' depth derivatives are gentler than the real ones (a canopy's Sobel histogram
+#: low and flat where its true mesh's peaks high; the occlusion steps themselves stay sharp),
+#: and a canopy of many small leaves mimics that. At 0.8 voxel (6 mm at the default 7.5 mm voxel;
 #: 4.9-10.8 px at the row camera over six canopies) the true parameters of one such canopy beat
 #: its answer again under the reconstruction's observation; fitted, three of six canopies read
 #: LAI closer to the truth and three further.
@@ -744,7 +745,7 @@ class TsdfSurfaces(SurfaceBackend):
     @property
     def edge_blur(self) -> float:
         """:data:`EDGE_BLUR_VOXELS` voxels: marching cubes over averaged signed distances
-        ramps a step between overlapping leaves across about a voxel."""
+        bends a leaf's surface near its edge across about a voxel."""
         return EDGE_BLUR_VOXELS * float(self.config.voxel_size)
 
     def __init__(self, config: SurfacesConfig | None = None) -> None:
