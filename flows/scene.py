@@ -169,6 +169,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             cfg["surfaces"].setdefault(k, v)
     from cropcraft_core.config import default_layout
     from cropcraft_core.fit import FitConfig
+    from cropcraft_core.observe import check_prediction_blur
     from cropcraft_core.observe import preset as observe_preset
     from cropcraft_core.rowfit import preset as rowfit_preset
 
@@ -215,13 +216,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             "observe.preset.prediction_blur_m is set by the observe stage: set "
             "observe.prediction_blur ('auto' or metres) instead"
         )
-    blur = cfg["observe"]["prediction_blur"]
-    if blur != "auto" and (
-        isinstance(blur, bool) or not isinstance(blur, int | float) or not blur >= 0
-    ):
-        raise ConfigError(
-            f"observe.prediction_blur must be 'auto' or a number of metres >= 0, got {blur!r}"
-        )
+    check_prediction_blur(cfg["observe"]["prediction_blur"], "observe.prediction_blur")
     c = cfg["consistency"]
     mv = c["max_views"]
     if not isinstance(mv, int) or isinstance(mv, bool) or mv < 1:

@@ -326,6 +326,21 @@ class ObservePreset:
         return preset(rest.pop("crop"), **rest)
 
 
+def check_prediction_blur(setting: Any, name: str = "prediction blur") -> Any:
+    """``setting`` if it is a prediction-blur setting (``"auto"``, the surfaces' own softening,
+    or a finite number of metres >= 0); ``ConfigError`` naming ``name`` otherwise."""
+    if setting == "auto":
+        return setting
+    if (
+        isinstance(setting, bool)
+        or not isinstance(setting, int | float)
+        or not math.isfinite(setting)
+        or setting < 0
+    ):
+        raise ConfigError(f"{name} must be 'auto' or a number of metres >= 0, got {setting!r}")
+    return setting
+
+
 def _finite(name: str, value: Any, minimum: float | None = None) -> None:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise ConfigError(f"{name} must be a finite number, got {value!r}")

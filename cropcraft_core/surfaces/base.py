@@ -27,7 +27,6 @@ is z-depth along the optical axis, NaN where a ray meets nothing.
 from __future__ import annotations
 
 import json
-import math
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -598,17 +597,10 @@ def prediction_blur_m(backend: SurfaceBackend, scale: float, setting: Any = "aut
     surfaces (``ObservePreset.prediction_blur_m``): ``setting`` ``"auto"`` = the backend's own
     :attr:`~SurfaceBackend.edge_blur` (scene units) times ``scale`` (metres per scene unit, the
     row fit's), or a number of metres (0: none, the paper's prediction)."""
-    if setting == "auto":
+    from cropcraft_core.observe import check_prediction_blur
+
+    if check_prediction_blur(setting) == "auto":
         return float(backend.edge_blur) * float(scale)
-    if (
-        isinstance(setting, bool)
-        or not isinstance(setting, int | float)
-        or not math.isfinite(setting)
-        or setting < 0
-    ):
-        raise ConfigError(
-            f"prediction blur must be 'auto' or a number of metres >= 0, got {setting!r}"
-        )
     return float(setting)
 
 
