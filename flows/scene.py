@@ -63,7 +63,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # NET_WARN: soybean 0.15, maize none)
     "consistency": {"max_views": 12, "min_height": 0.02, "warn": None},
     # prediction_blur: metres by which the fit blurs its predictions (0: none, the paper's);
-    # "auto": the surfaces' own softening of depth steps (tsdf: 0.8 voxel;
+    # "auto": the surfaces' own softening of the leaves near their edges (tsdf: 0.8 voxel;
     # cropcraft_core.surfaces.prediction_blur_m). Not the default: better on three of six
     # canopies, worse on three (benchmarks/RESULTS.md, #blur)
     "observe": {"image_scale": 1.0, "prediction_blur": 0.0, "preset": {}},

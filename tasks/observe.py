@@ -50,8 +50,8 @@ def _observe(
         image_scale=scale,
         preset_overrides={
             **dict(config.get("preset") or {}),
-            # the fused surfaces soften depth steps the procedural leaves keep sharp: the fit
-            # blurs its predictions alike (ObservePreset.prediction_blur_m)
+            # the fused surfaces bend the leaves near their edges where procedural leaves stay
+            # flat: the fit can blur its predictions alike (ObservePreset.prediction_blur_m)
             "prediction_blur_m": prediction_blur_m(
                 backend, float(rf["scale"]), config.get("prediction_blur", 0.0)
             ),
@@ -93,7 +93,7 @@ def observe(
 
     config: ``image_scale`` (row-camera resolution relative to the preset's, e.g. 0.5),
     ``prediction_blur`` (metres, 0 = none, the default; or ``"auto"``: the surfaces
-    backend's own softening of depth steps, ``cropcraft_core.surfaces.prediction_blur_m``;
+    backend's own softening near leaf edges, ``cropcraft_core.surfaces.prediction_blur_m``;
     the summary's ``prediction_blur_m`` and ``prediction_blur_px``) and
     ``preset`` (ObservePreset overrides; ``views_along``/``views_across`` pool the statistics
     over several row cameras, :func:`cropcraft_core.observe.observe_views`), and ``layout``
