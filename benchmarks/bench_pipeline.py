@@ -624,6 +624,8 @@ def fit_and_compare(
         "rules": per_rule,
         "seeds": spread["seeds"],
     }
+    if attribute == "both":
+        out["blur"] = blur_check(obs, true_params["params"], [r["params"] for r in spread["seeds"]])
     if attribute:
         out["loss"] = loss_attribution(
             obs,
@@ -633,6 +635,28 @@ def fit_and_compare(
             observation_side=attribute == "both",
         )
     return out
+
+
+def blur_check(obs, truth: dict, seeds: list[dict], **options) -> dict:
+    """How soft the observation's leaves look (:func:`cropcraft_core.fit.blur.blur_profile`)
+    from the true parameters' canopies and from the seeds' best points: the blur each would
+    have the predictions given (RESULTS *#blur-measured*). ``options``: ``blur_profile``'s."""
+    from cropcraft_core.fit.blur import blur_profile
+
+    return {
+        "truth": blur_profile(obs, [truth], **options).to_dict(),
+        "seeds": blur_profile(obs, seeds, **options).to_dict(),
+    }
+
+
+def blur_line(check: dict) -> str:
+    """:func:`blur_check`'s two profiles on one line."""
+    widths = "/".join(f"{1e3 * s:g}" for s in check["truth"]["sigmas_m"])
+    return f"  blur profile (loss relative to sharp predictions at {widths} mm): " + "; ".join(
+        f"{who} {' '.join(f'{v:.2f}' for v in check[k]['relative'])} "
+        f"-> {1e3 * check[k]['chosen_m']:g} mm"
+        for k, who in (("truth", "true parameters"), ("seeds", "seeds' best points"))
+    )
 
 
 #: Where the canopy seeds of :func:`loss_attribution` start in the re-scoring's sequence: past
@@ -878,6 +902,8 @@ def _print(out: dict) -> None:
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
         print_rules(out["fit"])
+        if "blur" in out["fit"]:
+            print(blur_line(out["fit"]["blur"]))
         att = out["fit"]["loss"]
         n = sum(len(g) for g in SCORE_GROUPS)
         print(
