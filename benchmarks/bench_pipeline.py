@@ -106,6 +106,48 @@ def observation_vs_truth(obs, d_true: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return unit(obs.stats.depth), unit(st_true.depth), area
 
 
+#: Blur widths (metres at the observed canopy's median depth) :func:`softness` tries.
+SOFTNESS_SIGMAS_M = (0.0, 0.0015, 0.003, 0.0045, 0.006, 0.009, 0.012)
+
+
+def softness(obs, d_true: np.ndarray, sigmas_m=SOFTNESS_SIGMAS_M) -> dict:
+    """How much the reconstruction softened the leaves: the loss between the observation's
+    statistics and the true mesh's (``d_true``, :func:`truth_mask`) with the true depth blurred
+    by each width of ``sigmas_m`` (``blur_depth``, as the predictions' blur), and the width
+    that brings them closest (``best_m``; 0: as sharp as the truth). Measured against the
+    same draw of the canopy: against other draws (the procedural model's, even at the true
+    parameters) any blur lowers the loss by smoothing draw-to-draw differences, so the loss
+    alone cannot tell a soft reconstruction (RESULTS *#softness*)."""
+    from cropcraft_core.observe import compute_stats, loss
+    from cropcraft_core.observe.histograms import blur_depth
+
+    mask = truth_mask(obs, d_true)
+    px_per_m = float(obs.camera.fy) / float(np.median(obs.depth[obs.mask]))
+    losses = [
+        loss(
+            obs.stats,
+            compute_stats(blur_depth(d_true, s * px_per_m), obs.camera, mask, obs.preset),
+            obs.preset,
+        ).total
+        for s in sigmas_m
+    ]
+    return {
+        "sigmas_m": list(sigmas_m),
+        "losses": [round(float(v), 6) for v in losses],
+        "best_m": float(sigmas_m[int(np.argmin(losses))]),
+    }
+
+
+def softness_line(soft: dict) -> str:
+    """:func:`softness` on one line."""
+    widths = "/".join(f"{1e3 * s:g}" for s in soft["sigmas_m"])
+    losses = " ".join(f"{v:.4f}" for v in soft["losses"])
+    return (
+        f"  softness: loss against the true mesh blurred by {widths} mm: {losses} "
+        f"(closest at {1e3 * soft['best_m']:g} mm; 0 = as sharp as the truth)"
+    )
+
+
 def depth_errors(obs, d_true: np.ndarray) -> dict:
     """The observation's depth against the true mesh's ``d_true`` from the same camera:
     ``median_abs_depth_err_m`` where both have a surface, and ``plant_depth_err_m`` (median,
@@ -329,6 +371,7 @@ def run(a: argparse.Namespace) -> dict:
             root, poses, truth_poses, backend, fit, scene_from_true, a.image_scale, d_true, obs
         )
     out.update(depth_errors(obs, d_true))
+    out["softness"] = softness(obs, d_true)
     if a.keep:
         np.savez_compressed(Path(a.keep) / "depths.npz", observation=depth_m, truth=d_true)
         obs.save(Path(a.keep) / "observation.npz")
@@ -624,8 +667,6 @@ def fit_and_compare(
         "rules": per_rule,
         "seeds": spread["seeds"],
     }
-    if attribute == "both":
-        out["blur"] = blur_check(obs, true_params["params"], [r["params"] for r in spread["seeds"]])
     if attribute:
         out["loss"] = loss_attribution(
             obs,
@@ -635,28 +676,6 @@ def fit_and_compare(
             observation_side=attribute == "both",
         )
     return out
-
-
-def blur_check(obs, truth: dict, seeds: list[dict], **options) -> dict:
-    """How soft the observation's leaves look (:func:`cropcraft_core.fit.blur.blur_profile`)
-    from the true parameters' canopies and from the seeds' best points: the blur each would
-    have the predictions given (RESULTS *#blur-measured*). ``options``: ``blur_profile``'s."""
-    from cropcraft_core.fit.blur import blur_profile
-
-    return {
-        "truth": blur_profile(obs, [truth], **options).to_dict(),
-        "seeds": blur_profile(obs, seeds, **options).to_dict(),
-    }
-
-
-def blur_line(check: dict) -> str:
-    """:func:`blur_check`'s two profiles on one line."""
-    widths = "/".join(f"{1e3 * s:g}" for s in check["truth"]["sigmas_m"])
-    return f"  blur profile (loss relative to sharp predictions at {widths} mm): " + "; ".join(
-        f"{who} {' '.join(f'{v:.2f}' for v in check[k]['relative'])} "
-        f"-> {1e3 * check[k]['chosen_m']:g} mm"
-        for k, who in (("truth", "true parameters"), ("seeds", "seeds' best points"))
-    )
 
 
 #: Where the canopy seeds of :func:`loss_attribution` start in the re-scoring's sequence: past
@@ -874,6 +893,8 @@ def _print(out: dict) -> None:
         f"{100 * out['hist_l1_shift']['rel']:.1f} % of the render height: "
         f"{out['hist_l1_shift']['l1']:.4f} (how tight the L1 target is)"
     )
+    if "softness" in out:
+        print(softness_line(out["softness"]))
     if "hist_l1_true_scale" in out:
         print(
             f"  depth histogram L1 with the true scale instead of the rows': "
@@ -902,8 +923,6 @@ def _print(out: dict) -> None:
         for k, r in out["fit"]["traits"].items():
             print(f"  {k:<28}{r['estimated']:>10.3f} (true {r['true']:.3f})")
         print_rules(out["fit"])
-        if "blur" in out["fit"]:
-            print(blur_line(out["fit"]["blur"]))
         att = out["fit"]["loss"]
         n = sum(len(g) for g in SCORE_GROUPS)
         print(

@@ -928,48 +928,31 @@ def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_p
     assert again["table"] == res["table"]
 
 
-def test_blur_profile_finds_the_blur_a_soft_observation_was_given():
-    """An observation whose leaves were softened (its depth blurred by 6 mm) is measured as
-    soft from the true parameters' canopies, a sharp one as sharp; bad grids are named."""
-    from cropcraft_core.fit.blur import BLUR_SIGMAS_M, blur_profile
+def test_pipeline_bench_measures_how_soft_the_reconstruction_is():
+    """bench pipeline's softness: the true mesh blurred by each width against the observation;
+    an observation the same as its truth is as sharp as it (0, at loss 0), one whose leaves
+    were softened by 6 mm is closest to the truth blurred alike; one printed line."""
+    from benchmarks.bench_pipeline import softness, softness_line
     from cropcraft_core.observe import Observation
     from cropcraft_core.observe.histograms import blur_depth
 
     sharp, _ = observation("soybean", SOY_TRUTH)
+    d_true = np.where(sharp.mask, sharp.depth, np.nan)
     z = float(np.median(sharp.depth[sharp.mask]))
     soft = Observation(
         "soybean",
         sharp.camera,
-        blur_depth(np.where(sharp.mask, sharp.depth, np.nan), 0.006 * sharp.camera.fy / z),
+        blur_depth(d_true, 0.006 * sharp.camera.fy / z),
         sharp.mask,
         preset=sharp.preset,
         box_mask=False,
     )
-    canopies = (2000, 2001, 2002, 2003)
-    p_soft = blur_profile(soft, [SOY_TRUTH], canopies=canopies)
-    p_sharp = blur_profile(sharp, [SOY_TRUTH], canopies=canopies)
-    assert p_soft.losses.shape == (1, len(BLUR_SIGMAS_M))
-    assert p_sharp.sigma_px_per_m == pytest.approx(sharp.camera.fy / z)
-    assert 0.003 <= p_soft.choose() <= 0.009
-    assert p_sharp.choose() == 0.0
-    assert p_soft.to_dict()["chosen_m"] == p_soft.choose()
-    for bad in ((), (0.001, 0.002), (0.0, -0.001)):
-        with pytest.raises(ConfigError, match="blur widths"):
-            blur_profile(sharp, [SOY_TRUTH], sigmas_m=bad)
-    with pytest.raises(ConfigError, match="parameter point"):
-        blur_profile(sharp, [])
-
-
-def test_pipeline_bench_reports_the_blur_from_the_truth_and_from_the_seeds():
-    """bench pipeline's blur check: one profile from the true parameters, one from the seeds'
-    best points (each scored on the same canopies), both on one printed line."""
-    from benchmarks.bench_pipeline import blur_check, blur_line
-
-    obs, _ = observation("soybean", SOY_TRUTH)
-    far = {**SOY_TRUTH, "leaf_length": 0.9, "num_nodes": 5.0}
-    check = blur_check(obs, SOY_TRUTH, [SOY_TRUTH, far], canopies=(2000, 2001))
-    assert len(check["truth"]["losses"]) == 1 and len(check["seeds"]["losses"]) == 2
-    assert check["seeds"]["losses"][0] == check["truth"]["losses"][0]  # same canopies
-    line = blur_line(check)
-    assert line.startswith("  blur profile (loss relative to sharp predictions at 0/1.5/3/")
-    assert "true parameters 1.00 " in line and "seeds' best points 1.00 " in line
+    s0 = softness(sharp, d_true)
+    assert s0["best_m"] == 0.0 and s0["losses"][0] == 0.0
+    assert s0["losses"] == sorted(s0["losses"])
+    s6 = softness(soft, d_true)
+    assert 0.0045 <= s6["best_m"] <= 0.009
+    assert s6["losses"][0] > 10 * min(s6["losses"])
+    line = softness_line(s6)
+    assert line.startswith("  softness: loss against the true mesh blurred by 0/1.5/3/4.5/6/9/12")
+    assert f"closest at {1e3 * s6['best_m']:g} mm" in line
