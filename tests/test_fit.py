@@ -928,11 +928,11 @@ def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_p
     assert again["table"] == res["table"]
 
 
-def test_pipeline_bench_measures_how_soft_the_reconstruction_is():
-    """bench pipeline's softness: the true mesh blurred by each width against the observation;
-    an observation the same as its truth is as sharp as it (0, at loss 0), one whose leaves
-    were softened by 6 mm is closest to the truth blurred alike; one printed line."""
-    from benchmarks.bench_pipeline import softness, softness_line
+def test_pipeline_bench_measures_which_blur_of_the_truth_matches_the_observation():
+    """bench pipeline's blur match: the true mesh blurred by each width against the
+    observation; an observation the same as its truth matches it unblurred (0, at loss 0), one
+    whose leaves were softened by 6 mm the truth blurred alike; one printed line."""
+    from benchmarks.bench_pipeline import blur_match, blur_match_line
     from cropcraft_core.observe import Observation
     from cropcraft_core.observe.histograms import blur_depth
 
@@ -947,12 +947,12 @@ def test_pipeline_bench_measures_how_soft_the_reconstruction_is():
         preset=sharp.preset,
         box_mask=False,
     )
-    s0 = softness(sharp, d_true)
+    s0 = blur_match(sharp, d_true)
     assert s0["best_m"] == 0.0 and s0["losses"][0] == 0.0
     assert s0["losses"] == sorted(s0["losses"])
-    s6 = softness(soft, d_true)
+    s6 = blur_match(soft, d_true)
     assert 0.0045 <= s6["best_m"] <= 0.009
     assert s6["losses"][0] > 10 * min(s6["losses"])
-    line = softness_line(s6)
-    assert line.startswith("  softness: loss against the true mesh blurred by 0/1.5/3/4.5/6/9/12")
+    line = blur_match_line(s6)
+    assert line.startswith("  blur match: loss against the true mesh blurred by 0/1.5/3/4.5/6/9/12")
     assert f"closest at {1e3 * s6['best_m']:g} mm" in line
