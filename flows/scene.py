@@ -65,7 +65,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # prediction_blur: metres by which the fit blurs its predictions (0: none, the paper's);
     # "auto": the surfaces' own softening of the leaves near their edges (tsdf: 0.8 voxel;
     # cropcraft_core.surfaces.prediction_blur_m). Not the default: better on three of six
-    # canopies, worse on three (benchmarks/RESULTS.md, #blur)
+    # canopies, worse on three; only one of the six observations matches its true mesh
+    # better blurred (benchmarks/RESULTS.md, #blur, #blur-match)
     "observe": {"image_scale": 1.0, "prediction_blur": 0.0, "preset": {}},
     "fit": {
         "method": "bo",

@@ -166,9 +166,11 @@ class ObservePreset:
     each predicted depth map before its statistics (:func:`~cropcraft_core.observe.blur_depth`:
     normalised over the rendered pixels, so an edge pixel averages its own and its rendered
     neighbours' depths and the predicted mask is unchanged); 0 = none, the paper's prediction.
-    An error model for observations of fused surfaces, whose leaves bend away near their edges
-    over about a voxel where a procedural leaf stays flat to its edge (benchmarks/RESULTS.md,
-    *#blur*); the observe stage sets it (``observe.prediction_blur``)."""
+    An error model for observations of fused surfaces (benchmarks/RESULTS.md, *#blur*). Of six
+    soybean reconstructions only one (the 1.1 m canopy) is closer to its true mesh blurred than
+    unblurred, mostly through the derivative term: it lost the deep leaves seen through gaps
+    and their steep steps (*#blur-match*); the observe stage sets it
+    (``observe.prediction_blur``)."""
     views_along: int = 1
     """Row cameras along the row whose statistics the observation pools (bin by bin): an odd
     number, centred on the row camera, ``view_step`` apart. 1: the paper's single camera.
