@@ -126,6 +126,7 @@ def blur_match(obs, d_true: np.ndarray, sigmas_m=BLUR_MATCH_SIGMAS_M) -> dict:
     from cropcraft_core.observe.histograms import blur_depth
 
     mask = truth_mask(obs, d_true)
+    # metres to pixels as Observation.prediction_blur_px converts the predictions' blur
     px_per_m = float(obs.camera.fy) / float(np.median(obs.depth[obs.mask]))
     losses = [
         loss(
