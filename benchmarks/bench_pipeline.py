@@ -122,18 +122,16 @@ def blur_match(obs, d_true: np.ndarray, sigmas_m=BLUR_MATCH_SIGMAS_M) -> dict:
     (6 mm), mostly through the derivative term: its reconstruction lost the deep leaves seen
     through gaps and with them the steepest steps, which the blur removes alike
     (RESULTS *#blur-match*)."""
-    from cropcraft_core.observe import compute_stats, loss
-    from cropcraft_core.observe.histograms import blur_depth
+    import dataclasses
+
+    from cropcraft_core.observe import with_overrides
 
     mask = truth_mask(obs, d_true)
-    # metres to pixels as Observation.prediction_blur_px converts the predictions' blur
-    px_per_m = float(obs.camera.fy) / float(np.median(obs.depth[obs.mask]))
+    # the true depth scored as a prediction blurred by s (Observation.loss_of, with its mask)
     losses = [
-        loss(
-            obs.stats,
-            compute_stats(blur_depth(d_true, s * px_per_m), obs.camera, mask, obs.preset),
-            obs.preset,
-        ).total
+        dataclasses.replace(obs, preset=with_overrides(obs.preset, prediction_blur_m=s))
+        .loss_of(d_true, mask)
+        .total
         for s in sigmas_m
     ]
     return {
