@@ -438,6 +438,31 @@ def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
     )
 
 
+def test_the_flows_embedded_defaults_are_the_core_configs_own():
+    """The flow's config table writes its defaults out (a user reads them, ``--set`` names
+    them, and the flow imports no core module to build it); each is the core default it
+    stands for, so a changed core default cannot leave the flow computing the old one."""
+    import dataclasses
+    import inspect
+
+    from cropcraft_core.fit import FitConfig
+    from cropcraft_core.observe.observation import NO_SURFACE_WARN
+    from cropcraft_core.sfm.ingest import ingest_images
+    from cropcraft_core.surfaces import consistency
+    from flows.scene import DEFAULTS
+
+    core_fit = {
+        f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        for f in dataclasses.fields(FitConfig)
+    }
+    assert DEFAULTS["fit"] == core_fit
+    assert DEFAULTS["rows"]["max_no_surface"] == NO_SURFACE_WARN
+    assert DEFAULTS["consistency"]["max_views"] == consistency.MAX_VIEWS
+    assert DEFAULTS["consistency"]["min_height"] == consistency.MIN_HEIGHT_M
+    min_images = inspect.signature(ingest_images).parameters["min_images"].default
+    assert DEFAULTS["ingest"]["min_images"] == min_images
+
+
 def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
     """Pooling the observation over neighbouring rows needs the planting row spacing, so the
     observe stage then hashes the layout; otherwise its key is what it was before pooling
