@@ -229,6 +229,43 @@ def test_sweep_spans_the_heights_the_scene_occupies_not_the_box(scene, monkeypat
     assert lo2 == -1.2 and hi2 == hi
 
 
+_SWEEP_ONCE = """
+import sys
+import numpy as np
+from cropcraft_core.surfaces import tsdf
+rng = np.random.default_rng(0)
+h, w, n_s, n_d, n_c = 96, 128, 3, 16, 3
+ref = rng.random((n_c, h, w), dtype=np.float32)
+srcs = rng.random((n_s, n_c, h, w), dtype=np.float32)
+jitter = np.array([[1, 1, 100], [1, 1, 100], [1e-3, 1e-3, 0]])
+homs = np.eye(3) + rng.normal(0, 0.01, (n_d, n_s, 3, 3)) * jitter
+out = np.empty((h, w, n_d), np.float32)
+tsdf._sweep_ncc(ref, srcs, np.array([[h, w]] * n_s, np.int64), homs, 3, 0, 2, out)
+np.save(sys.argv[1], out)
+"""
+
+
+def test_stereo_scores_are_the_same_compiled_fresh_or_loaded_from_the_cache(tmp_path):
+    """A scene's first reconstruction on a machine compiles the stereo kernel; every later run
+    loads it from numba's cache. Both must score to the bit alike, or the first night's answer
+    differs from its reruns (with fastmath the two differed in the last bits; RESULTS
+    #compile-state). Two processes share an empty cache folder: the first compiles, the second
+    loads."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    root = Path(__file__).resolve().parent.parent
+    outs = []
+    for run in ("fresh", "cached"):
+        out = tmp_path / f"{run}.npy"
+        subprocess.run([sys.executable, "-c", _SWEEP_ONCE, str(out)], env=env, cwd=root, check=True)
+        outs.append(np.load(out))
+    assert any((tmp_path / "numba").rglob("*_sweep_ncc*.nbc")), "the first run cached nothing"
+    assert np.array_equal(outs[0], outs[1])
+
+
 def test_soil_height_is_the_layer_where_soil_points_pile_up_or_none():
     from cropcraft_core.surfaces.tsdf import soil_height
 

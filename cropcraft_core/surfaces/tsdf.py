@@ -283,7 +283,12 @@ def best_of(n_sources: int, best_sources: int) -> int:
     return max(1, min(int(k), n_sources))
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+# No fastmath: with it, this parallel kernel compiled in the process and the same kernel loaded
+# from numba's cache (every later run) round differently (numba/numba#10617: fresh and cached
+# parallel code are optimised differently), so a scene's first reconstruction on a machine
+# differed from its reruns in the last bits of the matching scores, and a tie in the fit can
+# turn on those (benchmarks/RESULTS.md, *#compile-state*). Without it the two agree to the bit.
+@njit(cache=True, parallel=True, fastmath=False)
 def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no cover - numba
     """ref (C, h, w) float32; srcs (S, C, hs, ws) float32; src_hw (S, 2) int64 real sizes;
     homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32 aggregated
