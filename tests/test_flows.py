@@ -35,6 +35,8 @@ DATE = "2024-07-01"
 N_SEEDS = 3
 OVERRIDES = {
     "surfaces.bbox": [[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]],
+    # half the default plane hypotheses: the stereo is most of every flow that reconstructs
+    "surfaces.n_depths": 64,
     "observe.image_scale": 0.25,
     "fit.n_seeds": N_SEEDS,
     "fit.n_evals": 12,
