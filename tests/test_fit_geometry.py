@@ -204,7 +204,7 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     # each row's seeds by their median: the default rule's re-scoring and polish on fresh
     # canopies at the full-size row camera took 4 of this test's 4.5 minutes, and the rules
     # have tests of their own (test_select)
-    argv += ["--combine", "median", "--polish-evals", "0"]
+    argv += ["--combine", "median"]
     argv += ["--workers", "2", "--neighbour-rows", "2"]  # every row's seeds in two processes
     assert main(argv) == 0
     table = json.loads((out / "rows.json").read_text())
