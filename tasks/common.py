@@ -246,7 +246,15 @@ def core(stage: str, module: str, *names: str) -> Any:
 
 
 def open_store(root: str) -> SceneStore:
-    """The scene store at ``root`` (credentials from the worker's own environment)."""
+    """The scene store at ``root`` (credentials from the worker's own environment).
+
+    Every stage opens its store first, on whatever worker runs it, so this is also where the
+    worker's process is made fit for array work: :func:`cropcraft_core.parallel.reuse_freed_memory`
+    undoes the small malloc thresholds a Dask nanny pins on its workers (a no-op elsewhere).
+    """
+    from cropcraft_core.parallel import reuse_freed_memory
+
+    reuse_freed_memory()
     return SceneStore(root)
 
 
