@@ -37,8 +37,8 @@ def make_task_runner(spec: str | None = "threads", *, workers: int | None = None
     """A Prefect task runner for ``spec``.
 
     threads: ``ThreadPoolTaskRunner`` with ``workers`` threads (default: CPU count, at most 8).
-    dask: ``DaskTaskRunner`` over a temporary ``LocalCluster`` of ``workers`` single-threaded
-    worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
+    dask: ``DaskTaskRunner`` over a temporary :func:`local_cluster` of ``workers``
+    single-threaded worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
     """
     kind, address = parse_runner(spec)
     if kind == "threads":
@@ -53,10 +53,47 @@ def make_task_runner(spec: str | None = "threads", *, workers: int | None = None
     if address:
         return DaskTaskRunner(address=address)
     return DaskTaskRunner(
+        cluster_class=local_cluster,
         cluster_kwargs={
             "n_workers": workers or 2,
             "threads_per_worker": 1,
             "processes": True,
             "dashboard_address": None,
-        }
+        },
     )
+
+
+def local_cluster(**kwargs: Any) -> Any:
+    """The ``dask`` runner's ``LocalCluster`` (``kwargs`` as LocalCluster's), started when the
+    flow starts its task runner, with workers that compute as ``cropcraft``'s own processes do:
+
+    - no ``MALLOC_TRIM_THRESHOLD_`` (Dask's nanny default of 64 KiB made every large array a
+      fresh ``mmap``: a fit seed ran 1.9x slower, benchmarks/RESULTS.md *#dask-malloc*; stages
+      also undo it themselves on any worker, ``cropcraft_core.parallel.reuse_freed_memory``);
+    - one numba thread per single-threaded worker (``NUMBA_NUM_THREADS=1``; Dask already sets
+      OMP, MKL and OpenBLAS to 1): two worker processes on two cores each running numba's
+      kernels on every core oversubscribe them;
+    - the flow's Prefect API (``PREFECT_API_URL``), so that task runs report to the server the
+      flow reports to, instead of each worker starting an ephemeral server of its own.
+    """
+    import dask
+    from distributed import LocalCluster
+
+    env = {"NUMBA_NUM_THREADS": "1"}
+    api = _flow_api_url()
+    if api:
+        env["PREFECT_API_URL"] = api
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        return LocalCluster(env=env, **kwargs)
+
+
+def _flow_api_url() -> str | None:
+    """The HTTP address of the Prefect API this process talks to (a server's, or the ephemeral
+    server's that the flow started), None where there is none to share (an in-process app)."""
+    from prefect.client.orchestration import get_client
+
+    try:
+        url = str(get_client(sync_client=True).api_url).rstrip("/")
+    except Exception:  # no API at all: the workers do as they would have
+        return None
+    return url if url.startswith(("http://", "https://")) and "//ephem" not in url else None

@@ -710,6 +710,10 @@ def test_dask_runner_gives_the_same_result_as_threads(base_run, scene_dir, tmp_p
         [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
     )
     _same_result(out, base_run["first"])
+    # the workers' task runs reach the server the flow reports to (flows.runners.local_cluster
+    # hands them its address; before, each worker started an ephemeral server of its own)
+    api = _task_run_states(out["flow_run_id"], N_TASKS)
+    assert len(api) == N_TASKS and sorted(api).count("Completed") == N_SEEDS + len(LATE_STAGES)
 
 
 def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  # noqa: F811

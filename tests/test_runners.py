@@ -1,0 +1,47 @@
+"""The flows' task runners: the local Dask cluster's workers compute as cropcraft's own
+processes do (no pinned malloc trim, one numba thread) and report to the flow's Prefect API."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from cropcraft_core.errors import ConfigError
+from flows.runners import local_cluster, make_task_runner, parse_runner
+
+
+def test_runner_specs_parse_or_name_the_problem():
+    assert parse_runner(None) == ("threads", None)
+    assert parse_runner("dask") == ("dask", None)
+    assert parse_runner("dask://10.0.0.5:8786") == ("dask", "tcp://10.0.0.5:8786")
+    with pytest.raises(ConfigError, match="dask://HOST:PORT"):
+        parse_runner("dask://nohost")
+    with pytest.raises(ConfigError, match="unknown runner"):
+        parse_runner("ray")
+
+
+def _worker_env() -> dict:
+    import numba
+
+    return {
+        "malloc": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+        "numba_threads": numba.get_num_threads(),
+        "api": os.environ.get("PREFECT_API_URL"),
+        "omp": os.environ.get("OMP_NUM_THREADS"),
+    }
+
+
+def test_local_cluster_workers_compute_like_cropcrafts_own_processes():
+    pytest.importorskip("prefect_dask")
+    from distributed import Client
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    url = "http://127.0.0.1:4200/api"  # the address is only handed on, never called here
+    runner = make_task_runner("dask", workers=1)
+    assert runner.cluster_class is local_cluster
+    with temporary_settings({PREFECT_API_URL: url}):
+        cluster = local_cluster(**runner.cluster_kwargs)
+    with cluster, Client(cluster) as client:
+        env = client.submit(_worker_env, pure=False).result(timeout=120)
+    assert env == {"malloc": None, "numba_threads": 1, "api": url, "omp": "1"}
