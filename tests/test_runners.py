@@ -45,3 +45,29 @@ def test_local_cluster_workers_compute_like_cropcrafts_own_processes():
     with cluster, Client(cluster) as client:
         env = client.submit(_worker_env, pure=False).result(timeout=120)
     assert env == {"malloc": None, "numba_threads": 1, "api": url, "omp": "1"}
+
+
+def test_shipped_dask_worker_config_drops_the_malloc_pin():
+    """``deploy/dask`` (DASK_CONFIG for remote workers, set in the CPU image) leaves the worker
+    processes' malloc alone and gives them one numba thread."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = (
+        "import json; from distributed.nanny import _get_env_variables as g; "
+        "print(json.dumps(g('distributed.nanny.pre-spawn-environ')))"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "DASK_"))}
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env={**env, "DASK_CONFIG": str(root / "deploy" / "dask")},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    spawn_env = json.loads(out.stdout)
+    assert "MALLOC_TRIM_THRESHOLD_" not in spawn_env
+    assert spawn_env["NUMBA_NUM_THREADS"] == "1" and spawn_env["OMP_NUM_THREADS"] == "1"
