@@ -92,6 +92,30 @@ def reuse_freed_memory() -> bool:
     return ok
 
 
+@contextmanager
+def numba_threads_per_job(jobs: int) -> Iterator[int]:
+    """Run this thread's numba kernels on an even share of the cores while ``jobs`` like it run
+    at once (at least one thread each); numba's thread count is per calling thread, so other
+    threads' kernels are untouched, and the count is restored on exit (a thread pool's thread
+    runs other stages after this one). Yields the count.
+
+    A flow maps its fit seeds over as many workers as there are cores: each seed's kernels on
+    every core oversubscribe them (measured on the demo's observation, two seeds on two threads
+    of one process: 217 s a pair with numba's two threads each, 204 s with one;
+    benchmarks/RESULTS.md *#dask-malloc*), while a stage that runs alone (the stereo, the
+    aggregate) keeps them all.
+    """
+    import numba
+
+    old = numba.get_num_threads()
+    n = max(1, numba.config.NUMBA_NUM_THREADS // max(1, int(jobs)))
+    numba.set_num_threads(min(n, old))
+    try:
+        yield numba.get_num_threads()
+    finally:
+        numba.set_num_threads(old)
+
+
 def pool(workers: int, shared: dict[str, Any] | None = None) -> Executor | None:
     """``workers`` spawned single-threaded processes that each get ``shared`` once (in
     :data:`SHARED`); None (work in-process, ``shared`` set here) for ``workers`` ≤ 1."""

@@ -30,11 +30,13 @@ def bench_seed(crop: str, scene: int, seed: int, fit: dict, scale: float) -> dic
     """One optimiser seed on one synthetic scene; returns the seed's result (its evaluations,
     best point and loss) and its compute seconds."""
     from benchmarks.bench_accuracy import scene_observation, seed_seconds
-    from cropcraft_core.parallel import reuse_freed_memory
+    from cropcraft_core.parallel import numba_threads_per_job, reuse_freed_memory
 
     reuse_freed_memory()  # on a Dask worker: its nanny's malloc trim costs a seed ~1.9x
     _, obs = scene_observation(crop, scene, scale)
-    r = fit_seed(obs, seed, FitConfig(**fit))
+    cfg = FitConfig(**fit)
+    with numba_threads_per_job(cfg.n_seeds):
+        r = fit_seed(obs, seed, cfg)
     return {"scene": scene, "seed": seed, "result": r, "seconds": seed_seconds(r)}
 
 

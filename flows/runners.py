@@ -70,16 +70,13 @@ def local_cluster(**kwargs: Any) -> Any:
     - no ``MALLOC_TRIM_THRESHOLD_`` (Dask's nanny default of 64 KiB made every large array a
       fresh ``mmap``: a fit seed ran 1.9x slower, benchmarks/RESULTS.md *#dask-malloc*; stages
       also undo it themselves on any worker, ``cropcraft_core.parallel.reuse_freed_memory``);
-    - one numba thread per single-threaded worker (``NUMBA_NUM_THREADS=1``; Dask already sets
-      OMP, MKL and OpenBLAS to 1): two worker processes on two cores each running numba's
-      kernels on every core oversubscribe them;
     - the flow's Prefect API (``PREFECT_API_URL``), so that task runs report to the server the
       flow reports to, instead of each worker starting an ephemeral server of its own.
     """
     import dask
     from distributed import LocalCluster
 
-    env = {"NUMBA_NUM_THREADS": "1"}
+    env = {}
     api = _flow_api_url()
     if api:
         env["PREFECT_API_URL"] = api

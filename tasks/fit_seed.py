@@ -8,6 +8,7 @@ from typing import Any
 from prefect import get_run_logger
 
 from cropcraft_core.fit import FitConfig, fit_seed
+from cropcraft_core.parallel import numba_threads_per_job
 from tasks.common import (
     Timer,
     artefact,
@@ -92,7 +93,8 @@ def fit_seed_task(
 
     with Timer() as t:
         obs = load_observation(store, upstream)
-        result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
+        with numba_threads_per_job(cfg.n_seeds):  # the seeds run side by side
+            result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
         report_progress(scene, tag, total, total)  # a local search may converge early
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)
         with workdir("seed") as tmp:

@@ -150,3 +150,36 @@ def test_freed_arrays_are_reused_again_on_a_dask_workers_malloc_settings():
     # without the pin glibc's own dynamic thresholds already reuse freed arrays: left alone
     plain = _faults({})
     assert not plain["applied"] and plain["before"] < pinned["before"] / 10, (plain, pinned)
+
+
+def test_a_jobs_numba_share_is_its_threads_own_and_restored():
+    """Numba's thread count is per calling thread: a fit seed takes its share of the cores in
+    its own thread, other threads keep theirs, and its thread gets the old count back."""
+    import threading
+
+    import numba
+
+    from cropcraft_core.parallel import numba_threads_per_job
+
+    cores = numba.config.NUMBA_NUM_THREADS
+    before = numba.get_num_threads()
+    seen: dict[str, int] = {}
+    inside = threading.Event()
+    done = threading.Event()
+
+    def other():
+        inside.wait(30)
+        seen["other"] = numba.get_num_threads()
+        done.set()
+
+    t = threading.Thread(target=other)
+    t.start()
+    with numba_threads_per_job(10) as n:
+        assert n == numba.get_num_threads() == max(1, cores // 10)
+        inside.set()
+        done.wait(30)
+    t.join()
+    assert seen["other"] == cores  # a fresh thread: numba's default, untouched
+    assert numba.get_num_threads() == before
+    with numba_threads_per_job(1) as n:
+        assert n == before  # alone: every core this thread had
