@@ -100,8 +100,8 @@ def numba_threads_per_job(jobs: int) -> Iterator[int]:
     runs other stages after this one). Yields the count.
 
     A flow maps its fit seeds over as many workers as there are cores: each seed's kernels on
-    every core oversubscribe them (measured on the demo's observation, two seeds on two threads
-    of one process: 217 s a pair with numba's two threads each, 204 s with one;
+    every core oversubscribe them (two processes on two cores: one evaluation 233-239 ms with
+    numba's two threads each, 187-199 ms with one; in one process's threads about neutral;
     benchmarks/RESULTS.md *#dask-malloc*), while a stage that runs alone (the stereo, the
     aggregate) keeps them all.
     """
