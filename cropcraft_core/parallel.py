@@ -103,12 +103,17 @@ def numba_threads_per_job(jobs: int) -> Iterator[int]:
     every core oversubscribe them (two processes on two cores: one evaluation 233-239 ms with
     numba's two threads each, 187-199 ms with one; in one process's threads about neutral;
     benchmarks/RESULTS.md *#dask-malloc*), while a stage that runs alone (the stereo, the
-    aggregate) keeps them all.
+    aggregate) keeps them all. A process whose ``OMP_NUM_THREADS`` says how many threads a task
+    may take (a Dask worker's 1, where many scenes' seeds share a large host) caps the share.
     """
     import numba
 
     old = numba.get_num_threads()
-    n = max(1, numba.config.NUMBA_NUM_THREADS // max(1, int(jobs)))
+    cores = numba.config.NUMBA_NUM_THREADS
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    if omp.isdigit() and int(omp) >= 1:  # the process's own thread budget per task (Dask: 1)
+        cores = min(cores, int(omp))
+    n = max(1, cores // max(1, int(jobs)))
     numba.set_num_threads(min(n, old))
     try:
         yield numba.get_num_threads()

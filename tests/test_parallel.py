@@ -152,7 +152,7 @@ def test_freed_arrays_are_reused_again_on_a_dask_workers_malloc_settings():
     assert not plain["applied"] and plain["before"] < pinned["before"] / 10, (plain, pinned)
 
 
-def test_a_jobs_numba_share_is_its_threads_own_and_restored():
+def test_a_jobs_numba_share_is_its_threads_own_and_restored(monkeypatch):
     """Numba's thread count is per calling thread: a fit seed takes its share of the cores in
     its own thread, other threads keep theirs, and its thread gets the old count back."""
     import threading
@@ -181,5 +181,10 @@ def test_a_jobs_numba_share_is_its_threads_own_and_restored():
     t.join()
     assert seen["other"] == cores  # a fresh thread: numba's default, untouched
     assert numba.get_num_threads() == before
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     with numba_threads_per_job(1) as n:
         assert n == before  # alone: every core this thread had
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # a Dask worker's budget per task
+    with numba_threads_per_job(1) as n:
+        assert n == 1
+    assert numba.get_num_threads() == before
