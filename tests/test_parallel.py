@@ -112,7 +112,7 @@ import numpy as np
 from cropcraft_core.parallel import reuse_freed_memory
 
 def faults():
-    # 40 arrays of 4 MB, each filled and freed, as a fit evaluation's depth maps are
+    # 40 arrays of 8 MB, each filled and freed, as a fit evaluation's depth maps are
     f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(40):
         a = np.empty(1_000_000)

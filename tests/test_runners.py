@@ -22,7 +22,6 @@ def test_runner_specs_parse_or_name_the_problem():
 
 
 def _worker_env() -> dict:
-
     return {
         "malloc": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
         "numba_env": os.environ.get("NUMBA_NUM_THREADS"),
