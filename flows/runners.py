@@ -1,5 +1,6 @@
-"""Task runners for the CropCraft flows: ``threads`` (default), ``dask`` (a local cluster) or
-``dask://host:port`` (an existing Dask scheduler), through prefect-dask.
+"""Task runners for the CropCraft flows: ``processes`` (default: a local pool of spawned worker
+processes), ``threads``, ``dask`` (a local cluster) or ``dask://host:port`` (an existing Dask
+scheduler), through prefect-dask.
 
 Tasks exchange store keys and small records only, so any runner works; on Dask the workers need
 the ``cropcraft`` package and credentials for the scene store in their own environment.
@@ -7,19 +8,27 @@ the ``cropcraft`` package and credentials for the scene store in their own envir
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import threading
 from typing import Any
+
+from prefect.task_runners import ProcessPoolTaskRunner
 
 from cropcraft_core.errors import ConfigError
 
-RUNNERS = ("threads", "dask", "dask://HOST:PORT")
+RUNNERS = ("processes", "threads", "dask", "dask://HOST:PORT")
+
+#: The runner a flow gets when none is named: fit seeds in processes fit a pair of seeds ~25 %
+#: faster than in threads (benchmarks/RESULTS.md *#process-runner*).
+DEFAULT_RUNNER = "processes"
 
 
 def parse_runner(spec: str | None) -> tuple[str, str | None]:
     """``(kind, address)`` of a runner spec; ConfigError for anything else."""
-    spec = (spec or "threads").strip()
-    if spec == "threads":
-        return "threads", None
+    spec = (spec or DEFAULT_RUNNER).strip()
+    if spec in ("threads", "processes"):
+        return spec, None
     if spec == "dask":
         return "dask", None
     if spec.startswith("dask://"):
@@ -30,13 +39,16 @@ def parse_runner(spec: str | None) -> tuple[str, str | None]:
                 f"runner {spec!r}: expected dask://HOST:PORT, e.g. dask://10.0.0.5:8786"
             )
         return "dask", f"tcp://{host}:{port}"
-    raise ConfigError(f"unknown runner {spec!r}: choose threads, dask or dask://HOST:PORT")
+    raise ConfigError(
+        f"unknown runner {spec!r}: choose processes, threads, dask or dask://HOST:PORT"
+    )
 
 
-def make_task_runner(spec: str | None = "threads", *, workers: int | None = None) -> Any:
+def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None = None) -> Any:
     """A Prefect task runner for ``spec``.
 
     threads: ``ThreadPoolTaskRunner`` with ``workers`` threads (default: CPU count, at most 8).
+    processes: :func:`process_pool` of ``workers`` spawned processes (default as threads).
     dask: ``DaskTaskRunner`` over a temporary :func:`local_cluster` of ``workers``
     single-threaded worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
     """
@@ -46,6 +58,8 @@ def make_task_runner(spec: str | None = "threads", *, workers: int | None = None
 
         n = workers or min(8, os.cpu_count() or 2)
         return ThreadPoolTaskRunner(max_workers=n)
+    if kind == "processes":
+        return process_pool(workers or min(8, os.cpu_count() or 2))
     try:
         from prefect_dask import DaskTaskRunner
     except ImportError as exc:  # pragma: no cover - a dependency
@@ -61,6 +75,93 @@ def make_task_runner(spec: str | None = "threads", *, workers: int | None = None
             "dashboard_address": None,
         },
     )
+
+
+def process_pool(workers: int) -> ProcessPoolTaskRunner:
+    """The ``processes`` runner: :class:`LocalProcessPool` of ``workers`` spawned processes."""
+    return LocalProcessPool(max_workers=workers)
+
+
+class LocalProcessPool(ProcessPoolTaskRunner):
+    """Prefect's ``ProcessPoolTaskRunner`` whose worker processes run tasks as the flow's own
+    threads would: their task runs report to the flow's Prefect API (``PREFECT_API_URL``; without
+    it each worker would start an ephemeral server of its own), and the fit's progress ticks
+    (:func:`tasks.common.report_progress`) reach the progress sink installed in the flow's
+    process, through a queue drained by a thread while the pool is open.
+
+    Seeds in processes skip the GIL that two optimisers share in one process (benchmarks/
+    RESULTS.md *#process-runner*). Prefect re-enters a copy of the flow's runner in each worker
+    (its context carries the flow); there it starts nothing of its own.
+    """
+
+    def __enter__(self) -> LocalProcessPool:
+        if _IN_WORKER:
+            return super().__enter__()
+        ctx = multiprocessing.get_context("spawn")
+        self._progress_queue = ctx.Queue()
+        self._progress_thread = threading.Thread(
+            target=_relay_progress,
+            args=(self._progress_queue,),
+            daemon=True,
+            name="cropcraft-progress-relay",
+        )
+        self._progress_thread.start()
+        self._initializer = _init_worker
+        self._initargs = (_flow_api_url(), self._progress_queue)
+        try:
+            return super().__enter__()
+        except BaseException:
+            self._stop_relay()
+            raise
+
+    def __exit__(self, *exc: Any) -> None:
+        try:
+            super().__exit__(*exc)
+        finally:
+            if not _IN_WORKER:
+                self._stop_relay()
+
+    def _stop_relay(self) -> None:
+        queue = getattr(self, "_progress_queue", None)
+        if queue is None:
+            return
+        queue.put(None)
+        self._progress_thread.join(timeout=5)
+        queue.close()
+        queue.join_thread()
+        self._progress_queue = None
+
+
+_IN_WORKER = False
+
+
+def _init_worker(api_url: str | None, progress_queue: Any) -> None:
+    """A :class:`LocalProcessPool` worker's set-up: the flow's API, progress into the queue."""
+    global _IN_WORKER
+    from tasks.common import set_progress_sink
+
+    _IN_WORKER = True
+    if api_url:
+        os.environ["PREFECT_API_URL"] = api_url
+
+    def sink(scene: str, seed: int | str, done: int, total: int) -> None:
+        progress_queue.put_nowait((scene, seed, done, total))
+
+    set_progress_sink(sink)
+
+
+def _relay_progress(queue: Any) -> None:
+    """Hand each tick from the workers to this process's sink, until ``None`` arrives."""
+    from tasks.common import report_progress
+
+    while True:
+        try:
+            tick = queue.get()
+        except (EOFError, OSError):
+            return
+        if tick is None:
+            return
+        report_progress(*tick)
 
 
 def local_cluster(**kwargs: Any) -> Any:

@@ -32,6 +32,7 @@ from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.store import SceneKey, SceneStore, config_hash
+from flows.runners import make_task_runner
 from tasks.common import fingerprint, get_task, stage_key
 
 # --------------------------------------------------------------------------- configuration
@@ -915,7 +916,12 @@ def cache_walk(req: SceneRequest) -> tuple[dict[str, str], str | None]:
 # --------------------------------------------------------------------------- the flow
 
 
-@flow(name="reconstruct-scene", persist_result=False, validate_parameters=True)
+@flow(
+    name="reconstruct-scene",
+    persist_result=False,
+    validate_parameters=True,
+    task_runner=make_task_runner(),  # a deployment's run; run_scene names its own
+)
 def reconstruct_scene(
     site: str,
     crop: str,
@@ -970,14 +976,12 @@ def run_scene(
     poses: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     store: str | None = None,
-    runner: str = "threads",
+    runner: str = "processes",
 ) -> dict[str, Any]:
     """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``).
 
     Validation happens here first, so bad input fails before Prefect starts.
     """
-    from flows.runners import make_task_runner
-
     prepare(site, crop, date, images, poses, overrides, store)
     return reconstruct_scene.with_options(task_runner=make_task_runner(runner))(
         site=site,

@@ -120,7 +120,7 @@ def process_season(
     crop: str,
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
-    runner: str = "threads",
+    runner: str = "processes",
 ) -> dict[str, Any]:
     """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
@@ -169,7 +169,7 @@ def run_season(
     crop: str,
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
-    runner: str = "threads",
+    runner: str = "processes",
 ) -> dict[str, Any]:
     """Validate (names, store, settings), then run :func:`process_season`."""
     from cropcraft_core.store import SceneKey

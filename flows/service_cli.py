@@ -34,9 +34,10 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
     if runner:
         p.add_argument(
             "--runner",
-            default="threads",
+            default="processes",
             metavar="RUNNER",
-            help="threads (default), dask (a local 2-worker cluster) or dask://HOST:PORT",
+            help="processes (default: one spawned process per core, at most 8), threads, "
+            "dask (a local 2-worker cluster) or dask://HOST:PORT",
         )
         p.add_argument(
             "--set",
@@ -173,7 +174,8 @@ def _parse_scene(text: str):
 
 @contextmanager
 def progress_bar(enabled: bool = True):
-    """A tqdm bar over all optimiser evaluations of the running fit (threads runner)."""
+    """A tqdm bar over all optimiser evaluations of the running fit (threads and processes
+    runners; the processes runner relays its workers' ticks here)."""
     from tasks.common import set_progress_sink
 
     if not enabled or not sys.stderr.isatty():

@@ -397,8 +397,9 @@ def set_progress_sink(sink: Callable[[str, int | str, int, int], None] | None) -
     """Install ``sink(scene, seed, done, total)``, called as optimiser evaluations finish;
     ``seed`` is the optimiser seed, or ``"row_p1/3"`` for seed 3 of a neighbour row's fit.
 
-    Only tasks running in this process report (threads runner); on Dask workers progress goes
-    to the Prefect log instead.
+    Tasks running in this process report (threads runner), and so do the workers of the
+    ``processes`` runner, through a queue (``flows.runners.LocalProcessPool``); on Dask workers
+    progress goes to the Prefect log instead.
     """
     global _progress_sink
     with _progress_lock:

@@ -1,7 +1,8 @@
 """The scene flow under Prefect's test harness, on a small synthetic scene, with real
 components: the cache (a rerun executes nothing), a late config change, a fault in one mapped
 seed and its resume, the store and results on a real S3-compatible server (moto), the Dask
-runner on a 2-worker local cluster, and named errors for bad input before any work starts.
+runner on a 2-worker local cluster and the processes runner, and named errors for bad input
+before any work starts.
 
 The harness (a temporary Prefect server and database, ~20 s) starts once per session with a
 temporary PREFECT_HOME and local result storage. The scene is computed once (module fixture
@@ -701,19 +702,31 @@ def _copy_without_late_results(src: Path, dst: Path) -> None:
             shutil.rmtree(cache / stage, ignore_errors=True)
 
 
-def test_dask_runner_gives_the_same_result_as_threads(base_run, scene_dir, tmp_path):
-    pytest.importorskip("prefect_dask")
-    store = tmp_path / "store-dask"
+@pytest.mark.parametrize("runner", ["dask", "processes"])
+def test_process_runners_give_the_same_result_as_threads(base_run, scene_dir, tmp_path, runner):
+    from tasks.common import set_progress_sink
+
+    if runner == "dask":
+        pytest.importorskip("prefect_dask")
+    store = tmp_path / f"store-{runner}"
     _copy_without_late_results(base_run["store"], store)
-    out = _run("plotA", store, scene_dir, runner="dask")
+    ticks: list[tuple] = []
+    set_progress_sink(lambda *tick: ticks.append(tick))
+    try:
+        out = _run("plotA", store, scene_dir, runner=runner)
+    finally:
+        set_progress_sink(None)
     assert _executed(out["states"]) == sorted(
         [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
     )
     _same_result(out, base_run["first"])
-    # the workers' task runs reach the server the flow reports to (flows.runners.local_cluster
-    # hands them its address; before, each worker started an ephemeral server of its own)
+    # the workers' task runs reach the server the flow reports to (flows.runners hands them its
+    # address; before, each worker process started an ephemeral server of its own)
     api = _task_run_states(out["flow_run_id"], N_TASKS)
     assert len(api) == N_TASKS and sorted(api).count("Completed") == N_SEEDS + len(LATE_STAGES)
+    if runner == "processes":  # the fit's progress reaches this process (the CLI's bar)
+        finals = {seed: done for _, seed, done, total in ticks if done == total}
+        assert sorted(finals) == list(range(N_SEEDS)), ticks
 
 
 def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  # noqa: F811

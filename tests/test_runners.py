@@ -1,5 +1,6 @@
-"""The flows' task runners: the local Dask cluster's workers compute as cropcraft's own
-processes do (no pinned malloc trim) and report to the flow's Prefect API."""
+"""The flows' task runners: the specs, and the local Dask cluster's workers compute as
+cropcraft's own processes do (no pinned malloc trim) and report to the flow's Prefect API (the
+``processes`` runner runs the scene flow in ``test_flows``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from flows.runners import local_cluster, make_task_runner, parse_runner
 
 
 def test_runner_specs_parse_or_name_the_problem():
-    assert parse_runner(None) == ("threads", None)
+    assert parse_runner(None) == ("processes", None)  # the default
+    assert parse_runner("threads") == ("threads", None)
+    assert parse_runner("processes") == ("processes", None)
     assert parse_runner("dask") == ("dask", None)
     assert parse_runner("dask://10.0.0.5:8786") == ("dask", "tcp://10.0.0.5:8786")
     with pytest.raises(ConfigError, match="dask://HOST:PORT"):
