@@ -10,7 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 from cropcraft_core.errors import ConfigError, CropCraftError
@@ -397,6 +400,74 @@ def build_parser() -> argparse.ArgumentParser:
 EPHEMERAL_STARTUP_TIMEOUT_S = 180
 
 
+#: Seconds a Ctrl-C leaves Prefect to record the interrupted run before ``cropcraft`` ends its
+#: child processes and exits (benchmarks/RESULTS.md *#process-runner*).
+INTERRUPT_GRACE_S = 15.0
+
+
+@contextmanager
+def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
+    """Ctrl-C that always ends the command: the first SIGINT raises ``KeyboardInterrupt`` as
+    usual (Prefect marks the run crashed, the stages stop); if the process is still alive
+    ``grace_s`` later, or at a second SIGINT, every child process (pool workers, Prefect's
+    temporary server) is ended and the process exits with 130.
+
+    Needed because a terminal's Ctrl-C also stops Prefect's temporary server, which shares
+    the process group, and Prefect then retries the dead server for minutes, while seeds on
+    the threads runner, or workers a signal did not reach, go on fitting. Only in the main
+    thread, and not where SIGINT is ignored (a background job).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN:
+        yield
+        return
+    interrupted = threading.Event()
+
+    def force() -> None:
+        print("cropcraft: interrupted; ending its processes", file=sys.stderr, flush=True)
+        end_children()
+        os._exit(130)
+
+    def on_sigint(signum: int, frame: object) -> None:
+        if interrupted.is_set():
+            force()
+        interrupted.set()
+        timer = threading.Timer(grace_s, force)
+        timer.daemon = True
+        timer.start()
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def end_children(timeout_s: float = 5.0) -> None:
+    """Terminate every descendant process of this one, then kill those still alive."""
+    import psutil
+
+    try:
+        children = psutil.Process().children(recursive=True)
+    except psutil.Error:
+        return
+    for child in children:
+        try:
+            child.terminate()
+        except psutil.Error:
+            pass
+    _, alive = psutil.wait_procs(children, timeout=timeout_s)
+    for child in alive:
+        try:
+            child.kill()
+        except psutil.Error:
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
     # an offline batch service: no telemetry calls to the outside (they fail here anyway)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
@@ -409,7 +480,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
+        with interrupt_deadline():
+            return args.func(args)
     except CropCraftError as e:
         print(f"cropcraft: error: {e}", file=sys.stderr)
         return 2

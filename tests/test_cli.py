@@ -480,3 +480,53 @@ def test_run_summary_prints_each_rows_lai_and_their_spread(capsys):
     assert "LAI over 3 rows: mean 1.23, sd 0.125, range 1.1 to 1.4" in out
     _print_rows({"rows": None})
     assert capsys.readouterr().out == ""
+
+
+def test_ctrl_c_ends_the_command_and_its_child_processes(tmp_path):
+    """A Ctrl-C the command cannot honour (here: its main thread swallows KeyboardInterrupt,
+    as Prefect's crash handling does while it retries a temporary server the same Ctrl-C
+    stopped) still ends it: after the grace period every child process is ended and the
+    process exits 130; a second Ctrl-C does so at once."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    code = (
+        "import signal, subprocess, sys, time\n"
+        # as from a terminal: SIGINT not ignored even if the test runner's shell ignores it
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "from flows.cli import interrupt_deadline\n"
+        "with interrupt_deadline(grace_s=float(sys.argv[1])):\n"
+        "    child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'])\n"
+        "    while True:\n"
+        "        try:\n"
+        "            if child:\n"  # the pid once inside the try: no interrupt can escape it
+        "                print(child.pid, flush=True)\n"
+        "                child = None\n"
+        "            time.sleep(120)\n"
+        "        except KeyboardInterrupt:\n"
+        "            pass\n"
+    )
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for grace, presses, within in ((2.0, 1, 2.0), (60.0, 2, 0.0)):
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(grace)],
+            cwd=root,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        child = int(proc.stdout.readline())
+        t0 = time.monotonic()
+        for _ in range(presses):
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.5)
+        assert proc.wait(timeout=30) == 130
+        elapsed = time.monotonic() - t0
+        assert within <= elapsed < within + 15, elapsed
+        assert "interrupted; ending its processes" in proc.stderr.read()
+        assert not psutil.pid_exists(child) or psutil.Process(child).status() == "zombie"
