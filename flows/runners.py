@@ -53,13 +53,11 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
     single-threaded worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
     """
     kind, address = parse_runner(spec)
-    if kind == "threads":
+    if kind in ("threads", "processes"):
         from prefect.task_runners import ThreadPoolTaskRunner
 
         n = workers or min(8, os.cpu_count() or 2)
-        return ThreadPoolTaskRunner(max_workers=n)
-    if kind == "processes":
-        return process_pool(workers or min(8, os.cpu_count() or 2))
+        return ThreadPoolTaskRunner(max_workers=n) if kind == "threads" else process_pool(n)
     try:
         from prefect_dask import DaskTaskRunner
     except ImportError as exc:  # pragma: no cover - a dependency

@@ -32,7 +32,7 @@ from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.store import SceneKey, SceneStore, config_hash
-from flows.runners import make_task_runner
+from flows.runners import DEFAULT_RUNNER, make_task_runner
 from tasks.common import fingerprint, get_task, stage_key
 
 # --------------------------------------------------------------------------- configuration
@@ -976,7 +976,7 @@ def run_scene(
     poses: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     store: str | None = None,
-    runner: str = "processes",
+    runner: str = DEFAULT_RUNNER,
 ) -> dict[str, Any]:
     """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``).
 

@@ -10,6 +10,7 @@ from prefect import flow, get_run_logger
 
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.store import SceneKey, SceneStore, manifest_key
+from flows.runners import DEFAULT_RUNNER
 
 
 def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
@@ -120,7 +121,7 @@ def process_season(
     crop: str,
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
-    runner: str = "processes",
+    runner: str = DEFAULT_RUNNER,
 ) -> dict[str, Any]:
     """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
@@ -169,7 +170,7 @@ def run_season(
     crop: str,
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
-    runner: str = "processes",
+    runner: str = DEFAULT_RUNNER,
 ) -> dict[str, Any]:
     """Validate (names, store, settings), then run :func:`process_season`."""
     from cropcraft_core.store import SceneKey

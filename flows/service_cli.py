@@ -34,7 +34,7 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
     if runner:
         p.add_argument(
             "--runner",
-            default="processes",
+            default="processes",  # flows.runners.DEFAULT_RUNNER (not imported: it loads Prefect)
             metavar="RUNNER",
             help="processes (default: one spawned process per core, at most 8), threads, "
             "dask (a local 2-worker cluster) or dask://HOST:PORT",

@@ -74,3 +74,16 @@ def test_shipped_dask_worker_config_drops_the_malloc_pin():
     spawn_env = json.loads(out.stdout)
     assert "MALLOC_TRIM_THRESHOLD_" not in spawn_env
     assert spawn_env["OMP_NUM_THREADS"] == "1"  # Dask's own default, kept
+
+
+def test_the_cli_names_the_flows_default_runner():
+    """The CLI writes the default out (importing flows.runners would load Prefect for every
+    command); it must be the flows' own."""
+    import argparse
+
+    from flows.runners import DEFAULT_RUNNER
+    from flows.service_cli import _add_common
+
+    parser = argparse.ArgumentParser()
+    _add_common(parser)
+    assert parser.parse_args([]).runner == DEFAULT_RUNNER
