@@ -142,8 +142,8 @@ def _init_worker(api_url: str | None, progress_queue: Any) -> None:
     if api_url:
         os.environ["PREFECT_API_URL"] = api_url
 
-    def sink(scene: str, seed: int | str, done: int, total: int) -> None:
-        progress_queue.put_nowait((scene, seed, done, total))
+    def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
+        progress_queue.put_nowait((scene, seed, done, total, best))
 
     set_progress_sink(sink)
 

@@ -48,7 +48,11 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             "VALUE is JSON, else a string)",
         )
         add_param_option(p)
-        p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument(
+            "--no-progress",
+            action="store_true",
+            help="no progress bar: a line per fit seed every 10 %% instead",
+        )
         p.add_argument(
             "--camera-height",
             type=float,
@@ -173,36 +177,104 @@ def _parse_scene(text: str):
 
 
 @contextmanager
-def progress_bar(enabled: bool = True):
-    """A tqdm bar over all optimiser evaluations of the running fit (threads and processes
-    runners; the processes runner relays its workers' ticks here)."""
+def fit_progress(bar: bool = True):
+    """The running fit's progress on the console, the same on every local runner (threads and
+    processes; the processes runner relays its workers' ticks to this process):
+
+    - on a terminal, unless ``bar`` is off: one tqdm bar over all seeds' evaluations, with the
+      lowest loss any seed has reached;
+    - otherwise (a log file, a nightly job, ``--no-progress``): one line per seed every 10 %
+      of its evaluations, with that seed's best loss so far.
+
+    Prefect's task-run records stay off the console meanwhile (:func:`_task_runs_off_console`);
+    the Prefect UI still gets every one of them.
+    """
     from tasks.common import set_progress_sink
 
-    if not enabled or not sys.stderr.isatty():
-        yield
-        return
-    from tqdm import tqdm
-
     lock = threading.Lock()
-    state: dict[int | str, tuple[int, int]] = {}
-    bar = tqdm(total=0, unit="eval", desc="fit (BO evaluations)", dynamic_ncols=True)
+    state: dict[int | str, tuple[int, int, float | None]] = {}
+    if bar and sys.stderr.isatty():
+        from tqdm import tqdm
 
-    def sink(scene: str, seed: int | str, done: int, total: int) -> None:
-        with lock:
-            state[seed] = (done, total)
-            bar.total = sum(t for _, t in state.values())
-            bar.n = sum(d for d, _ in state.values())
-            bar.refresh()
+        pbar = tqdm(total=0, unit="eval", desc="fit (BO evaluations)", dynamic_ncols=True)
+
+        def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
+            with lock:
+                state[seed] = (done, total, best)
+                pbar.total = sum(t for _, t, _ in state.values())
+                pbar.n = sum(d for d, _, _ in state.values())
+                bests = [b for _, _, b in state.values() if b is not None]
+                if bests:
+                    pbar.set_postfix_str(f"best loss {min(bests):.4g}", refresh=False)
+                pbar.refresh()
+
+        close = pbar.close
+    else:
+
+        def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
+            step = max(1, total // 10)
+            with lock:
+                seen = state.get(seed, (0, total, None))[0]
+                state[seed] = (done, total, best)
+                crossed = done // step > seen // step  # each 10 % mark
+                finished = done == total != seen  # once at the end
+                if not (crossed or finished):
+                    return
+                when = time.strftime("%H:%M:%S")
+                loss = "" if best is None else f", best loss {best:.4g}"
+                print(
+                    f"{when} | fit seed {seed}: {done}/{total} evaluations{loss}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+
+        def close() -> None:
+            return None
 
     set_progress_sink(sink)
     try:
-        yield
+        with _task_runs_off_console():
+            yield
     finally:
         set_progress_sink(None)
-        bar.close()
+        close()
+
+
+class _BelowWarning:
+    """A logging filter: drops records of ``prefix`` loggers below WARNING."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+
+    def filter(self, record: Any) -> bool:
+        return record.levelno >= 30 or not record.name.startswith(self.prefix)
+
+
+@contextmanager
+def _task_runs_off_console():
+    """Keep Prefect's task-run INFO records (each task's "Finished in state Completed()", the
+    fit's own 10 % lines) off this process's console, as the ``processes`` runner's workers
+    already do (they start with ``PREFECT_LOGGING_LEVEL=WARNING``, :func:`_quiet_prefect`).
+    The flow's stage lines stay; the records still reach the Prefect API."""
+    import logging
+
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    handlers = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
+    quiet = _BelowWarning("prefect.task_runs")
+    for h in handlers:
+        h.addFilter(quiet)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.removeFilter(quiet)
 
 
 def _quiet_prefect() -> None:
+    """Prefect's INFO logging off the console of processes started from here on (the
+    ``processes`` runner's workers; this process configured its logging when Prefect loaded,
+    and :func:`fit_progress` quiets its task runs)."""
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
 
@@ -280,7 +352,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _quiet_prefect()
     if args.force:
         os.environ["PREFECT_TASKS_REFRESH_CACHE"] = "true"
-    with progress_bar(not args.no_progress):
+    with fit_progress(not args.no_progress):
         out = run_scene(
             scene.site,
             scene.crop,
@@ -304,7 +376,7 @@ def cmd_season(args: argparse.Namespace) -> int:
 
     site, _, crop = args.site_crop.partition("/")
     _quiet_prefect()
-    with progress_bar(not args.no_progress):
+    with fit_progress(not args.no_progress):
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
         print(f"{date}  {state}")
@@ -465,7 +537,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = cached_result(req)
     if out is None:
         _quiet_prefect()
-        with progress_bar(not args.no_progress):
+        with fit_progress(not args.no_progress):
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
     truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")
     metrics = store.get_json(f"{site}/{crop}/{date}/metrics/metrics.json")

@@ -390,12 +390,14 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
 # --------------------------------------------------------------------------- progress
 
 _progress_lock = threading.Lock()
-_progress_sink: Callable[[str, int | str, int, int], None] | None = None
+ProgressSink = Callable[[str, int | str, int, int, float | None], None]
+_progress_sink: ProgressSink | None = None
 
 
-def set_progress_sink(sink: Callable[[str, int | str, int, int], None] | None) -> None:
-    """Install ``sink(scene, seed, done, total)``, called as optimiser evaluations finish;
-    ``seed`` is the optimiser seed, or ``"row_p1/3"`` for seed 3 of a neighbour row's fit.
+def set_progress_sink(sink: ProgressSink | None) -> None:
+    """Install ``sink(scene, seed, done, total, best)``, called as optimiser evaluations
+    finish; ``seed`` is the optimiser seed, or ``"row_p1/3"`` for seed 3 of a neighbour row's
+    fit, and ``best`` the seed's lowest loss so far (``None`` before its first evaluation).
 
     Tasks running in this process report (threads runner), and so do the workers of the
     ``processes`` runner, through a queue (``flows.runners.LocalProcessPool``); on Dask workers
@@ -406,9 +408,11 @@ def set_progress_sink(sink: Callable[[str, int | str, int, int], None] | None) -
         _progress_sink = sink
 
 
-def report_progress(scene: str, seed: int | str, done: int, total: int) -> None:
+def report_progress(
+    scene: str, seed: int | str, done: int, total: int, best: float | None = None
+) -> None:
     """Forward one progress tick to the installed sink (no-op without one)."""
     sink = _progress_sink
     if sink is not None:
         with contextlib.suppress(Exception):
-            sink(scene, seed, done, total)
+            sink(scene, seed, done, total, best)

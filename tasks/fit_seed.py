@@ -65,7 +65,8 @@ def fit_seed_task(
 
     A local checkpoint (``$CROPCRAFT_WORK/checkpoints``, named by the cache key) lets a seed
     killed halfway continue where it stopped on the same machine; it is removed on success.
-    Progress goes to :func:`tasks.common.report_progress` every evaluation and to the log every
+    Progress (with the seed's best loss so far; after a resume, of this attempt's evaluations)
+    goes to :func:`tasks.common.report_progress` every evaluation and to the run's log every
     10 %. Under ``combine="floors"`` (then part of this stage's config) the seed also polishes
     its point to its floor, stored in the seed's record for the aggregate to rank.
     """
@@ -85,17 +86,21 @@ def fit_seed_task(
 
         tag = f"{row_label(row)}/{int(seed)}"
 
+    best = [float("inf")]
+
     def callback(i: int, x: Any, y: float) -> None:
         done = i + 1
-        report_progress(scene, tag, done, total)
+        best[0] = min(best[0], float(y))
+        report_progress(scene, tag, done, total, best[0])
         if done % step == 0 or done == total:
-            log.info("seed %s: %d/%d evaluations, loss %.4g", tag, done, total, y)
+            log.info("seed %s: %d/%d evaluations, best loss %.4g", tag, done, total, best[0])
 
     with Timer() as t:
         obs = load_observation(store, upstream)
         with numba_threads_per_job(cfg.n_seeds):  # the seeds run side by side
             result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
-        report_progress(scene, tag, total, total)  # a local search may converge early
+        # a local search may converge early
+        report_progress(scene, tag, total, total, float(result.best_y))
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)
         with workdir("seed") as tmp:
             path = result.save(tmp / "seed.npz")

@@ -482,6 +482,54 @@ def test_run_summary_prints_each_rows_lai_and_their_spread(capsys):
     assert capsys.readouterr().out == ""
 
 
+def test_fit_progress_without_a_terminal_prints_each_seeds_10_percent_marks(capsys):
+    """Without a terminal (a nightly job's log) the fit's progress is one line per seed at
+    each 10 % of its evaluations and once at the end, with that seed's best loss so far."""
+    from flows.service_cli import fit_progress
+    from tasks.common import report_progress
+
+    with fit_progress(bar=True):  # pytest's stderr is no terminal: lines, not a bar
+        for done in range(1, 45):  # seed 0 stops early at 44 of 50 (a converged polish)
+            report_progress("s/soybean/d", 0, done, 50, 1.0 / done)
+        report_progress("s/soybean/d", 0, 50, 50, 0.0123)
+        report_progress("s/soybean/d", 0, 50, 50, 0.0123)  # the task's closing tick again
+        report_progress("s/soybean/d", "row_p1/2", 7, 7, None)
+    report_progress("s/soybean/d", 0, 50, 50, 0.0)  # no sink after the block
+    lines = capsys.readouterr().err.splitlines()
+    seed0 = [line.split(" | ", 1)[1] for line in lines if "fit seed 0:" in line]
+    assert seed0 == [
+        *(f"fit seed 0: {d}/50 evaluations, best loss {1.0 / d:.4g}" for d in range(5, 45, 5)),
+        "fit seed 0: 50/50 evaluations, best loss 0.0123",
+    ]
+    assert [line.split(" | ", 1)[1] for line in lines if "row_p1" in line] == [
+        "fit seed row_p1/2: 7/7 evaluations"
+    ]
+
+
+def test_fit_progress_keeps_prefects_task_run_records_off_the_console():
+    """During a fit the console (Prefect's handler in this process, the threads runner's) drops
+    task runs' INFO records, as the processes runner's workers do; warnings, the flow's stage
+    lines and everything after the fit still print."""
+    import logging
+
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    from flows.service_cli import fit_progress
+
+    console = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
+    assert console, "Prefect configured no console handler"
+
+    def shown(name: str, level: int) -> bool:
+        record = logging.LogRecord(name, level, __file__, 1, "msg", None, None)
+        return all(h.filter(record) for h in console)
+
+    with fit_progress(bar=False):
+        assert not shown("prefect.task_runs", logging.INFO)
+        assert shown("prefect.task_runs", logging.WARNING)
+        assert shown("prefect.flow_runs", logging.INFO)
+    assert shown("prefect.task_runs", logging.INFO)
+
+
 def test_ctrl_c_ends_the_command_and_its_child_processes(tmp_path):
     """A Ctrl-C the command cannot honour (here: its main thread swallows KeyboardInterrupt,
     as Prefect's crash handling does while it retries a temporary server the same Ctrl-C
