@@ -295,6 +295,38 @@ def test_guarded_through_combine_records_its_verdict(soybean_seeds):
     with pytest.raises(ConfigError, match="pass it"):
         combine("soybean", seeds, cfg, 0.0)
 
+    # combine makes the median's floor beside the selection, and the guard scores the two
+    # floors side by side (threads): the same bits as the selection, then the guard, alone
+    from cropcraft_core.fit.select import guard, select
+
+    box, fm = cfg.param_box("soybean"), ForwardModel(obs, None, cfg.loss_estimator)
+    alone = select(fm, seeds, cfg.reevaluate_canopies, cfg.polish_starts, 4, box=box)
+    g_alone = guard(fm, seeds, alone, 4, box).to_dict(box)
+    assert alone.to_dict(box)["candidates"] == sel["candidates"]
+    assert {k: v for k, v in g_alone.items() if k != "seconds"} == {
+        k: v for k, v in g.items() if k != "seconds"
+    }
+
+
+def test_beside_runs_both_and_raises_the_main_error_at_once():
+    import threading
+    import time
+
+    from cropcraft_core.fit.select import beside
+
+    names: list[str] = []
+
+    def other() -> int:
+        names.append(threading.current_thread().name)
+        return 2
+
+    assert beside(lambda: 1, other) == (1, 2)
+    assert names and names[0] != threading.current_thread().name
+    t = time.perf_counter()
+    with pytest.raises(ValueError, match="main failed"):
+        beside(lambda: (_ for _ in ()).throw(ValueError("main failed")), lambda: time.sleep(3))
+    assert time.perf_counter() - t < 2.0  # not held until the other finishes
+
 
 def test_benchmark_rows_share_one_rescoring_and_answer_as_separate_combines(soybean_seeds):
     """``combine_scene`` re-scores once for the guarded and the re-scored rows (and reads the

@@ -388,28 +388,37 @@ def combine(
                 f"combine={rule!r} re-scores candidates against the observation: pass it "
                 "(or use combine='mean', the paper's rule)"
             )
-        from cropcraft_core.fit.select import floors, guard, select
+        from cropcraft_core.fit import select as sl
 
         forward = ForwardModel(observation, layout, config.loss_estimator)
+        k_canopies, evals = config.reevaluate_canopies, config.polish_evals
         if rule == "floors":
-            fl = floors(forward, results, config.reevaluate_canopies, config.polish_evals, box)
+            fl = sl.floors(forward, results, k_canopies, evals, box)
             final, std = fl.x, agg.std_x
             extra["floors"] = fl.to_dict(box)
             seconds += fl.seconds
         else:
-            sel = selection or select(
-                forward,
-                results,
-                config.reevaluate_canopies,
-                config.polish_starts,
-                config.polish_evals,
-                box=box,
-            )
+
+            def selected() -> sl.Selection:
+                return selection or sl.select(
+                    forward, results, k_canopies, config.polish_starts, evals, box=box
+                )
+
+            floor = None
+            if rule == "guarded" and selection is None and evals > 0:
+                # the median's floor needs no re-scoring: made beside it, in a second thread
+                other = sl.own_forward(forward)
+                sel, floor = sl.beside(
+                    selected, lambda: sl.median_floor(other, results, k_canopies, evals, box)
+                )
+                sl.add_timings(forward, other)
+            else:
+                sel = selected()
             final, std = sel.x, agg.std_x
             extra["selection"] = sel.to_dict(box)
             seconds += sel.seconds
             if rule == "guarded":
-                g = guard(forward, results, sel, config.polish_evals, box)
+                g = sl.guard(forward, results, sel, evals, box, floor=floor)
                 final = g.x
                 extra["guard"] = g.to_dict(box)
                 seconds += g.seconds

@@ -79,8 +79,10 @@ sets of 16 re-scoring canopies:
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 from scipy.optimize import minimize
@@ -91,6 +93,9 @@ from cropcraft_core.fit.forward import ForwardModel, unbiased_pseudovalues
 from cropcraft_core.optimize import SeedResult, aggregate
 from cropcraft_core.optimize import gp as gpmod
 from cropcraft_core.optimize.bo import first_simplex
+
+A = TypeVar("A")
+B = TypeVar("B")
 
 #: Canopy seeds of the re-scoring: base + 104_729 k, disjoint from every optimiser seed's
 #: canopies (``fitting.CANOPY_SEED_BASE`` + s, s < 10^5) and from the benchmark's truths.
@@ -329,6 +334,67 @@ class Guard:
         }
 
 
+def beside(main: Callable[[], A], other: Callable[[], B]) -> tuple[A, B]:
+    """``(main(), other())``, ``other`` run in a second thread meanwhile. The re-scoring's
+    work releases the GIL for most of its time (the renderer and NumPy): on two cores the
+    selection's polish and the median's took 102 s side by side against 135 s one after the
+    other, to the same bits (benchmarks/RESULTS.md *#aggregate-threads*). Give ``other`` its
+    own :class:`ForwardModel` (:func:`own_forward`), whose timings it may then add up alone.
+    Where ``main`` fails, its error is raised at once (``other`` is left to finish by itself)."""
+    ex = ThreadPoolExecutor(1, thread_name_prefix="cropcraft-beside")
+    try:
+        fut = ex.submit(other)
+        first = main()
+        return first, fut.result()
+    finally:
+        ex.shutdown(wait=False, cancel_futures=True)
+
+
+def own_forward(forward: ForwardModel) -> ForwardModel:
+    """A copy of ``forward`` with timings of its own, for a second thread (:func:`beside`)."""
+    return replace(forward, timings=dict.fromkeys(forward.timings, 0))
+
+
+def add_timings(forward: ForwardModel, other: ForwardModel) -> None:
+    """Add ``other``'s timings (a copy's, :func:`own_forward`) to ``forward``'s."""
+    for k, v in other.timings.items():
+        forward.timings[k] = forward.timings.get(k, 0) + v
+
+
+@dataclass(frozen=True)
+class MedianFloor:
+    """The seeds' per-parameter median polished on the re-scoring's canopies (:func:`guard`)."""
+
+    median: np.ndarray
+    floor: np.ndarray
+    canopy_seeds: list[int]
+    polish_evals: int
+    seconds: float
+
+
+def median_floor(
+    forward: ForwardModel,
+    results: Sequence[SeedResult],
+    canopies: int,
+    polish_evals: int,
+    box: ParamBox | None = None,
+) -> MedianFloor:
+    """The seeds' per-parameter median and its floor: :func:`polish` from it (``polish_evals``
+    evaluations; 0: the median itself) on the ``canopies`` re-scoring canopies, which
+    :func:`select` scores on too. It needs no re-scoring first, so :func:`~cropcraft_core.fit.
+    combine` runs it beside :func:`select` (:func:`beside`)."""
+    box = box or ParamBox.of(forward.crop)
+    t = time.perf_counter()
+    median = np.median(aggregate(list(results)).per_seed, axis=0)
+    seeds = reevaluation_seeds(canopies)
+    floor = median
+    if polish_evals > 0:
+        floor, _, _ = polish(forward, median, seeds, polish_evals, box)
+    return MedianFloor(
+        median, np.asarray(floor, dtype=np.float64), seeds, polish_evals, time.perf_counter() - t
+    )
+
+
 def guard(
     forward: ForwardModel,
     results: Sequence[SeedResult],
@@ -337,6 +403,7 @@ def guard(
     box: ParamBox | None = None,
     check: int = GUARD_CANOPIES,
     se_factor: float = GUARD_SE,
+    floor: MedianFloor | None = None,
 ) -> Guard:
     """The seeds' per-parameter median, unless re-scoring's winner (``selection``, polished)
     lies in a basin significantly deeper than the median's own: the median is polished to its
@@ -347,26 +414,36 @@ def guard(
     stays (on closed canopies seen from above not always: two of the benchmark's, LAI 4.6 and
     5.6, passed the test and read lower); where the seeds' median sits in a shallower basin
     than the one re-scoring found (SA through SfM: +29.8 % against +16.2 %), the deeper basin
-    wins."""
+    wins.
+
+    ``floor``: the median's floor made already (:func:`median_floor`, beside the selection),
+    used when it was polished on the selection's canopies with ``polish_evals``; its seconds
+    count in the guard's. The two check scorings run side by side (:func:`beside`)."""
     box = box or ParamBox.of(forward.crop)
     t = time.perf_counter()
-    median = np.median(aggregate(list(results)).per_seed, axis=0)
     seeds = list(selection.canopy_seeds)
-    floor = median
-    if polish_evals > 0:
-        floor, _, _ = polish(forward, median, seeds, polish_evals, box)
+    made = 0.0
+    if floor is None or list(floor.canopy_seeds) != seeds or floor.polish_evals != polish_evals:
+        floor = median_floor(forward, results, len(seeds), polish_evals, box)
+    else:
+        made = floor.seconds
     fresh = reevaluation_seeds(len(seeds) + check)[len(seeds) :]
-    winner, m_floor = box.params(selection.x), box.params(floor)
-    d = _per_canopy(forward, winner, fresh) - _per_canopy(forward, m_floor, fresh)
-    mean, se, deeper = _paired_lower(d, se_factor)
+    winner, m_floor = box.params(selection.x), box.params(floor.floor)
+    other = own_forward(forward)
+    mine, theirs = beside(
+        lambda: _per_canopy(forward, winner, fresh),
+        lambda: _per_canopy(other, m_floor, fresh),
+    )
+    add_timings(forward, other)
+    mean, se, deeper = _paired_lower(mine - theirs, se_factor)
     return Guard(
-        x=np.asarray(selection.x if deeper else median, dtype=np.float64),
+        x=np.asarray(selection.x if deeper else floor.median, dtype=np.float64),
         chosen=selection.chosen if deeper else "median",
-        median=median,
-        median_floor=np.asarray(floor, dtype=np.float64),
+        median=floor.median,
+        median_floor=floor.floor,
         difference=(mean, se),
         canopy_seeds=fresh,
-        seconds=time.perf_counter() - t,
+        seconds=time.perf_counter() - t + made,
     )
 
 
