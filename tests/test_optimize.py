@@ -324,6 +324,9 @@ def test_gp_incremental_update_matches_full_factorisation():
     full.y_mean, full.y_std = inc.y_mean, inc.y_std
     full.ys = (y - inc.y_mean) / inc.y_std
     np.testing.assert_allclose(inc.L, full.L, atol=1e-9)
+    # kept column-major, as LAPACK's triangular solves take it (a row-major factor is copied
+    # whole on every solve: most of BO's overhead at n = 500, benchmarks/RESULTS.md #gp-layout)
+    assert inc.L.flags.f_contiguous and full.L.flags.f_contiguous
     Xs = rng.random((5, 3))
     m1, s1 = inc.predict(Xs)
     full.alpha = cho_solve((full.L, True), full.ys)
