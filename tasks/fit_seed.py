@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 from prefect import get_run_logger
 
 from cropcraft_core.fit import FitConfig, fit_seed
@@ -37,6 +39,20 @@ def layout_of(crop: str, config: dict[str, Any]):
     return default_layout(crop, **dict(config.get("layout") or {}))
 
 
+def _best_so_far(checkpoint: Path) -> float:
+    """The lowest loss a seed's checkpoint holds (it resumes from there), else +inf."""
+    if not checkpoint.exists():
+        return float("inf")
+    from cropcraft_core.optimize import SeedResult
+
+    try:
+        y = np.asarray(SeedResult.load(checkpoint).y, dtype=np.float64)
+    except Exception:  # unreadable: the optimiser names it when it loads the checkpoint
+        return float("inf")
+    finite = y[np.isfinite(y)]
+    return float(finite.min()) if finite.size else float("inf")
+
+
 def _run_name() -> str:
     """``fit_seed-3`` (the best row), ``fit_seed-3@row_p1`` (a neighbour row)."""
     from prefect.runtime import task_run
@@ -65,7 +81,7 @@ def fit_seed_task(
 
     A local checkpoint (``$CROPCRAFT_WORK/checkpoints``, named by the cache key) lets a seed
     killed halfway continue where it stopped on the same machine; it is removed on success.
-    Progress (with the seed's best loss so far; after a resume, of this attempt's evaluations)
+    Progress (with the seed's best loss so far, a resumed seed's stored evaluations included)
     goes to :func:`tasks.common.report_progress` every evaluation and to the run's log every
     10 %. Under ``combine="floors"`` (then part of this stage's config) the seed also polishes
     its point to its floor, stored in the seed's record for the aggregate to rank.
@@ -86,7 +102,7 @@ def fit_seed_task(
 
         tag = f"{row_label(row)}/{int(seed)}"
 
-    best = [float("inf")]
+    best = [_best_so_far(ckpt)]
 
     def callback(i: int, x: Any, y: float) -> None:
         done = i + 1

@@ -506,6 +506,28 @@ def test_fit_progress_without_a_terminal_prints_each_seeds_10_percent_marks(caps
     ]
 
 
+def test_a_resumed_seeds_progress_starts_from_its_checkpoints_best(tmp_path):
+    """A seed resumed from its checkpoint reports the best loss of every evaluation it holds,
+    not only of those it makes after the resume."""
+    import numpy as np
+
+    from cropcraft_core.optimize import BOConfig, run_seed
+    from tasks.fit_seed import _best_so_far
+
+    ckpt = tmp_path / "seed.json"
+    assert _best_so_far(ckpt) == float("inf")
+    res = run_seed(
+        lambda x, i: float(((x - 0.3) ** 2).sum()),
+        [[0, 1], [0, 1]],
+        BOConfig(n_evals=8, n_initial=4),
+        seed=1,
+        checkpoint=ckpt,
+    )
+    assert _best_so_far(ckpt) == float(np.min(res.y))
+    ckpt.write_text("{not json")
+    assert _best_so_far(ckpt) == float("inf")  # the optimiser names a bad checkpoint itself
+
+
 def test_fit_progress_keeps_prefects_task_run_records_off_the_console():
     """During a fit the console (Prefect's handler in this process, the threads runner's) drops
     task runs' INFO records, as the processes runner's workers do; warnings, the flow's stage
