@@ -83,9 +83,10 @@ def process_pool(workers: int) -> ProcessPoolTaskRunner:
 class LocalProcessPool(ProcessPoolTaskRunner):
     """Prefect's ``ProcessPoolTaskRunner`` whose worker processes run tasks as the flow's own
     threads would: their task runs report to the flow's Prefect API (``PREFECT_API_URL``; without
-    it each worker would start an ephemeral server of its own), and the fit's progress ticks
-    (:func:`tasks.common.report_progress`) reach the progress sink installed in the flow's
-    process, through a queue drained by a thread while the pool is open.
+    it each worker would start an ephemeral server of its own), and the progress ticks
+    (:class:`tasks.common.Tick`: the fit's evaluations, the surfaces' steps) reach the sink
+    installed in the flow's process, through a queue drained by a thread while the pool is
+    open.
 
     Seeds in processes skip the GIL that two optimisers share in one process (benchmarks/
     RESULTS.md *#process-runner*). Prefect re-enters a copy of the flow's runner in each worker
@@ -142,15 +143,12 @@ def _init_worker(api_url: str | None, progress_queue: Any) -> None:
     if api_url:
         os.environ["PREFECT_API_URL"] = api_url
 
-    def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
-        progress_queue.put_nowait((scene, seed, done, total, best))
-
-    set_progress_sink(sink)
+    set_progress_sink(progress_queue.put_nowait)
 
 
 def _relay_progress(queue: Any) -> None:
     """Hand each tick from the workers to this process's sink, until ``None`` arrives."""
-    from tasks.common import report_progress
+    from tasks.common import deliver
 
     while True:
         try:
@@ -159,7 +157,7 @@ def _relay_progress(queue: Any) -> None:
             return
         if tick is None:
             return
-        report_progress(*tick)
+        deliver(tick)
 
 
 def local_cluster(**kwargs: Any) -> Any:

@@ -51,7 +51,7 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
         p.add_argument(
             "--no-progress",
             action="store_true",
-            help="no progress bar: a line per fit seed every 10 %% instead",
+            help="no progress bar: a line every 10 %% of each fit seed and long stage instead",
         )
         p.add_argument(
             "--camera-height",
@@ -177,56 +177,65 @@ def _parse_scene(text: str):
 
 
 @contextmanager
-def fit_progress(bar: bool = True):
-    """The running fit's progress on the console, the same on every local runner (threads and
-    processes; the processes runner relays its workers' ticks to this process):
+def run_progress(bar: bool = True):
+    """A run's progress on the console, the same on every local runner (threads and
+    processes; the processes runner relays its workers' ticks, :class:`tasks.common.Tick`, to
+    this process):
 
-    - on a terminal, unless ``bar`` is off: one tqdm bar over all seeds' evaluations, with the
-      lowest loss any seed has reached;
-    - otherwise (a log file, a nightly job, ``--no-progress``): one line per seed every 10 %
-      of its evaluations, with that seed's best loss so far.
+    - on a terminal, unless ``bar`` is off: one tqdm bar, over a long stage's step while it
+      runs (the surfaces' stereo, in per cent), then over all seeds' fit evaluations, with
+      the lowest loss any seed has reached;
+    - otherwise (a log file, a nightly job, ``--no-progress``): a line at every 10 % of each
+      stage step and of each seed's evaluations, with that seed's best loss so far.
 
     Prefect's task-run records stay off the console meanwhile (:func:`_task_runs_off_console`);
     the Prefect UI still gets every one of them.
     """
-    from tasks.common import set_progress_sink
+    from tasks.common import Tick, set_progress_sink
 
     lock = threading.Lock()
-    state: dict[int | str, tuple[int, int, float | None]] = {}
     if bar and sys.stderr.isatty():
         from tqdm import tqdm
 
-        pbar = tqdm(total=0, unit="eval", desc="fit (BO evaluations)", dynamic_ncols=True)
+        pbar = tqdm(total=0, dynamic_ncols=True)
+        fits: dict[int | str, Tick] = {}
 
-        def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
+        def sink(tick: Tick) -> None:
             with lock:
-                state[seed] = (done, total, best)
-                pbar.total = sum(t for _, t, _ in state.values())
-                pbar.n = sum(d for d, _, _ in state.values())
-                bests = [b for _, _, b in state.values() if b is not None]
-                if bests:
-                    pbar.set_postfix_str(f"best loss {min(bests):.4g}", refresh=False)
+                if tick.kind == "stage":
+                    pbar.set_description_str(tick.key, refresh=False)
+                    pbar.unit, pbar.total, pbar.n = "%", tick.total, tick.done
+                    pbar.set_postfix_str("", refresh=False)
+                else:
+                    fits[tick.key] = tick
+                    pbar.set_description_str("fit (BO evaluations)", refresh=False)
+                    pbar.unit = "eval"
+                    pbar.total = sum(t.total for t in fits.values())
+                    pbar.n = sum(t.done for t in fits.values())
+                    bests = [t.best for t in fits.values() if t.best is not None]
+                    if bests:
+                        pbar.set_postfix_str(f"best loss {min(bests):.4g}", refresh=False)
                 pbar.refresh()
 
         close = pbar.close
     else:
+        seen: dict[tuple[str, int | str], int] = {}
 
-        def sink(scene: str, seed: int | str, done: int, total: int, best: float | None) -> None:
-            step = max(1, total // 10)
+        def sink(tick: Tick) -> None:
+            step = max(1, tick.total // 10)
             with lock:
-                seen = state.get(seed, (0, total, None))[0]
-                state[seed] = (done, total, best)
-                crossed = done // step > seen // step  # each 10 % mark
-                finished = done == total != seen  # once at the end
+                before = seen.get((tick.kind, tick.key), 0)
+                seen[(tick.kind, tick.key)] = tick.done
+                crossed = tick.done // step > before // step  # each 10 % mark
+                finished = tick.done == tick.total != before  # once at the end
                 if not (crossed or finished):
                     return
-                when = time.strftime("%H:%M:%S")
-                loss = "" if best is None else f", best loss {best:.4g}"
-                print(
-                    f"{when} | fit seed {seed}: {done}/{total} evaluations{loss}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                if tick.kind == "stage":
+                    text = f"{tick.key}: {round(100 * tick.done / max(1, tick.total))} %"
+                else:
+                    loss = "" if tick.best is None else f", best loss {tick.best:.4g}"
+                    text = f"fit seed {tick.key}: {tick.done}/{tick.total} evaluations{loss}"
+                print(f"{time.strftime('%H:%M:%S')} | {text}", file=sys.stderr, flush=True)
 
         def close() -> None:
             return None
@@ -274,7 +283,7 @@ def _task_runs_off_console():
 def _quiet_prefect() -> None:
     """Prefect's INFO logging off the console of processes started from here on (the
     ``processes`` runner's workers; this process configured its logging when Prefect loaded,
-    and :func:`fit_progress` quiets its task runs)."""
+    and :func:`run_progress` quiets its task runs)."""
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
 
@@ -352,7 +361,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _quiet_prefect()
     if args.force:
         os.environ["PREFECT_TASKS_REFRESH_CACHE"] = "true"
-    with fit_progress(not args.no_progress):
+    with run_progress(not args.no_progress):
         out = run_scene(
             scene.site,
             scene.crop,
@@ -376,7 +385,7 @@ def cmd_season(args: argparse.Namespace) -> int:
 
     site, _, crop = args.site_crop.partition("/")
     _quiet_prefect()
-    with fit_progress(not args.no_progress):
+    with run_progress(not args.no_progress):
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
         print(f"{date}  {state}")
@@ -537,7 +546,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = cached_result(req)
     if out is None:
         _quiet_prefect()
-        with fit_progress(not args.no_progress):
+        with run_progress(not args.no_progress):
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
     truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")
     metrics = store.get_json(f"{site}/{crop}/{date}/metrics/metrics.json")

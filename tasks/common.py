@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from prefect import task
 
@@ -389,15 +389,30 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
 
 # --------------------------------------------------------------------------- progress
 
+
+class Tick(NamedTuple):
+    """One progress report. ``kind="fit"``: an optimiser evaluation finished; ``key`` is the
+    optimiser seed (``"row_p1/3"`` for seed 3 of a neighbour row's fit), ``done`` / ``total``
+    its evaluations and ``best`` its lowest loss so far (``None`` before the first).
+    ``kind="stage"``: a long stage's step moved on; ``key`` names it (``"surfaces: stereo"``),
+    ``done`` / ``total`` its progress (per cent for the surfaces)."""
+
+    scene: str
+    key: int | str
+    done: int
+    total: int
+    best: float | None = None
+    kind: str = "fit"
+
+
 _progress_lock = threading.Lock()
-ProgressSink = Callable[[str, int | str, int, int, float | None], None]
+ProgressSink = Callable[[Tick], None]
 _progress_sink: ProgressSink | None = None
 
 
 def set_progress_sink(sink: ProgressSink | None) -> None:
-    """Install ``sink(scene, seed, done, total, best)``, called as optimiser evaluations
-    finish; ``seed`` is the optimiser seed, or ``"row_p1/3"`` for seed 3 of a neighbour row's
-    fit, and ``best`` the seed's lowest loss so far (``None`` before its first evaluation).
+    """Install ``sink(tick)``, called with each :class:`Tick` (the CLI's console progress,
+    ``flows.service_cli.run_progress``).
 
     Tasks running in this process report (threads runner), and so do the workers of the
     ``processes`` runner, through a queue (``flows.runners.LocalProcessPool``); on Dask workers
@@ -408,11 +423,22 @@ def set_progress_sink(sink: ProgressSink | None) -> None:
         _progress_sink = sink
 
 
-def report_progress(
-    scene: str, seed: int | str, done: int, total: int, best: float | None = None
-) -> None:
-    """Forward one progress tick to the installed sink (no-op without one)."""
+def deliver(tick: Tick) -> None:
+    """Hand ``tick`` to the installed sink (no-op without one; a failing sink is ignored)."""
     sink = _progress_sink
     if sink is not None:
         with contextlib.suppress(Exception):
-            sink(scene, seed, done, total, best)
+            sink(tick)
+
+
+def report_progress(
+    scene: str, seed: int | str, done: int, total: int, best: float | None = None
+) -> None:
+    """One fit evaluation finished: a ``fit`` :class:`Tick`."""
+    deliver(Tick(scene, seed, int(done), int(total), best, "fit"))
+
+
+def report_stage(scene: str, what: str, done: int, total: int) -> None:
+    """A long stage's step moved on: a ``stage`` :class:`Tick` (``what``: e.g.
+    ``"surfaces: stereo"``)."""
+    deliver(Tick(scene, what, int(done), int(total), None, "stage"))

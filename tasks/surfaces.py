@@ -7,7 +7,17 @@ from typing import Any
 import numpy as np
 
 from cropcraft_core.errors import CropCraftError
-from tasks.common import Timer, artefact, core, key_of, make_record, open_store, stage_task, workdir
+from tasks.common import (
+    Timer,
+    artefact,
+    core,
+    key_of,
+    make_record,
+    open_store,
+    report_stage,
+    stage_task,
+    workdir,
+)
 
 
 def _surfaces_api():
@@ -18,6 +28,24 @@ def _surfaces_api():
             f"stage surfaces not available: cropcraft_core.surfaces cannot be imported ({exc})"
         ) from exc
     return SurfacesConfig, make_backend
+
+
+def _progress(scene: str):
+    """The backend's ``progress(step, fraction)``: to the console's progress
+    (:func:`tasks.common.report_stage`, in per cent) and to the run's log at every 25 %."""
+    from prefect import get_run_logger
+
+    log = get_run_logger()
+    logged: dict[str, int] = {}
+
+    def progress(step: str, fraction: float) -> None:
+        pct = int(round(100 * min(1.0, max(0.0, float(fraction)))))
+        report_stage(scene, f"surfaces: {step}", pct, 100)
+        if pct // 25 > logged.get(step, 0) // 25 or (pct == 100 and step not in logged):
+            log.info("surfaces: %s %d %%", step, pct)
+        logged[step] = pct
+
+    return progress
 
 
 @stage_task("surfaces")
@@ -54,7 +82,7 @@ def surfaces(
         if cfg.get("backend") == "nerfacto" and not cfg.get("workdir"):
             cfg["workdir"] = str(tmp / "nerfacto")  # its photos and checkpoints go with tmp
         backend = make_backend(SurfacesConfig.from_dict(cfg))
-        backend.fit(images, poses.cameras, bbox)
+        backend.fit(images, poses.cameras, bbox, progress=_progress(scene))
         points, colors = backend.point_cloud(n_points)
         backend.save(tmp / "model")
         hashes.update(store.put_tree(tmp / "model", artefact(scene, "surfaces", "model")))

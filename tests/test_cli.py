@@ -482,13 +482,17 @@ def test_run_summary_prints_each_rows_lai_and_their_spread(capsys):
     assert capsys.readouterr().out == ""
 
 
-def test_fit_progress_without_a_terminal_prints_each_seeds_10_percent_marks(capsys):
-    """Without a terminal (a nightly job's log) the fit's progress is one line per seed at
-    each 10 % of its evaluations and once at the end, with that seed's best loss so far."""
-    from flows.service_cli import fit_progress
-    from tasks.common import report_progress
+def test_run_progress_without_a_terminal_prints_each_10_percent_mark(capsys):
+    """Without a terminal (a nightly job's log) a run's progress is one line at each 10 % of a
+    long stage's step (the surfaces' stereo) and of each seed's evaluations, and once at the
+    end, the seed's with its best loss so far."""
+    from flows.service_cli import run_progress
+    from tasks.common import report_progress, report_stage
 
-    with fit_progress(bar=True):  # pytest's stderr is no terminal: lines, not a bar
+    with run_progress(bar=True):  # pytest's stderr is no terminal: lines, not a bar
+        for i in range(1, 51):  # 50 views
+            report_stage("s/soybean/d", "surfaces: stereo", round(100 * i / 50), 100)
+        report_stage("s/soybean/d", "surfaces: fusion", 100, 100)
         for done in range(1, 45):  # seed 0 stops early at 44 of 50 (a converged polish)
             report_progress("s/soybean/d", 0, done, 50, 1.0 / done)
         report_progress("s/soybean/d", 0, 50, 50, 0.0123)
@@ -504,6 +508,34 @@ def test_fit_progress_without_a_terminal_prints_each_seeds_10_percent_marks(caps
     assert [line.split(" | ", 1)[1] for line in lines if "row_p1" in line] == [
         "fit seed row_p1/2: 7/7 evaluations"
     ]
+    assert [line.split(" | ", 1)[1] for line in lines if "surfaces" in line] == [
+        *(f"surfaces: stereo: {p} %" for p in range(10, 101, 10)),
+        "surfaces: fusion: 100 %",
+    ]
+
+
+def test_run_progress_on_a_terminal_is_one_bar_from_stage_to_fit(monkeypatch):
+    """On a terminal one bar follows the run: the surfaces' step in per cent, then all seeds'
+    evaluations with the lowest loss any seed has reached."""
+    import io
+    import sys
+
+    from flows.service_cli import run_progress
+    from tasks.common import report_progress, report_stage
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    with run_progress(bar=True):
+        report_stage("s/soybean/d", "surfaces: stereo", 40, 100)
+        assert "surfaces: stereo" in term.getvalue().rsplit("\r", 1)[-1]
+        report_progress("s/soybean/d", 0, 30, 50, 0.2)
+        report_progress("s/soybean/d", 1, 20, 50, 0.1)
+        last = term.getvalue().rsplit("\r", 1)[-1]
+    assert "fit (BO evaluations)" in last and "50/100" in last and "best loss 0.1" in last
 
 
 def test_a_resumed_seeds_progress_starts_from_its_checkpoints_best(tmp_path):
@@ -528,7 +560,7 @@ def test_a_resumed_seeds_progress_starts_from_its_checkpoints_best(tmp_path):
     assert _best_so_far(ckpt) == float("inf")  # the optimiser names a bad checkpoint itself
 
 
-def test_fit_progress_keeps_prefects_task_run_records_off_the_console():
+def test_run_progress_keeps_prefects_task_run_records_off_the_console():
     """During a fit the console (Prefect's handler in this process, the threads runner's) drops
     task runs' INFO records, as the processes runner's workers do; warnings, the flow's stage
     lines and everything after the fit still print."""
@@ -536,7 +568,7 @@ def test_fit_progress_keeps_prefects_task_run_records_off_the_console():
 
     from prefect.logging.handlers import PrefectConsoleHandler
 
-    from flows.service_cli import fit_progress
+    from flows.service_cli import run_progress
 
     console = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
     assert console, "Prefect configured no console handler"
@@ -545,7 +577,7 @@ def test_fit_progress_keeps_prefects_task_run_records_off_the_console():
         record = logging.LogRecord(name, level, __file__, 1, "msg", None, None)
         return all(h.filter(record) for h in console)
 
-    with fit_progress(bar=False):
+    with run_progress(bar=False):
         assert not shown("prefect.task_runs", logging.INFO)
         assert shown("prefect.task_runs", logging.WARNING)
         assert shown("prefect.flow_runs", logging.INFO)

@@ -706,13 +706,13 @@ def _copy_without_late_results(src: Path, dst: Path) -> None:
 def test_process_runners_give_the_same_result_as_threads(
     base_run, scene_dir, tmp_path, runner, capsys
 ):
-    from flows.service_cli import fit_progress
+    from flows.service_cli import run_progress
 
     if runner == "dask":
         pytest.importorskip("prefect_dask")
     store = tmp_path / f"store-{runner}"
     _copy_without_late_results(base_run["store"], store)
-    with fit_progress(bar=False):  # the CLI's console progress without a terminal
+    with run_progress(bar=False):  # the CLI's console progress without a terminal
         out = _run("plotA", store, scene_dir, runner=runner)
     assert _executed(out["states"]) == sorted(
         [*(f"fit_seed-{s}" for s in range(N_SEEDS)), *LATE_STAGES]
