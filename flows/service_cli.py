@@ -231,7 +231,7 @@ def run_progress(bar: bool = True):
                 if not (crossed or finished):
                     return
                 if tick.kind == "stage":
-                    text = f"{tick.key}: {round(100 * tick.done / max(1, tick.total))} %"
+                    text = f"{tick.key} {round(100 * tick.done / max(1, tick.total))} %"
                 else:
                     loss = "" if tick.best is None else f", best loss {tick.best:.4g}"
                     text = f"fit seed {tick.key}: {tick.done}/{tick.total} evaluations{loss}"
@@ -256,7 +256,9 @@ class _BelowWarning:
         self.prefix = prefix
 
     def filter(self, record: Any) -> bool:
-        return record.levelno >= 30 or not record.name.startswith(self.prefix)
+        import logging
+
+        return record.levelno >= logging.WARNING or not record.name.startswith(self.prefix)
 
 
 @contextmanager

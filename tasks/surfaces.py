@@ -41,7 +41,7 @@ def _progress(scene: str):
     def progress(step: str, fraction: float) -> None:
         pct = int(round(100 * min(1.0, max(0.0, float(fraction)))))
         report_stage(scene, f"surfaces: {step}", pct, 100)
-        if pct // 25 > logged.get(step, 0) // 25 or (pct == 100 and step not in logged):
+        if pct // 25 > logged.get(step, 0) // 25:  # each 25 % mark (a lone 100 % too)
             log.info("surfaces: %s %d %%", step, pct)
         logged[step] = pct
 

@@ -509,8 +509,8 @@ def test_run_progress_without_a_terminal_prints_each_10_percent_mark(capsys):
         "fit seed row_p1/2: 7/7 evaluations"
     ]
     assert [line.split(" | ", 1)[1] for line in lines if "surfaces" in line] == [
-        *(f"surfaces: stereo: {p} %" for p in range(10, 101, 10)),
-        "surfaces: fusion: 100 %",
+        *(f"surfaces: stereo {p} %" for p in range(10, 101, 10)),
+        "surfaces: fusion 100 %",
     ]
 
 
