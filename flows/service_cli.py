@@ -199,17 +199,25 @@ def run_progress(bar: bool = True):
 
         pbar = tqdm(total=0, dynamic_ncols=True)
         fits: dict[int | str, Tick] = {}
+        showing = [""]
+
+        def show(what: str, unit: str) -> None:
+            """Restart the bar (its clock and rate too) when it moves to another step."""
+            if showing[0] != what:
+                showing[0] = what
+                pbar.unit = unit
+                pbar.set_description_str(what, refresh=False)
+                pbar.set_postfix_str("", refresh=False)
+                pbar.reset()
 
         def sink(tick: Tick) -> None:
             with lock:
                 if tick.kind == "stage":
-                    pbar.set_description_str(tick.key, refresh=False)
-                    pbar.unit, pbar.total, pbar.n = "%", tick.total, tick.done
-                    pbar.set_postfix_str("", refresh=False)
+                    show(str(tick.key), "%")
+                    pbar.total, pbar.n = tick.total, tick.done
                 else:
                     fits[tick.key] = tick
-                    pbar.set_description_str("fit (BO evaluations)", refresh=False)
-                    pbar.unit = "eval"
+                    show("fit (BO evaluations)", "eval")
                     pbar.total = sum(t.total for t in fits.values())
                     pbar.n = sum(t.done for t in fits.values())
                     bests = [t.best for t in fits.values() if t.best is not None]
