@@ -407,9 +407,9 @@ def combine(
             floor = None
             if rule == "guarded" and selection is None and evals > 0:
                 # the median's floor needs no re-scoring: made beside it, in a second thread
-                other = sl.own_forward(forward)
+                other, seeds = sl.own_forward(forward), sl.reevaluation_seeds(k_canopies)
                 sel, floor = sl.beside(
-                    selected, lambda: sl.median_floor(other, results, k_canopies, evals, box)
+                    selected, lambda: sl.median_floor(other, results, seeds, evals, box)
                 )
                 sl.add_timings(forward, other)
             else:

@@ -375,18 +375,19 @@ class MedianFloor:
 def median_floor(
     forward: ForwardModel,
     results: Sequence[SeedResult],
-    canopies: int,
+    canopy_seeds: Sequence[int],
     polish_evals: int,
     box: ParamBox | None = None,
 ) -> MedianFloor:
     """The seeds' per-parameter median and its floor: :func:`polish` from it (``polish_evals``
-    evaluations; 0: the median itself) on the ``canopies`` re-scoring canopies, which
-    :func:`select` scores on too. It needs no re-scoring first, so :func:`~cropcraft_core.fit.
-    combine` runs it beside :func:`select` (:func:`beside`)."""
+    evaluations; 0: the median itself) on the canopies ``canopy_seeds``, the re-scoring's
+    (:func:`reevaluation_seeds`, which :func:`select` scores on too). It needs no re-scoring
+    first, so :func:`~cropcraft_core.fit.combine` runs it beside :func:`select`
+    (:func:`beside`)."""
     box = box or ParamBox.of(forward.crop)
     t = time.perf_counter()
     median = np.median(aggregate(list(results)).per_seed, axis=0)
-    seeds = reevaluation_seeds(canopies)
+    seeds = list(canopy_seeds)
     floor = median
     if polish_evals > 0:
         floor, _, _ = polish(forward, median, seeds, polish_evals, box)
@@ -424,7 +425,7 @@ def guard(
     seeds = list(selection.canopy_seeds)
     made = 0.0
     if floor is None or list(floor.canopy_seeds) != seeds or floor.polish_evals != polish_evals:
-        floor = median_floor(forward, results, len(seeds), polish_evals, box)
+        floor = median_floor(forward, results, seeds, polish_evals, box)
     else:
         made = floor.seconds
     fresh = reevaluation_seeds(len(seeds) + check)[len(seeds) :]
