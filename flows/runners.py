@@ -48,7 +48,7 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
     """A Prefect task runner for ``spec``.
 
     threads: ``ThreadPoolTaskRunner`` with ``workers`` threads (default: CPU count, at most 8).
-    processes: :func:`process_pool` of ``workers`` spawned processes (default as threads).
+    processes: :class:`LocalProcessPool` of ``workers`` spawned processes (default as threads).
     dask: ``DaskTaskRunner`` over a temporary :func:`local_cluster` of ``workers``
     single-threaded worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
     """
@@ -57,7 +57,9 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
         from prefect.task_runners import ThreadPoolTaskRunner
 
         n = workers or min(8, os.cpu_count() or 2)
-        return ThreadPoolTaskRunner(max_workers=n) if kind == "threads" else process_pool(n)
+        if kind == "processes":
+            return LocalProcessPool(max_workers=n)
+        return ThreadPoolTaskRunner(max_workers=n)
     try:
         from prefect_dask import DaskTaskRunner
     except ImportError as exc:  # pragma: no cover - a dependency
@@ -73,11 +75,6 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
             "dashboard_address": None,
         },
     )
-
-
-def process_pool(workers: int) -> ProcessPoolTaskRunner:
-    """The ``processes`` runner: :class:`LocalProcessPool` of ``workers`` spawned processes."""
-    return LocalProcessPool(max_workers=workers)
 
 
 class LocalProcessPool(ProcessPoolTaskRunner):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 import threading
@@ -263,9 +264,7 @@ class _BelowWarning:
     def __init__(self, prefix: str) -> None:
         self.prefix = prefix
 
-    def filter(self, record: Any) -> bool:
-        import logging
-
+    def filter(self, record: logging.LogRecord) -> bool:
         return record.levelno >= logging.WARNING or not record.name.startswith(self.prefix)
 
 
@@ -275,8 +274,6 @@ def _task_runs_off_console():
     fit's own 10 % lines) off this process's console, as the ``processes`` runner's workers
     already do (they start with ``PREFECT_LOGGING_LEVEL=WARNING``, :func:`_quiet_prefect`).
     The flow's stage lines stay; the records still reach the Prefect API."""
-    import logging
-
     from prefect.logging.handlers import PrefectConsoleHandler
 
     handlers = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
