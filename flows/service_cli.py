@@ -15,8 +15,8 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 from cropcraft_core.errors import ConfigError
@@ -194,31 +194,55 @@ def run_progress(bar: bool = True):
     """
     from tasks.common import Tick, set_progress_sink
 
-    lock = threading.Lock()
+    lock = threading.RLock()
+    above = nullcontext()
     if bar and sys.stderr.isatty():
         from tqdm import tqdm
 
-        pbar = tqdm(total=0, dynamic_ncols=True)
         fits: dict[int | str, Tick] = {}
         showing = [""]
+        bars: list[tqdm] = []  # made at the first tick: no empty bar over the run's first lines
 
-        def show(what: str, unit: str) -> None:
-            """Restart the bar (its clock and rate too) when it moves to another step."""
+        left = [""]  # the step whose finished bar was last left on the screen
+
+        def leave_finished() -> None:
+            """A finished step's bar stays as a line with its time, no longer redrawn (its
+            clock would run on under the next lines)."""
+            if bars and bars[0].total and bars[0].n >= bars[0].total:
+                bars.pop().close()
+                left[0], showing[0] = showing[0], ""
+
+        above = _logs_above_bar(lock, leave_finished)
+
+        def show(what: str, unit: str) -> tqdm:
+            """The bar; restarted (its clock and rate too) when it moves to another step."""
+            if showing[0] != what:
+                leave_finished()
+            if not bars:
+                bars.append(tqdm(total=0, dynamic_ncols=True, desc=what, unit=unit))
+                showing[0] = what
+            pbar = bars[0]
             if showing[0] != what:
                 showing[0] = what
                 pbar.unit = unit
                 pbar.set_description_str(what, refresh=False)
                 pbar.set_postfix_str("", refresh=False)
                 pbar.reset()
+            return pbar
 
         def sink(tick: Tick) -> None:
             with lock:
                 if tick.kind == "stage":
-                    show(str(tick.key), "%")
+                    if tick.done >= tick.total and left[0] == str(tick.key) != showing[0]:
+                        return  # the finished step's closing tick again
+                    pbar = show(str(tick.key), "%")
                     pbar.total, pbar.n = tick.total, tick.done
+                    if tick.done >= tick.total:  # a stage's steps run one after the other
+                        leave_finished()  # (closing draws the bar's last state)
+                        return
                 else:
                     fits[tick.key] = tick
-                    show("fit (BO evaluations)", "eval")
+                    pbar = show("fit (BO evaluations)", "eval")
                     pbar.total = sum(t.total for t in fits.values())
                     pbar.n = sum(t.done for t in fits.values())
                     bests = [t.best for t in fits.values() if t.best is not None]
@@ -226,7 +250,10 @@ def run_progress(bar: bool = True):
                         pbar.set_postfix_str(f"best loss {min(bests):.4g}", refresh=False)
                 pbar.refresh()
 
-        close = pbar.close
+        def close() -> None:
+            for pbar in bars:
+                pbar.close()
+
     else:
         seen: dict[tuple[str, int | str], int] = {}
 
@@ -251,11 +278,52 @@ def run_progress(bar: bool = True):
 
     set_progress_sink(sink)
     try:
-        with _task_runs_off_console():
+        with _task_runs_off_console(), above:
             yield
     finally:
         set_progress_sink(None)
         close()
+
+
+def _logs_above_bar(lock: threading.RLock, before: Callable[[], None]):
+    """While the bar is up, a record the console's log handlers print (the flow's stage lines,
+    warnings) takes its own line above the bar, which is redrawn under it, instead of being
+    written over the bar's line; ``before()`` runs first (under ``lock``). Every stream
+    handler of the root logger writing to a terminal gets its ``emit`` wrapped (the same
+    handler instance serves Prefect's other console loggers); the wrap comes off when the run
+    ends."""
+    from tqdm import tqdm
+
+    @contextmanager
+    def wrapped():
+        handlers = [
+            h
+            for h in logging.getLogger().handlers
+            if isinstance(h, logging.StreamHandler) and _is_terminal(h.stream)
+        ]
+        for h in handlers:
+
+            def emit(record: logging.LogRecord, plain=h.emit, stream=h.stream) -> None:
+                with lock:
+                    before()
+                    with tqdm.external_write_mode(file=stream):
+                        plain(record)
+
+            h.emit = emit  # an instance attribute: ``del`` brings the class's back
+        try:
+            yield
+        finally:
+            for h in handlers:
+                vars(h).pop("emit", None)
+
+    return wrapped()
+
+
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed file
+        return False
 
 
 class _BelowWarning:

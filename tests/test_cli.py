@@ -538,6 +538,64 @@ def test_run_progress_on_a_terminal_is_one_bar_from_stage_to_fit(monkeypatch):
     assert "fit (BO evaluations)" in last and "50/100" in last and "best loss 0.1" in last
 
 
+def test_a_log_line_on_a_terminal_prints_above_the_bar_not_over_it(monkeypatch):
+    """A record the console prints while the bar is up (the flow's stage lines, warnings) gets
+    its own line: the bar is cleared before it and redrawn under it, unless its step is
+    finished, when the bar stays above as a line; after the run the console handler writes as
+    before."""
+    import io
+    import logging
+    import sys
+
+    from flows.service_cli import run_progress
+    from tasks.common import report_progress, report_stage
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    console = logging.StreamHandler(term)
+    console.setFormatter(logging.Formatter("%(message)s"))
+    log = logging.getLogger("cropcraft.test.console")
+    monkeypatch.setattr(log, "propagate", False)
+    monkeypatch.setattr(log, "level", logging.INFO)
+    log.addHandler(console)
+    logging.getLogger().addHandler(console)  # the root's handlers are the ones wrapped
+    try:
+        with run_progress(bar=True):
+            log.info("ingest: Completed (0.6 s)")
+            assert term.getvalue() == "ingest: Completed (0.6 s)\n"  # no bar before a tick
+            report_stage("s/soybean/d", "surfaces: stereo", 40, 100)
+            log.info("surfaces: Completed (437.1 s)")
+            before, after = term.getvalue().split("surfaces: Completed (437.1 s)")
+            # the bar's line was blanked and the cursor sent back before the message ...
+            assert before.endswith("\r") and before.rsplit("\r", 2)[-2].strip() == ""
+            # ... which ends its line; the bar is drawn again below it
+            assert after.startswith("\n") and "40/100" in after
+            # a finished step's bar stays above as a line of its own and is not drawn again
+            report_stage("s/soybean/d", "surfaces: stereo", 100, 100)
+            report_stage("s/soybean/d", "surfaces: stereo", 100, 100)  # its closing tick again
+            log.info("surfaces: Completed (437.1 s)")
+            done, msg = term.getvalue().rsplit("\n", 2)[-3:-1]
+            assert "100/100" in done.rsplit("\r", 1)[-1] and msg == "surfaces: Completed (437.1 s)"
+            assert term.getvalue().count("100/100") == 1
+            # so does the fit's, once a line is printed under it
+            report_progress("s/soybean/d", 0, 1, 2, 0.2)  # the next step: a new bar
+            assert "1/2" in term.getvalue().rsplit("\r", 1)[-1]
+            report_progress("s/soybean/d", 0, 2, 2, 0.1)
+            log.info("aggregate: Completed (97.7 s)")
+            done, msg = term.getvalue().rsplit("\n", 2)[-3:-1]
+            assert "2/2" in done.rsplit("\r", 1)[-1] and msg == "aggregate: Completed (97.7 s)"
+        assert "emit" not in vars(console)
+        log.info("after the run")
+        assert term.getvalue().endswith("after the run\n")
+    finally:
+        logging.getLogger().removeHandler(console)
+        log.removeHandler(console)
+
+
 def test_a_resumed_seeds_progress_starts_from_its_checkpoints_best(tmp_path):
     """A seed resumed from its checkpoint reports the best loss of every evaluation it holds,
     not only of those it makes after the resume."""
