@@ -207,3 +207,49 @@ def test_default_border_hides_the_canopy_edge_from_the_row_camera(crop, height):
     built = plot_region(lay)
     assert built[0] <= needed[0] and built[1] >= needed[1]
     assert built[2] <= needed[2] and built[3] >= needed[3]
+
+
+def _tilted(cam: PinholeCamera, deg: float) -> PinholeCamera:
+    """``cam`` turned by ``deg`` about its own image x axis (an oblique view)."""
+    a = np.radians(deg)
+    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    m = cam.cam_to_world.copy()
+    m[:3, :3] = m[:3, :3] @ turn
+    return PinholeCamera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, m)
+
+
+@pytest.mark.parametrize("crop", CROPS)
+def test_a_canopy_built_for_a_view_renders_the_same_depth_to_the_bit(crop):
+    """Leaving out the organs a camera cannot see (the fit's canopies) changes nothing that
+    camera renders, for straight-down and oblique views, off-centre, over rows at an azimuth;
+    it does leave out most of a soybean canopy's faces seen from the 1 m row camera."""
+    from cropcraft_core.render import render_depth
+
+    height = 1.0 if crop == "soybean" else 4.0
+    straight = PinholeCamera.look_down((0.3, -0.2), height, row_direction=(1.0, 0.4))
+    cameras = [PinholeCamera.look_down(height_m=height), straight, _tilted(straight, 35.0)]
+    for i, params in enumerate(draws(crop, 2, seed=7)):
+        for lay in (default_layout(crop), default_layout(crop, row_azimuth_deg=30.0)):
+            for cam in cameras:
+                full = generate_canopy(crop, params, lay, seed=i)
+                seen = generate_canopy(crop, params, lay, seed=i, view=cam)
+                a = render_depth(full.mesh.vertices, full.mesh.faces, cam).depth
+                b = render_depth(seen.mesh.vertices, seen.mesh.faces, cam).depth
+                assert np.array_equal(a, b, equal_nan=True)
+                assert np.isfinite(a).sum() > 1000  # the view does see plants
+                assert seen.mesh.n_faces < full.mesh.n_faces
+                assert np.array_equal(seen.node_xyz, full.node_xyz)  # the records stay whole
+    top = generate_canopy(crop, None, seed=0, view=cameras[0])
+    if crop == "soybean":
+        assert top.mesh.n_faces < 0.5 * generate_canopy(crop, None, seed=0).mesh.n_faces
+
+
+def test_sees_spheres_is_false_only_wholly_outside_the_view():
+    cam = PinholeCamera.look_down(height_m=1.0)  # footprint at z = 0: |x| ≤ 0.62, |y| ≤ 0.47
+    x_edge = cam.ground_footprint()[:, 0].max()
+    centres = np.array(
+        [[0, 0, 0.5], [x_edge + 0.05, 0, 0], [x_edge + 0.2, 0, 0], [0, 0, 2.0], [0, 0, 1.5]]
+    )
+    seen = cam.sees_spheres(centres, np.array([0.01, 0.1, 0.1, 0.1, 0.6]))
+    # inside; reaching in; wholly outside; behind the camera; behind it but reaching round
+    assert seen.tolist() == [True, True, False, False, True]

@@ -152,6 +152,26 @@ class PinholeCamera:
         d = self.ray_directions(normalized=False)
         return self.center + d * depth[..., None]
 
+    def sees_spheres(self, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """(n,) bool: False only for the (n, 3) world spheres of (n,) ``radii`` that lie wholly
+        outside the image's viewing pyramid (beyond one of its four side planes, through the
+        image borders; the four together also exclude what is behind the camera), so that none
+        of their points can project into the image. Conservative: a sphere near a plane (within
+        1 mm more than its radius) counts as seen."""
+        pc = self.to_camera(np.asarray(centres, dtype=np.float64).reshape(-1, 3))
+        x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+        r = np.asarray(radii, dtype=np.float64) + 1e-3
+        seen = np.ones(len(pc), dtype=bool)
+        # inside ⇔ a·(x or y) + b·z >= 0 for each plane (u >= 0, u <= W, v >= 0, v <= H)
+        for a, b, q in (
+            (self.fx, self.cx, x),
+            (-self.fx, self.width - self.cx, x),
+            (self.fy, self.cy, y),
+            (-self.fy, self.height - self.cy, y),
+        ):
+            seen &= (a * q + b * z) / math.hypot(a, b) >= -r
+        return seen
+
     def ground_footprint(self, ground_z: float = 0.0) -> np.ndarray:
         """(4, 2) xy corners where the image corners' rays meet the plane z = ground_z."""
         corners = np.array(

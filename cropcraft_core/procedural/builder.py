@@ -6,7 +6,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.geometry.mesh import CanopyMesh, Organ
+from cropcraft_core.procedural.primitives import (
+    LEAFLET_FACES,
+    PRISM_N_FACES,
+    flat_leaves,
+    prisms,
+    strip_blades,
+)
 
 
 @dataclass
@@ -22,6 +30,12 @@ class NodeRecords:
 
 @dataclass
 class MeshBuilder:
+    """Collects the parts of a canopy. With a ``view`` (a ``PinholeCamera``) the species models
+    leave out the parts that camera cannot see (:meth:`keep`) before they build them: a scene
+    fit renders thousands of canopies from one row camera, and most of the plants built for the
+    view's margin reach into it with a few leaves only."""
+
+    view: PinholeCamera | None = None
     _v: list = field(default_factory=list)
     _f: list = field(default_factory=list)
     _organ: list = field(default_factory=list)
@@ -48,6 +62,74 @@ class MeshBuilder:
         self._organ.append(np.full(len(faces), int(organ), np.uint8))
         self._plant.append(np.repeat(instance_plant.astype(np.int32), faces_per_instance))
         self._node.append(np.repeat(instance_node.astype(np.int32), faces_per_instance))
+
+    def keep(self, centres: np.ndarray, radii: np.ndarray) -> np.ndarray | None:
+        """Which of the parts enclosed by these (n, 3) world spheres of (n,) ``radii`` to build:
+        an (n,) bool mask, False for the wholly outside ``view``; None (all) without a view.
+        Dropping whole parts leaves every kept face's vertices the same floats, in the same
+        order, so the view's depth map is the same to the bit."""
+        if self.view is None:
+            return None
+        return self.view.sees_spheres(centres, radii)
+
+    def add_prisms(
+        self,
+        start: np.ndarray,
+        end: np.ndarray,
+        r_start: np.ndarray,
+        r_end: np.ndarray,
+        organ: Organ,
+        plant: np.ndarray,
+        node: np.ndarray,
+    ) -> None:
+        """Thin segments start (S, 3) → end (S, 3) as prisms (``primitives.prisms``), those
+        the view cannot see left out."""
+        half = 0.5 * np.sqrt(((end - start) ** 2).sum(axis=1))
+        keep = self.keep(0.5 * (start + end), half + np.maximum(r_start, r_end))
+        if keep is not None:
+            start, end, r_start, r_end = start[keep], end[keep], r_start[keep], r_end[keep]
+            plant, node = plant[keep], node[keep]
+        v, f = prisms(start, end, r_start, r_end)
+        self.add(v, f, organ, plant, node, PRISM_N_FACES)
+
+    def add_leaflets(
+        self,
+        base: np.ndarray,
+        axis: np.ndarray,
+        across: np.ndarray,
+        length: np.ndarray,
+        width: np.ndarray,
+        organ: Organ,
+        plant: np.ndarray,
+        node: np.ndarray,
+    ) -> None:
+        """Flat leaflets (``primitives.flat_leaves``), those the view cannot see left out: a
+        leaflet lies within half its length-and-width diagonal of its outline's box centre."""
+        keep = self.keep(base + 0.5 * length[:, None] * axis, 0.5 * np.hypot(length, width))
+        if keep is not None:
+            base, axis, across = base[keep], axis[keep], across[keep]
+            length, width, plant, node = length[keep], width[keep], plant[keep], node[keep]
+        v, f = flat_leaves(base, axis, across, length, width)
+        self.add(v, f, organ, plant, node, len(LEAFLET_FACES))
+
+    def add_blades(
+        self,
+        midrib: np.ndarray,
+        side: np.ndarray,
+        half_width: np.ndarray,
+        organ: Organ,
+        plant: np.ndarray,
+        node: np.ndarray,
+    ) -> None:
+        """Strip blades (``primitives.strip_blades``), those the view cannot see left out."""
+        centre = 0.5 * (midrib.min(axis=1) + midrib.max(axis=1))
+        reach = np.sqrt(((midrib - centre[:, None]) ** 2).sum(axis=2)).max(axis=1)
+        keep = self.keep(centre, reach + half_width.max(axis=1))
+        if keep is not None:
+            midrib, side, half_width = midrib[keep], side[keep], half_width[keep]
+            plant, node = plant[keep], node[keep]
+        v, f = strip_blades(midrib, side, half_width)
+        self.add(v, f, organ, plant, node, 2 * midrib.shape[1] - 3)
 
     def build(self) -> CanopyMesh:
         if not self._f:

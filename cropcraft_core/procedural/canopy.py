@@ -85,11 +85,16 @@ def generate_canopy(
     layout: CanopyLayout | None = None,
     seed: int = 0,
     region: Region | None = None,
+    view: PinholeCamera | None = None,
 ) -> Canopy:
     """Build a canopy of ``crop`` with ``params`` (missing ones take the middle of their range).
 
     region: row-frame (xmin, xmax, ymin, ymax) of plant bases to build; default: the plot plus the
     layout's planted margin. The plot's plants are flagged in ``Canopy.plant_in_plot``.
+    view: a camera whose image is all the canopy is built for: the organs wholly outside its
+    view are left out of the mesh (every kept face the same as without ``view``, so its depth
+    map is the same to the bit; the plant and node records stay whole). Such a canopy is for
+    rendering from that camera, not for measuring traits.
     """
     crop = check_crop(crop)
     species = SPECIES[crop]
@@ -130,13 +135,19 @@ def generate_canopy(
     )
     plant_ids = np.arange(len(row), dtype=np.int32)
 
-    builder = MeshBuilder()
+    c, sn = _rot(layout)
+    rot = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])  # row frame → world
+    if view is not None and (sn != 0.0 or c != 1.0):  # the plants are built in the row frame
+        to_row = np.eye(4)
+        to_row[:3, :3] = rot.T
+        view = PinholeCamera(
+            view.width, view.height, view.fx, view.fy, view.cx, view.cy, to_row @ view.cam_to_world
+        )
+    builder = MeshBuilder(view=view)
     nodes = species.build(params, base, azimuth0, u[:, _COMMON_SLOTS:], plant_ids, builder)
     mesh = builder.build()
 
-    c, sn = _rot(layout)
     if sn != 0.0 or c != 1.0:
-        rot = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
         mesh = type(mesh)(mesh.vertices @ rot.T, mesh.faces, mesh.organ, mesh.plant, mesh.node)
         base = base @ rot.T
         nodes.xyz = nodes.xyz @ rot.T

@@ -31,10 +31,7 @@ import numpy as np
 from cropcraft_core.geometry.mesh import Organ
 from cropcraft_core.procedural.builder import MeshBuilder, NodeRecords
 from cropcraft_core.procedural.primitives import (
-    PRISM_N_FACES,
     horizontal_side,
-    prisms,
-    strip_blades,
     unit,
 )
 from cropcraft_core.procedural.profiles import at_nodes
@@ -106,12 +103,17 @@ def build(
     frac_h = np.arange(n + 1) / n
     radius = RADIUS_M["stem_base"] + (RADIUS_M["stem_top"] - RADIUS_M["stem_base"]) * frac_h
     seg_start = np.concatenate([base[:, None, :], node_xyz[:, :-1]], axis=1).reshape(-1, 3)
-    v, f = prisms(
-        seg_start, node_xyz.reshape(-1, 3), np.tile(radius[:-1], p), np.tile(radius[1:], p)
-    )
     node_ids = np.tile(np.arange(n), p)
     plant_n = np.repeat(plant_ids, n)
-    out.add(v, f, Organ.STEM, plant_n, node_ids, PRISM_N_FACES)
+    out.add_prisms(
+        seg_start,
+        node_xyz.reshape(-1, 3),
+        np.tile(radius[:-1], p),
+        np.tile(radius[1:], p),
+        Organ.STEM,
+        plant_n,
+        node_ids,
+    )
 
     # blades (P·n leaves, N_SEGMENTS + 1 stations)
     theta0, delta = bending(ranks + params["leaf_order_shift"])
@@ -128,8 +130,7 @@ def build(
     midrib[..., 2] = np.maximum(midrib[..., 2], GROUND_CLEARANCE_M)
     s_st = np.arange(N_SEGMENTS + 1) / N_SEGMENTS
     half = 0.5 * np.tile(width, p)[:, None] * blade_width(s_st)[None]
-    v, f = strip_blades(midrib, horizontal_side(azf), half)
-    out.add(v, f, Organ.LEAF, plant_n, node_ids, 2 * N_SEGMENTS - 1)
+    out.add_blades(midrib, horizontal_side(azf), half, Organ.LEAF, plant_n, node_ids)
 
     return NodeRecords(
         plant=plant_n.astype(np.int32),

@@ -34,11 +34,7 @@ import numpy as np
 from cropcraft_core.geometry.mesh import Organ
 from cropcraft_core.procedural.builder import MeshBuilder, NodeRecords
 from cropcraft_core.procedural.primitives import (
-    LEAFLET_FACES,
-    PRISM_N_FACES,
-    flat_leaves,
     horizontal_side,
-    prisms,
     unit,
 )
 from cropcraft_core.procedural.profiles import at_nodes
@@ -143,9 +139,8 @@ def build(
     radius = RADIUS_M["stem_base"] + (RADIUS_M["stem_top"] - RADIUS_M["stem_base"]) * frac_h
     r0 = np.tile(radius[:-1], p)
     r1 = np.tile(radius[1:], p)
-    v, f = prisms(seg_start, seg_end, r0, r1)
     main_ids = np.tile(np.arange(n_main), p)
-    out.add(v, f, Organ.STEM, np.repeat(plant_ids, n_main), main_ids, PRISM_N_FACES)
+    out.add_prisms(seg_start, seg_end, r0, r1, Organ.STEM, np.repeat(plant_ids, n_main), main_ids)
 
     nodes_plant = [np.repeat(plant_ids, n_main)]
     nodes_id = [main_ids]
@@ -202,13 +197,15 @@ def build(
         s_b = np.broadcast_to(bscale[None, :, None], shape)[valid]
         xyz_b = b_xyz[valid]
         prev = np.concatenate([main_xyz[:, :n_branch, None, :], b_xyz[:, :, :-1]], axis=2)[valid]
-        v, f = prisms(
+        out.add_prisms(
             prev,
             xyz_b,
             np.full(len(xyz_b), RADIUS_M["branch"]),
             np.full(len(xyz_b), RADIUS_M["branch"] * 0.8),
+            Organ.STEM,
+            plant_b,
+            node_b,
         )
-        out.add(v, f, Organ.STEM, plant_b, node_b, PRISM_N_FACES)
         nodes_plant.append(plant_b)
         nodes_id.append(node_b)
         nodes_stem.append(
@@ -247,13 +244,10 @@ def _trifoliates(pt: dict[str, np.ndarray], out: MeshBuilder) -> None:
     d = unit(pt["az"], angle)  # petiole direction, also the centre leaflet's axis
     side = horizontal_side(pt["az"])  # in the leaf plane, across the petiole
     tip = pt["xyz"] + d * pt["len"][:, None]
-    v, f = prisms(pt["xyz"], tip, np.full(n, RADIUS_M["petiole"]), np.full(n, RADIUS_M["petiole"]))
-    out.add(v, f, Organ.PETIOLE, pt["plant"], pt["node"], PRISM_N_FACES)
+    r_pet, r_pl = np.full(n, RADIUS_M["petiole"]), np.full(n, RADIUS_M["petiolule"])
+    out.add_prisms(pt["xyz"], tip, r_pet, r_pet, Organ.PETIOLE, pt["plant"], pt["node"])
     petiolule_end = tip + d * (PETIOLULE_FRACTION * pt["leaf_l"])[:, None]
-    v, f = prisms(
-        tip, petiolule_end, np.full(n, RADIUS_M["petiolule"]), np.full(n, RADIUS_M["petiolule"])
-    )
-    out.add(v, f, Organ.PETIOLE, pt["plant"], pt["node"], PRISM_N_FACES)
+    out.add_prisms(tip, petiolule_end, r_pl, r_pl, Organ.PETIOLE, pt["plant"], pt["node"])
 
     ca, sa = math.cos(math.radians(LATERAL_ANGLE_DEG)), math.sin(math.radians(LATERAL_ANGLE_DEG))
     base = np.concatenate([petiolule_end, tip, tip])
@@ -265,5 +259,5 @@ def _trifoliates(pt: dict[str, np.ndarray], out: MeshBuilder) -> None:
     width = np.concatenate(
         [pt["leaf_w"], LATERAL_SCALE * pt["leaf_w"], LATERAL_SCALE * pt["leaf_w"]]
     )
-    v, f = flat_leaves(base, axis, across, length, width)
-    out.add(v, f, Organ.LEAF, np.tile(pt["plant"], 3), np.tile(pt["node"], 3), len(LEAFLET_FACES))
+    plant, node = np.tile(pt["plant"], 3), np.tile(pt["node"], 3)
+    out.add_leaflets(base, axis, across, length, width, Organ.LEAF, plant, node)
