@@ -824,8 +824,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--runner",
-        help="run as the Prefect benchmark flow, one task per seed, on threads, dask (a local "
-        "cluster) or dask://HOST:PORT (an existing cluster); the result goes to --store",
+        help="run as the Prefect benchmark flow, one task per seed, on processes (spawned, one "
+        "per core), threads, dask (a local cluster) or dask://HOST:PORT (an existing cluster); "
+        "the result goes to --store",
     )
     ap.add_argument("--store", help="scene store for the flow's result (default ./cropcraft-data)")
     ap.add_argument(

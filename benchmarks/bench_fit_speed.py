@@ -131,14 +131,20 @@ def main(argv: list[str] | None = None) -> int:
             for k in ("generate", "render", "stats", "calls")
         }
         opt = np.sum([s["optimizer_s"] for s in f["seeds"]])
-        n = max(fw["calls"], 1)
+        n_eval = a.seeds * a.evals
+        n = max(fw["calls"], 1)  # canopies: soybean's evaluation averages two
         print(
-            "(c) per evaluation: generate {:.1f} ms, render {:.1f} ms, histograms {:.1f} ms, "
-            "optimiser {:.1f} ms".format(
+            "(c) per evaluation ({:.0f} canopies): generate {:.1f} ms, render {:.1f} ms, "
+            "histograms {:.1f} ms, optimiser {:.1f} ms; per canopy: generate {:.1f} ms, "
+            "render {:.1f} ms, histograms {:.1f} ms".format(
+                n / n_eval,
+                1e3 * fw["generate"] / n_eval,
+                1e3 * fw["render"] / n_eval,
+                1e3 * fw["stats"] / n_eval,
+                1e3 * opt / n_eval,
                 1e3 * fw["generate"] / n,
                 1e3 * fw["render"] / n,
                 1e3 * fw["stats"] / n,
-                1e3 * opt / n,
             )
         )
     if a.skopt_seeds:

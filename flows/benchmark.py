@@ -132,8 +132,9 @@ def benchmark(
     }
 
 
-def run_benchmark(runner: str = "threads", **kwargs: Any) -> dict[str, Any]:
-    """:func:`benchmark` on ``runner`` (threads, dask, dask://HOST:PORT; see ``flows.runners``)."""
+def run_benchmark(runner: str | None = None, **kwargs: Any) -> dict[str, Any]:
+    """:func:`benchmark` on ``runner`` (processes, threads, dask, dask://HOST:PORT; default
+    the scene flows' ``processes``, ``flows.runners.DEFAULT_RUNNER``)."""
     from flows.runners import make_task_runner
 
     return benchmark.with_options(task_runner=make_task_runner(runner))(**kwargs)
