@@ -306,6 +306,24 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                 r = ref[c, y, x]
                 ir[c, y + 1, x + 1] = ir[c, y, x + 1] + ir[c, y + 1, x] - ir[c, y, x] + r
                 ir2[c, y + 1, x + 1] = ir2[c, y, x + 1] + ir2[c, y + 1, x] - ir2[c, y, x] + r * r
+    # the reference's window sums and variances, the same for every plane and source
+    ref_s = np.empty((n_c, h, w))
+    ref_v = np.empty((n_c, h, w))
+    for c in range(n_c):
+        for y in range(h):
+            y0 = max(0, y - half)
+            y1 = min(h, y + half + 1)
+            for x in range(w):
+                x0 = max(0, x - half)
+                x1 = min(w, x + half + 1)
+                n = (y1 - y0) * (x1 - x0)
+                sr = ir[c, y1, x1] - ir[c, y0, x1] - ir[c, y1, x0] + ir[c, y0, x0]
+                sr2 = ir2[c, y1, x1] - ir2[c, y0, x1] - ir2[c, y1, x0] + ir2[c, y0, x0]
+                vr = sr2 / n - (sr / n) ** 2 + 1e-5
+                if vr < 1e-5:
+                    vr = 1e-5
+                ref_s[c, y, x] = sr
+                ref_v[c, y, x] = vr
     for k in prange(n_d):
         scores = np.full((n_s, h, w), -1.0, np.float32)
         wimg = np.zeros((n_c, h, w))
@@ -363,15 +381,12 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                         x0 = max(0, x - half)
                         x1 = min(w, x + half + 1)
                         n = (y1 - y0) * (x1 - x0)
-                        sr = ir[c, y1, x1] - ir[c, y0, x1] - ir[c, y1, x0] + ir[c, y0, x0]
-                        sr2 = ir2[c, y1, x1] - ir2[c, y0, x1] - ir2[c, y1, x0] + ir2[c, y0, x0]
+                        sr = ref_s[c, y, x]
+                        vr = ref_v[c, y, x]
                         sw = iw[y1, x1] - iw[y0, x1] - iw[y1, x0] + iw[y0, x0]
                         sw2 = iw2[y1, x1] - iw2[y0, x1] - iw2[y1, x0] + iw2[y0, x0]
                         srw = irw[y1, x1] - irw[y0, x1] - irw[y1, x0] + irw[y0, x0]
-                        vr = sr2 / n - (sr / n) ** 2 + 1e-5
                         vw = sw2 / n - (sw / n) ** 2 + 1e-5
-                        if vr < 1e-5:
-                            vr = 1e-5
                         if vw < 1e-5:
                             vw = 1e-5
                         ncc = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
