@@ -185,7 +185,8 @@ def run_progress(bar: bool = True):
 
     - on a terminal, unless ``bar`` is off: one tqdm bar, over a long stage's step while it
       runs (the surfaces' stereo, in per cent), then over all seeds' fit evaluations, with
-      the lowest loss any seed has reached;
+      the lowest loss any seed has reached; the console's log lines print above it, and a
+      finished step's bar stays as a line with its time;
     - otherwise (a log file, a nightly job, ``--no-progress``): a line at every 10 % of each
       stage step and of each seed's evaluations, with that seed's best loss so far.
 
@@ -285,6 +286,7 @@ def run_progress(bar: bool = True):
         close()
 
 
+@contextmanager
 def _logs_above_bar(lock: threading.RLock, before: Callable[[], None]):
     """While the bar is up, a record the console's log handlers print (the flow's stage lines,
     warnings) takes its own line above the bar, which is redrawn under it, instead of being
@@ -294,29 +296,25 @@ def _logs_above_bar(lock: threading.RLock, before: Callable[[], None]):
     ends."""
     from tqdm import tqdm
 
-    @contextmanager
-    def wrapped():
-        handlers = [
-            h
-            for h in logging.getLogger().handlers
-            if isinstance(h, logging.StreamHandler) and _is_terminal(h.stream)
-        ]
+    handlers = [
+        h
+        for h in logging.getLogger().handlers
+        if isinstance(h, logging.StreamHandler) and _is_terminal(h.stream)
+    ]
+    for h in handlers:
+
+        def emit(record: logging.LogRecord, plain=h.emit, stream=h.stream) -> None:
+            with lock:
+                before()
+                with tqdm.external_write_mode(file=stream):
+                    plain(record)
+
+        h.emit = emit  # an instance attribute: removing it brings the class's back
+    try:
+        yield
+    finally:
         for h in handlers:
-
-            def emit(record: logging.LogRecord, plain=h.emit, stream=h.stream) -> None:
-                with lock:
-                    before()
-                    with tqdm.external_write_mode(file=stream):
-                        plain(record)
-
-            h.emit = emit  # an instance attribute: ``del`` brings the class's back
-        try:
-            yield
-        finally:
-            for h in handlers:
-                vars(h).pop("emit", None)
-
-    return wrapped()
+            vars(h).pop("emit", None)
 
 
 def _is_terminal(stream: Any) -> bool:

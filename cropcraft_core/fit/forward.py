@@ -70,7 +70,8 @@ class ForwardModel:
     def canopy(self, params: Mapping[str, float], seed: int, culled: bool = False) -> Canopy:
         """The predicted canopy: the plants whose parts can reach into the row camera's view;
         with ``culled``, without the organs wholly outside it (for rendering only: the same
-        depth map to the bit, about a third of the time, ``generate_canopy``'s ``view``)."""
+        depth map to the bit in about half the generation time, ``generate_canopy``'s
+        ``view``)."""
         p = resolve_params(self.crop, params)
         region = view_region(self.camera, self.layout, max_reach(self.crop, p))
         view = self.camera if culled else None

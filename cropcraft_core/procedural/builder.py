@@ -30,9 +30,9 @@ class NodeRecords:
 
 @dataclass
 class MeshBuilder:
-    """Collects the parts of a canopy. With a ``view`` (a ``PinholeCamera``) the species models
-    leave out the parts that camera cannot see (:meth:`keep`) before they build them: a scene
-    fit renders thousands of canopies from one row camera, and most of the plants built for the
+    """Collects the parts of a canopy. With a ``view`` (a ``PinholeCamera``) the ``add_*``
+    methods leave out the parts that camera cannot see before building them: a scene fit
+    renders thousands of canopies from one row camera, and most of the plants built for the
     view's margin reach into it with a few leaves only."""
 
     view: PinholeCamera | None = None
@@ -63,14 +63,10 @@ class MeshBuilder:
         self._plant.append(np.repeat(instance_plant.astype(np.int32), faces_per_instance))
         self._node.append(np.repeat(instance_node.astype(np.int32), faces_per_instance))
 
-    def keep(self, centres: np.ndarray, radii: np.ndarray) -> np.ndarray | None:
-        """Which of the parts enclosed by these (n, 3) world spheres of (n,) ``radii`` to build:
-        an (n,) bool mask, False for the wholly outside ``view``; None (all) without a view.
-        Dropping whole parts leaves every kept face's vertices the same floats, in the same
-        order, so the view's depth map is the same to the bit."""
-        if self.view is None:
-            return None
-        return self.view.sees_spheres(centres, radii)
+    # The add_* methods below drop, with a view, the parts whose bounding spheres lie wholly
+    # outside it (``PinholeCamera.sees_spheres``). Dropping whole parts leaves every kept face's
+    # vertices the same floats, in the same order, so the view's depth map is the same to the
+    # bit. Without a view they build everything, as ``add`` with the primitive would.
 
     def add_prisms(
         self,
@@ -84,9 +80,9 @@ class MeshBuilder:
     ) -> None:
         """Thin segments start (S, 3) → end (S, 3) as prisms (``primitives.prisms``), those
         the view cannot see left out."""
-        half = 0.5 * np.sqrt(((end - start) ** 2).sum(axis=1))
-        keep = self.keep(0.5 * (start + end), half + np.maximum(r_start, r_end))
-        if keep is not None:
+        if self.view is not None:
+            half = 0.5 * np.sqrt(((end - start) ** 2).sum(axis=1))
+            keep = self.view.sees_spheres(0.5 * (start + end), half + np.maximum(r_start, r_end))
             start, end, r_start, r_end = start[keep], end[keep], r_start[keep], r_end[keep]
             plant, node = plant[keep], node[keep]
         v, f = prisms(start, end, r_start, r_end)
@@ -105,8 +101,9 @@ class MeshBuilder:
     ) -> None:
         """Flat leaflets (``primitives.flat_leaves``), those the view cannot see left out: a
         leaflet lies within half its length-and-width diagonal of its outline's box centre."""
-        keep = self.keep(base + 0.5 * length[:, None] * axis, 0.5 * np.hypot(length, width))
-        if keep is not None:
+        if self.view is not None:
+            centre = base + 0.5 * length[:, None] * axis
+            keep = self.view.sees_spheres(centre, 0.5 * np.hypot(length, width))
             base, axis, across = base[keep], axis[keep], across[keep]
             length, width, plant, node = length[keep], width[keep], plant[keep], node[keep]
         v, f = flat_leaves(base, axis, across, length, width)
@@ -122,10 +119,10 @@ class MeshBuilder:
         node: np.ndarray,
     ) -> None:
         """Strip blades (``primitives.strip_blades``), those the view cannot see left out."""
-        centre = 0.5 * (midrib.min(axis=1) + midrib.max(axis=1))
-        reach = np.sqrt(((midrib - centre[:, None]) ** 2).sum(axis=2)).max(axis=1)
-        keep = self.keep(centre, reach + half_width.max(axis=1))
-        if keep is not None:
+        if self.view is not None:
+            centre = 0.5 * (midrib.min(axis=1) + midrib.max(axis=1))
+            reach = np.sqrt(((midrib - centre[:, None]) ** 2).sum(axis=2)).max(axis=1)
+            keep = self.view.sees_spheres(centre, reach + half_width.max(axis=1))
             midrib, side, half_width = midrib[keep], side[keep], half_width[keep]
             plant, node = plant[keep], node[keep]
         v, f = strip_blades(midrib, side, half_width)
