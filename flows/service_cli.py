@@ -221,15 +221,13 @@ def run_progress(bar: bool = True):
                 leave_finished()
             if not bars:
                 bars.append(tqdm(total=0, dynamic_ncols=True, desc=what, unit=unit))
-                showing[0] = what
-            pbar = bars[0]
-            if showing[0] != what:
-                showing[0] = what
-                pbar.unit = unit
-                pbar.set_description_str(what, refresh=False)
-                pbar.set_postfix_str("", refresh=False)
-                pbar.reset()
-            return pbar
+            elif showing[0] != what:
+                bars[0].unit = unit
+                bars[0].set_description_str(what, refresh=False)
+                bars[0].set_postfix_str("", refresh=False)
+                bars[0].reset()
+            showing[0] = what
+            return bars[0]
 
         def sink(tick: Tick) -> None:
             with lock:

@@ -10,6 +10,7 @@ parameters (common random numbers).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from types import ModuleType
@@ -140,9 +141,7 @@ def generate_canopy(
     if view is not None and (sn != 0.0 or c != 1.0):  # the plants are built in the row frame
         to_row = np.eye(4)
         to_row[:3, :3] = rot.T
-        view = PinholeCamera(
-            view.width, view.height, view.fx, view.fy, view.cx, view.cy, to_row @ view.cam_to_world
-        )
+        view = dataclasses.replace(view, cam_to_world=to_row @ view.cam_to_world)
     builder = MeshBuilder(view=view)
     nodes = species.build(params, base, azimuth0, u[:, _COMMON_SLOTS:], plant_ids, builder)
     mesh = builder.build()
