@@ -60,8 +60,16 @@ def gap_fraction_canopy(canopy: Canopy) -> Canopy:
     return generate_canopy(canopy.crop, canopy.params, canopy.layout, canopy.seed, region=region)
 
 
-def write_bundle(canopy: Canopy, out_dir: str | os.PathLike, extra: dict | None = None) -> dict:
-    """Measure ``canopy`` and write every bundle file into ``out_dir``; returns the metrics."""
+def write_bundle(
+    canopy: Canopy,
+    out_dir: str | os.PathLike,
+    extra: dict | None = None,
+    more_metrics: dict | None = None,
+) -> dict:
+    """Measure ``canopy`` and write every bundle file into ``out_dir``; returns the metrics.
+    ``extra``: more of ``params.json``; ``more_metrics``: more of ``metrics.json`` (its
+    ``definitions`` joined to the traits' own), e.g. the seeds' traits
+    (:func:`cropcraft_core.metrics.seeds.seed_metrics`)."""
     from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
     from cropcraft_core.metrics import canopy_metrics
     from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
@@ -73,6 +81,10 @@ def write_bundle(canopy: Canopy, out_dir: str | os.PathLike, extra: dict | None 
     # region), so its plot metrics equal the exported canopy's, and its border is wide enough
     # for the gap-fraction rays.
     metrics = canopy_metrics(gap_fraction_canopy(canopy))
+    if more_metrics:
+        more = dict(more_metrics)
+        defs = {**metrics["definitions"], **more.pop("definitions", {})}
+        metrics = {**metrics, **more, "definitions": defs}
     timings["metrics_s"] = time.perf_counter() - t
 
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))

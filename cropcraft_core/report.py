@@ -58,6 +58,10 @@ SEASON_COLUMNS = (
     ("n_rows_fitted", "rows_fitted"),
     ("lai_rows_min", "lai_rows_min_m2_m2"),
     ("lai_rows_max", "lai_rows_max_m2_m2"),
+    # the lowest and highest LAI of the date's optimiser seeds' answers (metrics.json's seeds:
+    # how firmly its observation pins LAI down)
+    ("lai_seeds_min", "lai_seeds_min_m2_m2"),
+    ("lai_seeds_max", "lai_seeds_max_m2_m2"),
 )
 
 
@@ -124,6 +128,37 @@ font-variant-numeric:tabular-nums}.thumbs img{margin:2px;border:1px solid #ccc}
 figure{display:inline-block;margin:.3em 1em .3em 0}figcaption{font-size:.85em;color:#555}
 .small{font-size:.85em;color:#555}
 """
+
+
+def _seeds_html(metrics: Mapping[str, Any], defs: Mapping[str, Any]) -> str:
+    """The table of the traits of each optimiser seed's answer beside the scene's answer
+    (``metrics.json``'s ``seeds``: :func:`cropcraft_core.metrics.seeds.seed_traits`)."""
+    from cropcraft_core.metrics.seeds import SEED_TRAITS
+
+    block = metrics["seeds"]
+    stored = block.get("traits") or {}
+    # the store sorts a JSON object's keys: back to the traits' own order
+    traits = {k: stored[k] for k in (*SEED_TRAITS, *sorted(stored)) if k in stored}
+    out = [
+        f"<h2>Traits over the {int(block.get('n_seeds', 0))} seeds' answers</h2>",
+        "<p class='small'>Each optimiser seed's best parameters build a canopy (the answer's "
+        "layout and plants); its traits are measured as above. How far equally good searches "
+        "of the same observation land apart: a wide range says the observation pins the trait "
+        "down loosely. Not a confidence interval.</p>",
+        "<table><tr><th>trait</th><th>answer</th><th>median</th><th>min</th><th>max</th>"
+        "<th>SD</th><th>unit</th></tr>",
+    ]
+    for name, t in traits.items():
+        unit = (defs.get(name) or {}).get("unit", "")
+        cells = "".join(
+            f"<td class='num'>{_fmt(t.get(k))}</td>" for k in ("median", "min", "max", "sd")
+        )
+        out.append(
+            f"<tr><td>{html.escape(name)}</td><td class='num'>{_fmt(metrics.get(name))}</td>"
+            f"{cells}<td>{html.escape(str(unit))}</td></tr>"
+        )
+    out.append("</table>")
+    return "".join(out)
 
 
 def _rows_html(rows: Mapping[str, Any]) -> str:
@@ -240,6 +275,8 @@ def scene_report_html(
             f"<td class='small'>{html.escape(str(d.get('method', '')))}</td></tr>"
         )
     parts.append("</table>")
+    if isinstance(metrics.get("seeds"), Mapping):
+        parts.append(_seeds_html(metrics, defs))
 
     if fit:
         params = fit.get("params") or {}
@@ -355,6 +392,19 @@ def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes
             linewidth=4,
             alpha=0.5,
             label="LAI over the rows fitted",
+        )
+    lo, hi = col("lai_seeds_min_m2_m2"), col("lai_seeds_max_m2_m2")
+    if np.isfinite(lo).any():
+        has = np.isfinite(lo) & np.isfinite(hi)
+        axes[0].errorbar(
+            [d for d, h in zip(dates, has, strict=True) if h],
+            (lo[has] + hi[has]) / 2,
+            yerr=(hi[has] - lo[has]) / 2,
+            fmt="none",
+            ecolor="tab:blue",
+            capsize=4,
+            alpha=0.6,
+            label="LAI over the seeds' answers",
         )
     if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
         axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")

@@ -157,6 +157,13 @@ def _print_summary(out: str, metrics: dict) -> None:
     for k in keys:
         v = metrics.get(k)
         print(f"{k:<{width}}  {v:.3f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    seeds = metrics.get("seeds")
+    if seeds:
+        lai = seeds["traits"]["lai"]
+        print(
+            f"LAI over the {seeds['n_seeds']} seeds' answers: median {lai['median']:.3f}, "
+            f"range {lai['min']:.3f} to {lai['max']:.3f}"
+        )
     print(f"written to {Path(out).resolve()}")
 
 

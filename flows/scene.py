@@ -103,7 +103,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # off on the demo's canopy through SfM: cropcraft_core.rowfit.neighbours)
     "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "best", "snap": None},
     "generate": {"seed": 0},
-    "metrics": {"gap_fraction": True, "seed": 0},
+    "metrics": {"gap_fraction": True, "seed": 0, "seeds": True},
     "export": {},
     "report": {"n_thumbnails": 6, "thumbnail_px": 192},
 }
@@ -825,7 +825,9 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     # the scene's answer: the best row's, or the rows' combined (rows.answer)
     answer = r["rows"] if "fit" in r.get("rows", {}).get("artefacts", {}) else r["aggregate"]
     r["generate"] = ex.run("generate", {"aggregate": answer})
-    r["metrics"] = ex.run("metrics", {"generate": r["generate"]})
+    # the seeds' traits beside the answer's (metrics.seeds) where the answer is one fit's
+    up = {"generate": r["generate"]} | ({"aggregate": answer} if answer is r["aggregate"] else {})
+    r["metrics"] = ex.run("metrics", up)
     r["export"] = ex.run(
         "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": answer}
     )

@@ -603,6 +603,14 @@ def _fmt(v: Any) -> str:
     return f"{v:>12.3f}" if isinstance(v, int | float) else f"{'-':>12}"
 
 
+def _seed_range(trait: Mapping[str, Any] | None) -> str:
+    """``   1.119 to 2.111``: a trait's range over the seeds' answers (``metrics.json``'s
+    ``seeds``), or nothing where it has none."""
+    if not trait or trait.get("min") is None:
+        return ""
+    return f"   {trait['min']:.3f} to {trait['max']:.3f}"
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """``cropcraft demo``: the built-in synthetic soybean scene through the whole scene flow."""
     from cropcraft_core.store import SceneStore
@@ -621,10 +629,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
     truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")
     metrics = store.get_json(f"{site}/{crop}/{date}/metrics/metrics.json")
-    print(f"\n{'trait':<24}{'estimated':>12}{'true':>12}")
+    seeds = (metrics.get("seeds") or {}).get("traits") or {}
+    n = (metrics.get("seeds") or {}).get("n_seeds")
+    head = f"   the {n} seeds' answers" if seeds else ""
+    print(f"\n{'trait':<24}{'estimated':>12}{'true':>12}{head}")
     for key, label in DEMO_TRUTH_KEYS:
         est, tru = metrics.get(key), truth.get(key)
-        print(f"{label:<24}{_fmt(est)}{_fmt(tru)}")
+        print(f"{label:<24}{_fmt(est)}{_fmt(tru)}{_seed_range(seeds.get(key))}")
     states = out.get("states", {})
     n_cached = sum(1 for v in states.values() if v == "Cached")
     print()

@@ -148,7 +148,7 @@ def test_pooled_row_cameras_beyond_the_geometry_are_left_out(canopy_ply):
     np.testing.assert_array_equal(obs.depth, _observe(geo, rowfit, "soybean", rowfit.camera).depth)
 
 
-def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
+def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path, capsys):
     out = tmp_path / "fit"
     rc = main(
         [
@@ -182,10 +182,17 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path):
     # the opt-in arm: pooled row cameras, the unbiased loss over three canopies
     pooled = tmp_path / "pooled"
     argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(pooled)]
-    argv += ["--seeds", "1", "--evals", "8", "--initial", "6", "--polish-evals", "0"]
+    argv += ["--seeds", "2", "--evals", "8", "--initial", "6", "--combine", "median"]
     argv += ["--preset", "views_along=3", "--preset", "views_across=1"]
+    assert "LAI over" not in capsys.readouterr().out  # one seed: no seeds' spread
+    assert "seeds" not in json.loads((out / "metrics.json").read_text())
     assert main([*argv, "--canopies", "3", "--estimator", "unbiased"]) == 0
     fit = json.loads((pooled / "fit.json").read_text())
+    # two seeds: each one's answer measured beside the answer, in metrics.json and printed
+    seeds = json.loads((pooled / "metrics.json").read_text())["seeds"]
+    assert seeds["n_seeds"] == 2 and len(seeds["traits"]["lai"]["values"]) == 2
+    lai = seeds["traits"]["lai"]
+    assert f"LAI over the 2 seeds' answers: median {lai['median']:.3f}" in capsys.readouterr().out
     assert fit["fit"]["config"]["loss_estimator"] == "unbiased"
     assert fit["fit"]["config"]["canopies_per_eval"] == 3
     seen = fit["observation"]
@@ -226,6 +233,7 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     params = json.loads((out / "params.json").read_text())
     assert params["params"] == pytest.approx(fit["fit"]["params"])
     assert metrics["lai"] > 0
+    assert "seeds" not in metrics  # the rows' mean: rows.json has their spread
     assert "LAI by row" in capsys.readouterr().out
     assert len(fit["best_row_fit"]["seed_losses"]) == 2
     assert main([*argv[:-1], "9"]) == 2

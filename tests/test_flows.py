@@ -141,6 +141,10 @@ def base_run(prefect_harness, scene_dir, tmp_path_factory):
 
 
 def test_scene_flow_produces_everything(base_run):
+    from cropcraft_core.config import CanopyLayout
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.procedural import generate_canopy
+
     out = base_run["first"]
     assert len(out["states"]) == N_TASKS
     assert _executed(out["states"]) == sorted(out["states"])  # all computed the first time
@@ -173,6 +177,22 @@ def test_scene_flow_produces_everything(base_run):
     assert f"surfaces against {c['views']} photos" in html and f"{100 * c['net']:+.1f} %" in html
     for name in ("canopy.ply", "canopy.glb", "canopy.helios.xml", "preview.png", "metrics.json"):
         assert store.isfile(f"{scene}/export/bundle/{name}")
+    # every seed's answer measured on the answer's plants, beside the answer
+    metrics = store.get_json(f"{scene}/metrics/metrics.json")
+    fit = store.get_json(f"{scene}/fit/fit.json")
+    recipe = store.get_json(f"{scene}/generate/canopy.json")
+    seeds = metrics["seeds"]
+    assert seeds["n_seeds"] == N_SEEDS == len(fit["seed_params"])
+    lai = seeds["traits"]["lai"]["values"]
+    assert len(lai) == N_SEEDS and all(v > 0 for v in lai)
+    assert m["lai_seeds_min"] == metrics["lai_seeds_min"] == min(lai)
+    assert m["lai_seeds_max"] == metrics["lai_seeds_max"] == max(lai)
+    last = generate_canopy(
+        CROP, fit["seed_params"][-1], CanopyLayout(**recipe["layout"]), seed=recipe["seed"]
+    )
+    assert lai[-1] == canopy_metrics(last, gap_fraction=False)["lai"]
+    assert "Traits over the 3 seeds' answers" in html
+    assert "seeds" in store.get_json(f"{scene}/export/bundle/metrics.json")
     manifest = store.load_manifest(SceneKey.parse(scene))
     assert all(manifest.stages[s].status == "done" for s in ("ingest", "report", "fit_seed"))
     # every stage says which numeric libraries computed it; the report names the fit's
@@ -200,14 +220,20 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     assert row["parameters_given"] == ""  # the whole box was searched
     head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
     assert row["photo_net_cover_fraction"] == pytest.approx(out["consistency"]["net"])
-    assert head.split(",")[-5:] == [
+    assert head.split(",")[-7:] == [
         "row_view_no_surface_fraction",
         "photo_net_cover_fraction",
         "rows_fitted",
         "lai_rows_min_m2_m2",
         "lai_rows_max_m2_m2",
+        "lai_seeds_min_m2_m2",
+        "lai_seeds_max_m2_m2",
     ]
-    assert line.startswith(DATE) and line.endswith(",,,")  # fitted over its best row alone
+    assert line.startswith(DATE)
+    assert line.split(",")[-5:-2] == ["", "", ""]  # fitted over its best row alone
+    assert row["lai_seeds_min_m2_m2"] == out["metrics"]["lai_seeds_min"]
+    assert row["lai_seeds_max_m2_m2"] == out["metrics"]["lai_seeds_max"]
+    assert float(line.split(",")[-1]) == pytest.approx(out["metrics"]["lai_seeds_max"], rel=1e-5)
 
 
 def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
@@ -672,10 +698,9 @@ def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, mo
     executed = set(_executed(out["states"]))
     assert {"fit_seed-1", "aggregate", "generate", "report"} <= executed
     assert not {"fit_seed-0", "fit_seed-2"} & executed
-    # keys are content-addressed: the stages after generate recompute exactly when the
-    # fitted parameters (hence the canopy recipe) differ from any earlier run's
-    changed = out["params"] != base_run["first"]["params"]
-    assert ({"metrics", "export"} <= executed) == changed
+    # the metrics and what follows them recompute even where the answer is an earlier run's:
+    # they also measure each seed's answer (metrics.json's seeds), and these seeds are new
+    assert {"metrics", "export"} <= executed
 
     # equals a clean run: all seeds of the same fit computed in one go, no fault
     obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene.prefix}/observe/observation.npz")))
@@ -883,7 +908,18 @@ def test_report_builder_is_self_contained():
         thumbnails=[np.zeros((4, 6, 3), np.uint8)],
         observed_depth=depth,
         predicted_depth=depth + 0.1,
-        metrics={"lai": 2.0, "definitions": {"lai": {"unit": "m2 m-2", "method": "x"}}},
+        metrics={
+            "lai": 2.0,
+            "definitions": {"lai": {"unit": "m2 m-2", "method": "x"}},
+            # as the store gives it back: keys sorted
+            "seeds": {
+                "n_seeds": 2,
+                "traits": {
+                    "lai": {"values": [1.5, 2.5], "median": 2.0, "min": 1.5, "max": 2.5},
+                    "node_count": {"values": [6.0, 8.0], "median": 7.0, "min": 6.0, "max": 8.0},
+                },
+            },
+        },
         fit={
             "params": {"a": 1.0, "b": 9.0, "c": 0.9},
             "params_std": {"a": 0.1, "b": 0.0, "c": 0.01},
@@ -897,6 +933,10 @@ def test_report_builder_is_self_contained():
     # the narrowed parameter keeps its spread over the seeds beside its label
     assert "c (searched 0.8 to 1)</td><td class='num'>0.9</td><td class='num'>0.01<" in page
     assert "src='http" not in page
+    # the seeds' traits in the traits' own order, the answer beside their median and range
+    seeds = page[page.index("Traits over the 2 seeds' answers") :]
+    assert seeds.index(">lai<") < seeds.index(">node_count<")
+    assert "<td>lai</td><td class='num'>2</td><td class='num'>2</td><td class='num'>1.5" in seeds
     csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
     assert csv.splitlines()[1].startswith("2024-06-01,1")
 
@@ -1084,12 +1124,13 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     # the scene's answer from every row's: the rows' answers are reused, only what follows the
     # answer is recomputed; the best row's own answer stays where it was
     out = _run("plotA", base_run["store"], scene_dir, {**overrides, "rows.answer": "mean"})
-    # the metrics follow the canopy: where the rows' mean is the best row's answer (at this
-    # test's budget two rows can end on the same design point), its canopy and metrics are
-    # the cached ones
-    moved = out["params"] != base_run["first"]["params"]
-    expected = ["export", "generate", "report", "rows", *(["metrics"] if moved else [])]
+    # the metrics too, even where the rows' mean is the best row's answer (at this test's
+    # budget two rows can end on the same design point): the answer is no longer one fit's
+    # seeds, so their traits leave metrics.json (rows.json has the rows' spread)
+    expected = ["export", "generate", "metrics", "report", "rows"]
     assert _executed(out["states"]) == sorted(expected)
+    assert "seeds" not in store.get_json(f"{scene}/metrics/metrics.json")
+    assert "lai_seeds_min" not in out["metrics"]
     answers = [listed[k]["params"] for k in sorted(listed)]
     for name, value in out["params"].items():
         assert value == pytest.approx(np.mean([a[name] for a in answers]), rel=1e-12)

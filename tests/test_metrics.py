@@ -549,6 +549,7 @@ def test_rows_are_compared_by_the_traits_of_the_canopies_their_answers_build():
     assert (s["min"], s["max"]) == (lai[0], lai[1])
     assert s["mean"] == pytest.approx(np.mean(lai)) and s["sd"] == pytest.approx(np.std(lai))
     assert s["relative_range"] == pytest.approx((lai[1] - lai[0]) / np.mean(lai))
+    assert s["median"] == pytest.approx(np.mean(lai))  # the median of two
     assert out["spread"]["param:num_nodes"]["max"] == 8.0
     json.dumps(out)
     assert spread([None, float("nan")])["mean"] is None
@@ -557,6 +558,45 @@ def test_rows_are_compared_by_the_traits_of_the_canopies_their_answers_build():
         compare_rows("soybean", [], layout, 0)
     with pytest.raises(InputError, match="repeat"):
         compare_rows("soybean", [{"index": 0, "params": small}] * 2, layout, 0)
+
+
+def test_each_seeds_answer_is_measured_on_the_answers_plants():
+    """seed_traits: every seed's traits are canopy_metrics of the canopy its parameters build
+    with the answer's layout and canopy seed (no gap fraction); the spread's median, min and
+    max are those of the seeds' values; seed_metrics gives metrics.json's entries with their
+    definitions; fewer than two seeds is named."""
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.metrics.seeds import SEED_TRAITS, seed_metrics, seed_traits
+    from cropcraft_core.procedural import generate_canopy
+
+    layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
+    seeds = [
+        {"num_nodes": 8.0, "leaf_length": 1.2},
+        {"num_nodes": 4.0, "leaf_length": 0.8},
+        {"num_nodes": 6.0, "leaf_length": 1.0},
+    ]
+    block = seed_traits("soybean", seeds, layout, seed=5)
+    assert block["n_seeds"] == 3 and set(block["traits"]) == set(SEED_TRAITS)
+    for i, p in enumerate(seeds):
+        m = canopy_metrics(generate_canopy("soybean", p, layout, seed=5), gap_fraction=False)
+        assert {t: block["traits"][t]["values"][i] for t in SEED_TRAITS} == {
+            t: m[t] for t in SEED_TRAITS
+        }
+    lai = block["traits"]["lai"]
+    assert lai["values"][1] < lai["values"][2] < lai["values"][0]  # leaves and nodes: LAI
+    assert (lai["min"], lai["median"], lai["max"]) == (
+        lai["values"][1],
+        lai["values"][2],
+        lai["values"][0],
+    )
+    out = seed_metrics(block)
+    assert out["seeds"] == block
+    assert (out["lai_seeds_min"], out["lai_seeds_max"]) == (lai["min"], lai["max"])
+    assert set(out["definitions"]) == {"seeds", "lai_seeds_min", "lai_seeds_max"}
+    assert "3 optimiser seeds" in out["definitions"]["seeds"]["method"]
+    json.dumps(out)
+    with pytest.raises(InputError, match="at least two seeds"):
+        seed_traits("soybean", seeds[:1], layout, 5)
 
 
 def test_a_scene_fitted_over_several_rows_answers_with_their_mean_or_its_best_rows():

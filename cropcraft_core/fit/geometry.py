@@ -303,7 +303,9 @@ def fit_geometry(
     preset_overrides: dict | None = None,
 ) -> dict:
     """``cropcraft fit``: row-fit and observe ``path``, fit (or Poisson-reconstruct) it and
-    write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``. ``neighbours``:
+    write the bundle plus ``compare.png`` and ``fit.json`` into ``out_dir``; where the answer is
+    one fit's seeds, ``metrics.json`` also holds their traits (``seeds``,
+    :func:`cropcraft_core.metrics.seeds.seed_traits`). ``neighbours``:
     also fit up to that many rows on each side of the best row that the geometry covers
     (:func:`neighbour_observations`), each alone, and write their answers side by side with
     their spread as ``rows.json`` (``cropcraft_core.metrics.rows.compare_rows``); the bundle
@@ -360,7 +362,14 @@ def fit_geometry(
         table = {**compare_rows(crop, answers, layout, seed), "tried": tried}
         table.update(answer=row_answer, answer_params=answer["params"])
     canopy = generate_canopy(crop, answer["params"], layout, seed=seed)
-    metrics = write_bundle(canopy, out, extra={"fit": answer, "observation": obs.meta})
+    more = None
+    if (answer.get("extra") or {}).get("answer") != "mean" and len(answer["seed_params"]) > 1:
+        from cropcraft_core.metrics.seeds import seed_metrics, seed_traits
+
+        more = seed_metrics(seed_traits(crop, answer["seed_params"], layout, seed))
+    metrics = write_bundle(
+        canopy, out, extra={"fit": answer, "observation": obs.meta}, more_metrics=more
+    )
     predicted = ForwardModel(obs, layout).depth(answer["params"], seed)
     save_png(
         out / "compare.png", compare_image(obs.depth, predicted, float(obs.preset.render_height))

@@ -38,13 +38,16 @@ def row_traits(crop: str, params: Mapping[str, float], layout: Any, seed: int) -
 
 
 def spread(values: Sequence[float | None]) -> dict[str, float | None]:
-    """min, max, mean, sd (ddof 0) and relative range ((max − min) / |mean|) of the finite
-    ``values``; None each when there are none (relative range None when the mean is 0)."""
+    """median, min, max, mean, sd (ddof 0) and relative range ((max − min) / |mean|) of the
+    finite ``values``; None each when there are none (relative range None when the mean is
+    0)."""
     v = np.array([x for x in values if x is not None and math.isfinite(float(x))], float)
     if v.size == 0:
-        return {"min": None, "max": None, "mean": None, "sd": None, "relative_range": None}
+        keys = ("median", "min", "max", "mean", "sd", "relative_range")
+        return dict.fromkeys(keys)
     mean = float(v.mean())
     return {
+        "median": float(np.median(v)),
         "min": float(v.min()),
         "max": float(v.max()),
         "mean": mean,
@@ -92,7 +95,8 @@ def compare_rows(
         "definitions": {
             "traits": "canopy_metrics of the canopy each row's parameters build (the scene's "
             "layout and canopy seed; no gap-fraction reading)",
-            "spread": "over the rows: min, max, mean, sd (population) and (max - min) / |mean|",
+            "spread": "over the rows: median, min, max, mean, sd (population) and "
+            "(max - min) / |mean|",
             "index": "0 the row fit's best row (the scene's answer), +k / -k the k-th row to "
             "the right / left of it, looking along the row camera's image x from above",
         },
