@@ -103,7 +103,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # off on the demo's canopy through SfM: cropcraft_core.rowfit.neighbours)
     "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "best", "snap": None},
     "generate": {"seed": 0},
-    "metrics": {"gap_fraction": True, "seed": 0, "seeds": True},
+    "metrics": {"gap_fraction": True, "seed": 0, "seed_traits": True},
     "export": {},
     "report": {"n_thumbnails": 6, "thumbnail_px": 192},
 }
@@ -254,6 +254,9 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             f"rows.snap must be null (cameras k row spacings apart) or a fraction of a row "
             f"spacing in (0, 0.5), got {snap!r}"
         )
+    for key in ("gap_fraction", "seed_traits"):
+        if not isinstance(cfg["metrics"][key], bool):
+            raise ConfigError(f"metrics.{key} must be true or false, got {cfg['metrics'][key]!r}")
     return cfg
 
 

@@ -16,27 +16,32 @@ def metrics(
     """:func:`cropcraft_core.metrics.canopy_metrics` of the generated canopy (on the wider
     canopy of :func:`cropcraft_core.bundle.gap_fraction_canopy`, so gap-fraction rays see no
     edge); stores ``{scene}/metrics/metrics.json`` with a ``definitions`` block (unit, method).
-    With the answer's ``aggregate`` record upstream and ``seeds`` on, also the traits of every
-    optimiser seed's answer and their spread (:func:`cropcraft_core.metrics.seeds.seed_traits`:
-    ``seeds``, ``lai_seeds_min``, ``lai_seeds_max``), where the answer combines two or more
-    seeds (not where it is the mean of several rows' answers: ``rows.json`` has their spread).
+    With the answer's ``aggregate`` record upstream and ``seed_traits`` on, also the traits of
+    every optimiser seed's answer and their spread
+    (:func:`cropcraft_core.metrics.seeds.seed_traits`: ``seeds``, ``lai_seeds_min``,
+    ``lai_seeds_max``), where the answer combines two or more seeds
+    (:func:`~cropcraft_core.metrics.seeds.answer_seeds`; not the mean of several rows' answers:
+    ``rows.json`` has their spread).
 
-    config: ``gap_fraction`` (bool), ``seed`` (gap-fraction sensor randomness), ``seeds``
-    (bool, default on).
+    config: ``gap_fraction`` (bool), ``seed`` (gap-fraction sensor randomness),
+    ``seed_traits`` (bool, default on).
     """
     from cropcraft_core.bundle import gap_fraction_canopy
     from cropcraft_core.config import CanopyLayout
     from cropcraft_core.metrics import canopy_metrics
-    from cropcraft_core.metrics.seeds import LAI_SEEDS_MAX, LAI_SEEDS_MIN, seed_metrics, seed_traits
+    from cropcraft_core.metrics.seeds import (
+        LAI_SEEDS_MAX,
+        LAI_SEEDS_MIN,
+        answer_seeds,
+        seed_metrics,
+        seed_traits,
+    )
 
     store = open_store(store_root)
     recipe = store.get_json(key_of(upstream["generate"], "recipe"))
-    fit = None
-    if "aggregate" in upstream and config.get("seeds", True):
-        fit = store.get_json(key_of(upstream["aggregate"], "fit"))
-        over_rows = (fit.get("extra") or {}).get("answer") == "mean"
-        if over_rows or len(fit.get("seed_params") or []) < 2:
-            fit = None
+    seeds = None
+    if "aggregate" in upstream and config.get("seed_traits", True):
+        seeds = answer_seeds(store.get_json(key_of(upstream["aggregate"], "fit")))
     with Timer() as t:
         canopy = canopy_from_recipe(recipe)
         gap = bool(config.get("gap_fraction", True))
@@ -45,19 +50,14 @@ def metrics(
             gap_fraction=gap,
             rng=int(config.get("seed", 0)),
         )
-        if fit is not None:
-            block = seed_traits(
-                recipe["crop"],
-                fit["seed_params"],
-                CanopyLayout(**recipe["layout"]),
-                int(recipe["seed"]),
-            )
-            extra = seed_metrics(block)
+        if seeds is not None:
+            layout = CanopyLayout(**recipe["layout"])
+            extra = seed_metrics(seed_traits(recipe["crop"], seeds, layout, int(recipe["seed"])))
             values["definitions"].update(extra.pop("definitions"))
             values.update(extra)
         key = artefact(scene, "metrics", "metrics.json")
         digest = store.put_json(key, values)
     summary = {k: values.get(k) for k in HEADLINE_TRAITS}
-    if fit is not None:
+    if seeds is not None:
         summary.update({k: values[k] for k in (LAI_SEEDS_MIN, LAI_SEEDS_MAX)})
     return make_record("metrics", scene, {"metrics": key}, {key: digest}, summary, t.seconds)

@@ -203,6 +203,20 @@ def test_scene_flow_produces_everything(base_run):
     assert len(repr(out)) < 20_000
 
 
+def test_the_seeds_traits_can_be_left_out(base_run, scene_dir):
+    """``metrics.seed_traits=false``: metrics.json without the seeds' traits, only the
+    metrics stage and what follows it recomputed; a setting that is no boolean is named."""
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "metrics.seed_traits": False})
+    assert _executed(out["states"]) == ["export", "metrics", "report"]
+    store = SceneStore(str(base_run["store"]))
+    assert "seeds" not in store.get_json(f"plotA/{CROP}/{DATE}/metrics/metrics.json")
+    assert "lai_seeds_min" not in out["metrics"]
+    assert out["metrics"]["lai"] == base_run["first"]["metrics"]["lai"]
+    with pytest.raises(ConfigError, match="metrics.seed_traits must be true or false"):
+        _cached(base_run["store"], scene_dir, {**OVERRIDES, "metrics.seed_traits": "no"})
+    _run("plotA", base_run["store"], scene_dir)  # back to the default for the tests after
+
+
 def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     """The season summary lists the scene, run from photos outside the store (no inbox), with
     its share of the row view without a reconstructed surface beside its traits."""

@@ -566,7 +566,7 @@ def test_each_seeds_answer_is_measured_on_the_answers_plants():
     max are those of the seeds' values; seed_metrics gives metrics.json's entries with their
     definitions; fewer than two seeds is named."""
     from cropcraft_core.metrics import canopy_metrics
-    from cropcraft_core.metrics.seeds import SEED_TRAITS, seed_metrics, seed_traits
+    from cropcraft_core.metrics.seeds import SEED_TRAITS, answer_seeds, seed_metrics, seed_traits
     from cropcraft_core.procedural import generate_canopy
 
     layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
@@ -597,6 +597,11 @@ def test_each_seeds_answer_is_measured_on_the_answers_plants():
     json.dumps(out)
     with pytest.raises(InputError, match="at least two seeds"):
         seed_traits("soybean", seeds[:1], layout, 5)
+    # which fits have seeds to measure: two or more of one fit's, not several rows' answers
+    assert answer_seeds({"seed_params": seeds}) == seeds
+    assert answer_seeds({"seed_params": seeds[:1]}) is None
+    assert answer_seeds({"seed_params": seeds, "extra": {"answer": "mean"}}) is None
+    assert answer_seeds({"seed_params": seeds, "extra": {"answer": "best"}}) == seeds
 
 
 def test_a_scene_fitted_over_several_rows_answers_with_their_mean_or_its_best_rows():

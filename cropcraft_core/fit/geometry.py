@@ -362,11 +362,10 @@ def fit_geometry(
         table = {**compare_rows(crop, answers, layout, seed), "tried": tried}
         table.update(answer=row_answer, answer_params=answer["params"])
     canopy = generate_canopy(crop, answer["params"], layout, seed=seed)
-    more = None
-    if (answer.get("extra") or {}).get("answer") != "mean" and len(answer["seed_params"]) > 1:
-        from cropcraft_core.metrics.seeds import seed_metrics, seed_traits
+    from cropcraft_core.metrics.seeds import answer_seeds, seed_metrics, seed_traits
 
-        more = seed_metrics(seed_traits(crop, answer["seed_params"], layout, seed))
+    seeds = answer_seeds(answer)
+    more = None if seeds is None else seed_metrics(seed_traits(crop, seeds, layout, seed))
     metrics = write_bundle(
         canopy, out, extra={"fit": answer, "observation": obs.meta}, more_metrics=more
     )

@@ -46,6 +46,16 @@ def seed_traits(
     return {"n_seeds": len(per), "traits": traits}
 
 
+def answer_seeds(fit: Mapping[str, Any]) -> list[dict[str, float]] | None:
+    """The seeds' best parameters of a ``fit.json`` whose answer combines two or more seeds
+    of one fit; None where it has fewer, or where its "seeds" are several rows' answers
+    (``rows_answer``'s mean: ``rows.json`` has their spread)."""
+    if (fit.get("extra") or {}).get("answer") == "mean":
+        return None
+    seeds = list(fit.get("seed_params") or [])
+    return seeds if len(seeds) >= 2 else None
+
+
 def seed_metrics(block: Mapping[str, Any]) -> dict[str, Any]:
     """``metrics.json``'s entries for a :func:`seed_traits` block: the block itself under
     ``seeds``, the LAI's range as flat keys (:data:`LAI_SEEDS_MIN`, :data:`LAI_SEEDS_MAX`), and
@@ -77,4 +87,11 @@ def seed_metrics(block: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-__all__ = ["LAI_SEEDS_MAX", "LAI_SEEDS_MIN", "SEED_TRAITS", "seed_metrics", "seed_traits"]
+__all__ = [
+    "LAI_SEEDS_MAX",
+    "LAI_SEEDS_MIN",
+    "SEED_TRAITS",
+    "answer_seeds",
+    "seed_metrics",
+    "seed_traits",
+]
