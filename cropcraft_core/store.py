@@ -89,6 +89,7 @@ __all__ = [
     "code_version",
     "config_hash",
     "environment_versions",
+    "numeric_kernels",
     "redact",
     "scene_prefix",
     "sha256_bytes",
@@ -353,7 +354,8 @@ NUMERIC_PACKAGES: tuple[tuple[str, ...], ...] = (
 @lru_cache(maxsize=1)
 def environment_versions() -> dict[str, str]:
     """``{distribution: version}`` of :data:`NUMERIC_PACKAGES` in this process, plus
-    ``python``; a library that is not installed is left out."""
+    ``python`` and the CPU-specific kernels that ran (:func:`numeric_kernels`); a library that
+    is not installed is left out."""
     from importlib import metadata
 
     out = {"python": ".".join(str(v) for v in sys.version_info[:3])}
@@ -364,6 +366,40 @@ def environment_versions() -> dict[str, str]:
                 break
             except metadata.PackageNotFoundError:
                 continue
+    return {**out, **numeric_kernels()}
+
+
+def numeric_kernels() -> dict[str, str]:
+    """Which CPU-specific kernels this process's numpy and OpenBLAS run: ``numpy-simd``, the
+    highest of numpy's dispatch targets that the CPU (less ``NPY_DISABLE_CPU_FEATURES``)
+    enables, else its baseline; ``openblas-core``, the core type OpenBLAS chose (or
+    ``OPENBLAS_CORETYPE`` set), as threadpoolctl reads it. The same code and libraries give
+    other last bits with other kernels, and the fit's answer moves with them: one demo seed
+    refitted with numpy's AVX-512 loops off, or with OpenBLAS's Haswell kernels instead of
+    SkylakeX, left the stored trajectory after 212 and 6 evaluations (benchmarks/RESULTS.md
+    *#seed-traits*). Entries that cannot be read are left out."""
+    out: dict[str, str] = {}
+    try:
+        from numpy._core._multiarray_umath import (  # numpy >= 2
+            __cpu_baseline__,
+            __cpu_dispatch__,
+            __cpu_features__,
+        )
+
+        enabled = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+        if enabled or __cpu_baseline__:
+            out["numpy-simd"] = (enabled or __cpu_baseline__)[-1]
+    except ImportError:
+        pass
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return out
+    blas = [i for i in threadpool_info() if i.get("internal_api") == "openblas"]
+    # numpy's own OpenBLAS first (scipy may load another)
+    blas.sort(key=lambda i: "numpy" not in str(i.get("filepath", "")))
+    if blas and blas[0].get("architecture"):
+        out["openblas-core"] = str(blas[0]["architecture"])
     return out
 
 

@@ -402,6 +402,35 @@ def test_environment_versions_name_the_installed_numeric_libraries():
     assert {"numba", "pycolmap", "torch"} <= set(env)
 
 
+def test_the_cpu_kernels_that_ran_are_named_as_numpy_and_openblas_chose_them():
+    """``numpy-simd`` and ``openblas-core`` follow what the process runs: numpy's highest
+    enabled dispatch target and OpenBLAS's core type, also where the environment turns the
+    machine's best ones off (a second interpreter with the top target disabled and OpenBLAS
+    told to use its Haswell kernels)."""
+    import os
+    import subprocess
+
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    from threadpoolctl import threadpool_info
+
+    env = environment_versions()
+    enabled = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+    if enabled:
+        assert env["numpy-simd"] == enabled[-1]
+    (blas,) = [i for i in threadpool_info() if "numpy" in i["filepath"]]
+    assert env["openblas-core"] == blas["architecture"]
+    if len(enabled) < 2 or not __cpu_features__.get("AVX2"):
+        pytest.skip("needs two of numpy's dispatch targets and AVX2 (Haswell kernels)")
+    code = (
+        "import json; from cropcraft_core.store import numeric_kernels as k; print(json.dumps(k()))"
+    )
+    forced = {**os.environ, "NPY_DISABLE_CPU_FEATURES": enabled[-1], "OPENBLAS_CORETYPE": "Haswell"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=forced, capture_output=True, text=True, check=True
+    )
+    assert json.loads(out.stdout) == {"numpy-simd": enabled[-2], "openblas-core": "Haswell"}
+
+
 def test_redact():
     assert redact("s3://AKIA:sEcReT@bucket/prefix") == "s3://bucket/prefix"
     assert "sEcReT" not in redact("see https://u:sEcReT@host/x?X-Amz-Signature=abc&n=1")
