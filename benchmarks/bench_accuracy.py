@@ -218,6 +218,39 @@ def score(
     }
 
 
+def seed_coverage(
+    crop: str, seed_params: list[list[dict]], truths: list[dict], indices: list[int]
+) -> dict | None:
+    """How the seeds' own answers spread around the truth, scene by scene: each seed's
+    parameters built on the scene's truth layout and canopy seed and measured
+    (:func:`cropcraft_core.metrics.seeds.seed_traits`, as the flow's ``metrics.json`` has
+    them); ``truth_in_lai_range``: the share of scenes whose true LAI lies within its seeds'
+    lowest and highest, ``lai_relative_range_median``: the median over scenes of (max − min) /
+    mean, and per scene its range. None where the method has fewer than two seeds."""
+    from cropcraft_core.metrics.seeds import seed_traits
+
+    if not seed_params or min(len(p) for p in seed_params) < 2:
+        return None
+    per = []
+    for i, params, truth in zip(indices, seed_params, truths, strict=True):
+        lai = seed_traits(crop, params, default_layout(crop), seed=100_000 + i)["traits"]["lai"]
+        per.append(
+            {
+                "scene": int(i),
+                "lai_min": lai["min"],
+                "lai_max": lai["max"],
+                "true_lai": truth["lai"],
+                "inside": bool(lai["min"] <= truth["lai"] <= lai["max"]),
+                "relative_range": lai["relative_range"],
+            }
+        )
+    return {
+        "truth_in_lai_range": float(np.mean([p["inside"] for p in per])),
+        "lai_relative_range_median": float(np.median([p["relative_range"] for p in per])),
+        "scenes": per,
+    }
+
+
 def run(
     crop: str,
     methods: list[str],
@@ -319,7 +352,7 @@ def run(
                 )
                 continue
             rows = rules(crop, label, b.fit)
-            answers = _fit_and_combine(scene_set, b, label, rows, ex, workers, log)
+            answers, seeds = _fit_and_combine(scene_set, b, label, rows, ex, workers, log)
             for row, _ in rows:
                 params = [answers[i][row][0] for i in range(len(observations))]
                 seconds = [answers[i][row][1] for i in range(len(observations))]
@@ -327,6 +360,15 @@ def run(
                 out["methods"][row] = score(
                     crop, params, truths, seconds, log=log, indices=scene_set.indices
                 )
+            out["methods"][label]["seed_spread"] = seed_coverage(
+                crop,
+                [
+                    [ParamBox.of(crop, bx).params(r.reported_x) for r in seeds[i]]
+                    for i, bx in enumerate(boxes)
+                ],
+                truths,
+                scene_set.indices,
+            )
             if diagnose:
                 r = out["methods"][label]
                 r["diagnosis"] = diagnose_misses(
@@ -601,9 +643,10 @@ def _combine_job(args) -> tuple[int, dict]:
 
 def _fit_and_combine(
     scenes: _Scenes, b: Budget, label: str, rows, ex, workers: int, log
-) -> dict[int, dict]:
+) -> tuple[dict[int, dict], dict[int, list]]:
     """Every scene's seeds fitted, then its answers under every row (:func:`combine_scene`):
-    ``{scene: {row: (params, seconds)}}``. In ``ex``'s processes a scene is combined as soon
+    ``{scene: {row: (params, seconds)}}``, and ``{scene: its seeds' results}``. In ``ex``'s
+    processes a scene is combined as soon
     as its last seed is in, ahead of the seeds still queued, so the re-scoring of one scene
     runs beside the fitting of the next instead of all of it, one scene after another, at the
     end (for maize, about 1.5 min per scene on one core)."""
@@ -641,7 +684,7 @@ def _fit_and_combine(
             ready = seed_in(*_seed_job(job))
             if ready is not None:
                 combined(*_combine_job(ready))
-        return answers
+        return answers, per_scene
     queued_seeds, queued_combines = iter(jobs), []
     pending: dict = {}
     window = 2 * max(1, workers)  # enough queued to keep every process busy
@@ -655,7 +698,7 @@ def _fit_and_combine(
                 break
             pending[ex.submit(_seed_job, job)] = "seed"
         if not pending:
-            return answers
+            return answers, per_scene
         finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for fut in finished:
             kind = pending.pop(fut)
@@ -704,6 +747,16 @@ def print_table(res: dict) -> None:
         if paper:
             cells = "".join(f"{paper[c]:>14.2f}" if c in paper else f"{'':>14}" for c in COLUMNS)
             print(f"{'  paper ' + label:<{w}}{cells}")
+    for label, r in res["methods"].items():
+        cover = r.get("seed_spread")
+        if cover:
+            n = len(cover["scenes"])
+            inside = round(cover["truth_in_lai_range"] * n)
+            print(
+                f"{label}: the true LAI lies within the seeds' own answers' range on {inside} "
+                f"of {n} scenes; that range's median width {cover['lai_relative_range_median']:.0%}"
+                " of its mean"
+            )
     for label, r in res["methods"].items():
         diag = r.get("diagnosis")
         if diag is None:

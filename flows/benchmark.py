@@ -73,7 +73,7 @@ def benchmark(
     {...}, "predictions": {method: [params per scene]}, "budget": {...}}``. ``overrides``
     (FitConfig fields, e.g. ``{"n_seeds": 3}``) and ``image_scale`` change the budget as in
     ``cropcraft bench accuracy``."""
-    from benchmarks.bench_accuracy import budget, rules, score, truth_record
+    from benchmarks.bench_accuracy import budget, rules, score, seed_coverage, truth_record
 
     log = get_run_logger()
     methods = list(methods or ["bo", "trust-region", "random"])
@@ -117,6 +117,17 @@ def benchmark(
             seconds = [a[row][1] for a in answers]
             out["methods"][row] = score(crop, params, truths, seconds, log=log.info)
             out["methods"][row]["budget"] = {**cfg.to_dict(), "image_scale": b0.scale}
+        # the seeds' own answers around the truth (bench_accuracy.seed_coverage), seed order
+        box = configs[m].param_box(crop)
+        seeds = [
+            sorted((d for d in mine if d["scene"] == i), key=lambda d: d["seed"]) for i in scenes
+        ]
+        out["methods"][m]["seed_spread"] = seed_coverage(
+            crop,
+            [[box.params(d["result"].reported_x) for d in ds] for ds in seeds],
+            truths,
+            list(scenes),
+        )
     out["truths"] = truths
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     key = f"benchmarks/accuracy/{crop}/{stamp}{'-quick' if quick else ''}.json"

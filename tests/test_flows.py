@@ -1015,6 +1015,13 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
         assert got["errors"][m] == ref["methods"][m]["errors"]
     stored = SceneStore.connect(str(tmp_path / "store")).get_json(got["key"])
     assert set(stored["methods"]) == rows
+    # the seeds' own answers around the truth, the same both ways
+    spread = ref["methods"]["bo"]["seed_spread"]
+    assert stored["methods"]["bo"]["seed_spread"] == spread
+    assert [s["scene"] for s in spread["scenes"]] == [0, 1]
+    inside = [s["lai_min"] <= s["true_lai"] <= s["lai_max"] for s in spread["scenes"]]
+    assert spread["truth_in_lai_range"] == np.mean(inside)
+    assert [s["true_lai"] for s in spread["scenes"]] == [t["lai"] for t in ref["truths"]]
     assert stored["methods"]["bo-unpolished"]["budget"]["polish_evals"] == 0
     assert stored["methods"]["bo-mean"]["budget"]["combine"] == "mean"
     assert len(stored["truths"]) == 2 and stored["methods"]["bo"]["budget"]["n_evals"] == 14
