@@ -363,7 +363,10 @@ def run(
             out["methods"][label]["seed_spread"] = seed_coverage(
                 crop,
                 [
-                    [ParamBox.of(crop, bx).params(r.reported_x) for r in seeds[i]]
+                    [
+                        ParamBox.of(crop, bx).params(r.reported_x)
+                        for r in sorted(seeds[i], key=lambda r: r.seed)
+                    ]
                     for i, bx in enumerate(boxes)
                 ],
                 truths,
@@ -645,11 +648,11 @@ def _fit_and_combine(
     scenes: _Scenes, b: Budget, label: str, rows, ex, workers: int, log
 ) -> tuple[dict[int, dict], dict[int, list]]:
     """Every scene's seeds fitted, then its answers under every row (:func:`combine_scene`):
-    ``{scene: {row: (params, seconds)}}``, and ``{scene: its seeds' results}``. In ``ex``'s
-    processes a scene is combined as soon
-    as its last seed is in, ahead of the seeds still queued, so the re-scoring of one scene
-    runs beside the fitting of the next instead of all of it, one scene after another, at the
-    end (for maize, about 1.5 min per scene on one core)."""
+    ``{scene: {row: (params, seconds)}}``, and ``{scene: its seeds' results}`` (in the order
+    they came in). In ``ex``'s processes a scene is combined as soon as its last seed is in,
+    ahead of the seeds still queued, so the re-scoring of one scene runs beside the fitting of
+    the next instead of all of it, one scene after another, at the end (for maize, about 1.5
+    min per scene on one core)."""
     crop = scenes.observations[0].crop
     n_seeds = b.fit.n_seeds
     per_scene: dict[int, list] = {i: [] for i in range(len(scenes.observations))}
