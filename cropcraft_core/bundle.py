@@ -71,7 +71,7 @@ def write_bundle(
     ``definitions`` joined to the traits' own), e.g. the seeds' traits
     (:func:`cropcraft_core.metrics.seeds.seed_metrics`)."""
     from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
-    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.metrics import canopy_metrics, join_metrics
     from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
 
     out = check_output_dir(out_dir)
@@ -82,9 +82,7 @@ def write_bundle(
     # for the gap-fraction rays.
     metrics = canopy_metrics(gap_fraction_canopy(canopy))
     if more_metrics:
-        more = dict(more_metrics)
-        defs = {**metrics["definitions"], **more.pop("definitions", {})}
-        metrics = {**metrics, **more, "definitions": defs}
+        metrics = join_metrics(metrics, more_metrics)
     timings["metrics_s"] = time.perf_counter() - t
 
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))

@@ -103,12 +103,13 @@ def benchmark(
         mine = [d for (mm, _, _), d in zip(jobs, done, strict=True) if mm == m]
         rows = rules(crop, m, configs[m])
         scenes = range(b0.scenes)
+        by_scene = [[d for d in mine if d["scene"] == i] for i in scenes]  # in seed order
         answers = bench_combine.map(
             [crop] * b0.scenes,
             list(scenes),
             [[(row, cfg.to_dict()) for row, cfg in rows]] * b0.scenes,
-            [[d["result"] for d in mine if d["scene"] == i] for i in scenes],
-            [sum(d["seconds"] for d in mine if d["scene"] == i) for i in scenes],
+            [[d["result"] for d in ds] for ds in by_scene],
+            [sum(d["seconds"] for d in ds) for ds in by_scene],
             [b0.scale] * b0.scenes,
         )
         answers = [a.result() for a in answers]
@@ -117,14 +118,11 @@ def benchmark(
             seconds = [a[row][1] for a in answers]
             out["methods"][row] = score(crop, params, truths, seconds, log=log.info)
             out["methods"][row]["budget"] = {**cfg.to_dict(), "image_scale": b0.scale}
-        # the seeds' own answers around the truth (bench_accuracy.seed_coverage), seed order
+        # the seeds' own answers around the truth (bench_accuracy.seed_coverage)
         box = configs[m].param_box(crop)
-        seeds = [
-            sorted((d for d in mine if d["scene"] == i), key=lambda d: d["seed"]) for i in scenes
-        ]
         out["methods"][m]["seed_spread"] = seed_coverage(
             crop,
-            [[box.params(d["result"].reported_x) for d in ds] for ds in seeds],
+            [[box.params(d["result"].reported_x) for d in ds] for ds in by_scene],
             truths,
             list(scenes),
         )

@@ -629,9 +629,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
     truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")
     metrics = store.get_json(f"{site}/{crop}/{date}/metrics/metrics.json")
-    seeds = (metrics.get("seeds") or {}).get("traits") or {}
-    n = (metrics.get("seeds") or {}).get("n_seeds")
-    head = f"   the {n} seeds' answers" if seeds else ""
+    block = metrics.get("seeds") or {}
+    seeds = block.get("traits") or {}
+    head = f"   the {block.get('n_seeds')} seeds' answers" if seeds else ""
     print(f"\n{'trait':<24}{'estimated':>12}{'true':>12}{head}")
     for key, label in DEMO_TRUTH_KEYS:
         est, tru = metrics.get(key), truth.get(key)

@@ -28,7 +28,7 @@ def metrics(
     """
     from cropcraft_core.bundle import gap_fraction_canopy
     from cropcraft_core.config import CanopyLayout
-    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.metrics import canopy_metrics, join_metrics
     from cropcraft_core.metrics.seeds import (
         LAI_SEEDS_MAX,
         LAI_SEEDS_MIN,
@@ -52,9 +52,8 @@ def metrics(
         )
         if seeds is not None:
             layout = CanopyLayout(**recipe["layout"])
-            extra = seed_metrics(seed_traits(recipe["crop"], seeds, layout, int(recipe["seed"])))
-            values["definitions"].update(extra.pop("definitions"))
-            values.update(extra)
+            block = seed_traits(recipe["crop"], seeds, layout, int(recipe["seed"]))
+            values = join_metrics(values, seed_metrics(block))
         key = artefact(scene, "metrics", "metrics.json")
         digest = store.put_json(key, values)
     summary = {k: values.get(k) for k in HEADLINE_TRAITS}

@@ -14,6 +14,7 @@ weighted by face area, so they describe the canopy's leaf *area*, not its triang
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -388,6 +389,15 @@ def canopy_traits(
         ),
     ]
     return traits
+
+
+def join_metrics(metrics: Mapping[str, Any], more: Mapping[str, Any]) -> dict[str, Any]:
+    """``metrics`` (a :func:`canopy_metrics` dict) with ``more``'s entries added and its
+    ``definitions`` joined to ``metrics``' own (e.g. the seeds' traits,
+    :func:`cropcraft_core.metrics.seeds.seed_metrics`)."""
+    extra = dict(more)
+    defs = {**metrics.get("definitions", {}), **extra.pop("definitions", {})}
+    return {**metrics, **extra, "definitions": defs}
 
 
 def traits_to_dict(traits: list[Trait]) -> dict[str, Any]:
