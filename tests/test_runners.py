@@ -9,6 +9,8 @@ import os
 import pytest
 
 from cropcraft_core.errors import ConfigError
+from cropcraft_core.kernels import PORTABLE
+from cropcraft_core.store import numeric_kernels
 from flows.runners import local_cluster, make_task_runner, parse_runner
 
 
@@ -25,7 +27,10 @@ def test_runner_specs_parse_or_name_the_problem():
 
 
 def _worker_env() -> dict:
+    from cropcraft_core.store import numeric_kernels
+
     return {
+        "kernels": numeric_kernels(),
         "malloc": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
         "numba_env": os.environ.get("NUMBA_NUM_THREADS"),
         "api": os.environ.get("PREFECT_API_URL"),
@@ -47,12 +52,20 @@ def test_local_cluster_workers_compute_like_cropcrafts_own_processes():
         env = client.submit(_worker_env, pure=False).result(timeout=120)
     # numba keeps every core for a stage that runs alone; fit seeds take their share themselves
     numba_env = os.environ.get("NUMBA_NUM_THREADS")
-    assert env == {"malloc": None, "numba_env": numba_env, "api": url, "omp": "1"}
+    # the CPU kernels the flow's own process runs (cropcraft_core.kernels)
+    kernels = numeric_kernels()
+    assert env == {
+        "kernels": kernels,
+        "malloc": None,
+        "numba_env": numba_env,
+        "api": url,
+        "omp": "1",
+    }
 
 
 def test_shipped_dask_worker_config_drops_the_malloc_pin():
     """``deploy/dask`` (DASK_CONFIG for remote workers, set in the images) leaves the worker
-    processes' malloc alone."""
+    processes' malloc alone and pins their CPU kernels as CropCraft's own processes do."""
     import json
     import subprocess
     import sys
@@ -74,6 +87,7 @@ def test_shipped_dask_worker_config_drops_the_malloc_pin():
     spawn_env = json.loads(out.stdout)
     assert "MALLOC_TRIM_THRESHOLD_" not in spawn_env
     assert spawn_env["OMP_NUM_THREADS"] == "1"  # Dask's own default, kept
+    assert {k: spawn_env.get(k) for k in PORTABLE} == PORTABLE
 
 
 def test_the_cli_names_the_flows_default_runner():

@@ -404,9 +404,10 @@ def test_environment_versions_name_the_installed_numeric_libraries():
 
 def test_the_cpu_kernels_that_ran_are_named_as_numpy_and_openblas_chose_them():
     """``numpy-simd`` and ``openblas-core`` follow what the process runs: numpy's highest
-    enabled dispatch target and OpenBLAS's core type, also where the environment turns the
-    machine's best ones off (a second interpreter with the top target disabled and OpenBLAS
-    told to use its Haswell kernels)."""
+    enabled dispatch target and OpenBLAS's core type, with the host's own choice
+    (``CROPCRAFT_KERNELS=native`` in a second interpreter) and where the environment turns the
+    machine's best ones off (a third with the top target disabled and OpenBLAS told to use its
+    Haswell kernels)."""
     import os
     import subprocess
 
@@ -419,16 +420,31 @@ def test_the_cpu_kernels_that_ran_are_named_as_numpy_and_openblas_chose_them():
         assert env["numpy-simd"] == enabled[-1]
     (blas,) = [i for i in threadpool_info() if "numpy" in i["filepath"]]
     assert env["openblas-core"] == blas["architecture"]
+    code = (
+        "import json; from cropcraft_core.store import numeric_kernels as k\n"
+        "from numpy._core._multiarray_umath import __cpu_dispatch__ as d, __cpu_features__ as f\n"
+        "print(json.dumps([k(), [t for t in d if f.get(t)]]))"
+    )
+
+    def child(**extra: str):
+        pinned = ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")
+        base = {k: v for k, v in os.environ.items() if k not in pinned}
+        out = subprocess.run(
+            [sys.executable, "-c", code],
+            env={**base, "CROPCRAFT_KERNELS": "native", **extra},
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return json.loads(out.stdout)
+
+    native, enabled = child()
+    if enabled:
+        assert native["numpy-simd"] == enabled[-1]
     if len(enabled) < 2 or not __cpu_features__.get("AVX2"):
         pytest.skip("needs two of numpy's dispatch targets and AVX2 (Haswell kernels)")
-    code = (
-        "import json; from cropcraft_core.store import numeric_kernels as k; print(json.dumps(k()))"
-    )
-    forced = {**os.environ, "NPY_DISABLE_CPU_FEATURES": enabled[-1], "OPENBLAS_CORETYPE": "Haswell"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], env=forced, capture_output=True, text=True, check=True
-    )
-    assert json.loads(out.stdout) == {"numpy-simd": enabled[-2], "openblas-core": "Haswell"}
+    forced, _ = child(NPY_DISABLE_CPU_FEATURES=enabled[-1], OPENBLAS_CORETYPE="Haswell")
+    assert forced == {"numpy-simd": enabled[-2], "openblas-core": "Haswell"}
 
 
 def test_redact():
