@@ -308,24 +308,60 @@ def test_guarded_through_combine_records_its_verdict(soybean_seeds):
     }
 
 
-def test_beside_runs_both_and_raises_the_main_error_at_once():
+def test_beside_runs_both_and_ends_the_other_at_once_where_the_main_fails():
+    """``beside`` runs ``other`` in a second thread on a copy of the forward model whose
+    timings are added to the model's; where ``main`` fails its error comes at once, and the
+    other thread's work stops at its next canopy instead of running to its end."""
     import threading
     import time
 
+    from cropcraft_core.fit.forward import Stopped
     from cropcraft_core.fit.select import beside
 
+    truth = {"leaf_length": 1.0, "petiole_length": 1.0, "petiole_angle": 2.0}
+    truth |= {"internode_length": 1.0, "num_nodes": 5.0}
+    canopy = generate_canopy("soybean", truth, default_layout("soybean"), seed=3)
+    forward = ForwardModel(observe_canopy(canopy, preset("soybean", **SMALL)))
     names: list[str] = []
 
-    def other() -> int:
+    def other(fm: ForwardModel) -> float:
         names.append(threading.current_thread().name)
-        return 2
+        assert fm is not forward and fm.stop is not None
+        return fm.loss(truth, 1)
 
-    assert beside(lambda: 1, other) == (1, 2)
+    first, second = beside(forward, lambda fm: fm.loss(truth, 0), other)
+    assert first == forward.loss(truth, 0) and second == forward.loss(truth, 1)
     assert names and names[0] != threading.current_thread().name
+    # the copy's canopy was counted in the model's timings (the two made here, then two more)
+    assert forward.timings["calls"] == 4
+
+    done: list[BaseException] = []
+
+    def endless(fm: ForwardModel) -> None:
+        try:
+            while True:
+                fm.loss(truth, 1)
+        except BaseException as e:  # what ended it
+            done.append(e)
+            raise
+
+    def failing(fm: ForwardModel) -> None:
+        time.sleep(0.5)  # the other thread is among its canopies by now
+        raise ValueError("main failed")
+
     t = time.perf_counter()
     with pytest.raises(ValueError, match="main failed"):
-        beside(lambda: (_ for _ in ()).throw(ValueError("main failed")), lambda: time.sleep(3))
+        beside(forward, failing, endless)
     assert time.perf_counter() - t < 2.0  # not held until the other finishes
+
+    def beside_threads() -> list[threading.Thread]:
+        return [th for th in threading.enumerate() if th.name.startswith("cropcraft-beside")]
+
+    deadline = time.perf_counter() + 10
+    while (not done or beside_threads()) and time.perf_counter() < deadline:
+        time.sleep(0.05)
+    assert done and isinstance(done[0], Stopped)
+    assert not beside_threads()  # the thread itself has ended, so nothing holds the exit
 
 
 def test_benchmark_rows_share_one_rescoring_and_answer_as_separate_combines(soybean_seeds):

@@ -399,19 +399,18 @@ def combine(
             seconds += fl.seconds
         else:
 
-            def selected() -> sl.Selection:
+            def selected(fm: ForwardModel = forward) -> sl.Selection:
                 return selection or sl.select(
-                    forward, results, k_canopies, config.polish_starts, evals, box=box
+                    fm, results, k_canopies, config.polish_starts, evals, box=box
                 )
 
             floor = None
             if rule == "guarded" and selection is None and evals > 0:
                 # the median's floor needs no re-scoring: made beside it, in a second thread
-                other, seeds = sl.own_forward(forward), sl.reevaluation_seeds(k_canopies)
+                seeds = sl.reevaluation_seeds(k_canopies)
                 sel, floor = sl.beside(
-                    selected, lambda: sl.median_floor(other, results, seeds, evals, box)
+                    forward, selected, lambda fm: sl.median_floor(fm, results, seeds, evals, box)
                 )
-                sl.add_timings(forward, other)
             else:
                 sel = selected()
             final, std = sel.x, agg.std_x

@@ -9,6 +9,7 @@ background is rendered (supplementary "Mask and Histogram Details").
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -24,6 +25,11 @@ from cropcraft_core.render.raster import render_depth
 
 #: :attr:`ForwardModel.estimator` values.
 ESTIMATORS = ("pooled", "unbiased")
+
+
+class Stopped(RuntimeError):
+    """A :class:`ForwardModel` was asked for a canopy after its ``stop`` event was set: the
+    work it served was called off (``cropcraft_core.fit.select.beside``)."""
 
 
 def row_frame_camera(camera: PinholeCamera) -> PinholeCamera:
@@ -53,6 +59,9 @@ class ForwardModel:
     timings: dict[str, float] = field(
         default_factory=lambda: {"generate": 0.0, "render": 0.0, "stats": 0.0, "calls": 0}
     )
+    stop: threading.Event | None = field(default=None, repr=False, compare=False)
+    """Once set, every further canopy raises :class:`Stopped` (a second thread's work whose
+    caller failed ends at its next canopy instead of running to its end)."""
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -79,6 +88,8 @@ class ForwardModel:
 
     def depth(self, params: Mapping[str, float], seed: int) -> np.ndarray:
         """(H, W) float32 z-depth of the predicted canopy, NaN where nothing is rendered."""
+        if self.stop is not None and self.stop.is_set():
+            raise Stopped("the work this forward model served was called off")
         t0 = time.perf_counter()
         c = self.canopy(params, seed, culled=True)
         t1 = time.perf_counter()

@@ -78,6 +78,7 @@ sets of 16 re-scoring canopies:
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -334,31 +335,35 @@ class Guard:
         }
 
 
-def beside(main: Callable[[], A], other: Callable[[], B]) -> tuple[A, B]:
-    """``(main(), other())``, ``other`` run in a second thread meanwhile. The re-scoring's
-    work releases the GIL for most of its time (the renderer and NumPy): on two cores the
-    selection's polish and the median's took 102 s side by side against 135 s one after the
-    other, to the same bits (benchmarks/RESULTS.md *#aggregate-threads*). Give ``other`` its
-    own :class:`ForwardModel` (:func:`own_forward`), whose timings it may then add up alone.
-    Where ``main`` fails, its error is raised at once (``other`` is left to finish by itself)."""
+def beside(
+    forward: ForwardModel,
+    main: Callable[[ForwardModel], A],
+    other: Callable[[ForwardModel], B],
+) -> tuple[A, B]:
+    """``(main(forward), other(copy))``, ``other`` run in a second thread meanwhile on a copy of
+    ``forward`` with timings of its own, which are added to ``forward``'s when both are done.
+    The re-scoring's work releases the GIL for most of its time (the renderer and NumPy): on two
+    cores the selection's polish and the median's took 102 s side by side against 135 s one
+    after the other, to the same bits (benchmarks/RESULTS.md *#aggregate-threads*). Where
+    ``main`` fails its error is raised at once, and ``other`` ends at its next canopy (the
+    copy's ``stop`` is set: :class:`~cropcraft_core.fit.forward.Stopped`) instead of running on
+    for its minute, keeping a core and the process's exit waiting."""
+    stop = threading.Event()
+    copy = replace(forward, timings=dict.fromkeys(forward.timings, 0), stop=stop)
     ex = ThreadPoolExecutor(1, thread_name_prefix="cropcraft-beside")
     try:
-        fut = ex.submit(other)
-        first = main()
-        return first, fut.result()
+        fut = ex.submit(other, copy)
+        try:
+            first = main(forward)
+        except BaseException:
+            stop.set()
+            raise
+        second = fut.result()
     finally:
         ex.shutdown(wait=False, cancel_futures=True)
-
-
-def own_forward(forward: ForwardModel) -> ForwardModel:
-    """A copy of ``forward`` with timings of its own, for a second thread (:func:`beside`)."""
-    return replace(forward, timings=dict.fromkeys(forward.timings, 0))
-
-
-def add_timings(forward: ForwardModel, other: ForwardModel) -> None:
-    """Add ``other``'s timings (a copy's, :func:`own_forward`) to ``forward``'s."""
-    for k, v in other.timings.items():
+    for k, v in copy.timings.items():
         forward.timings[k] = forward.timings.get(k, 0) + v
+    return first, second
 
 
 @dataclass(frozen=True)
@@ -430,12 +435,11 @@ def guard(
         made = floor.seconds
     fresh = reevaluation_seeds(len(seeds) + check)[len(seeds) :]
     winner, m_floor = box.params(selection.x), box.params(floor.floor)
-    other = own_forward(forward)
     mine, theirs = beside(
-        lambda: _per_canopy(forward, winner, fresh),
-        lambda: _per_canopy(other, m_floor, fresh),
+        forward,
+        lambda fm: _per_canopy(fm, winner, fresh),
+        lambda fm: _per_canopy(fm, m_floor, fresh),
     )
-    add_timings(forward, other)
     mean, se, deeper = _paired_lower(mine - theirs, se_factor)
     return Guard(
         x=np.asarray(selection.x if deeper else floor.median, dtype=np.float64),
