@@ -408,11 +408,10 @@ def test_the_cpu_kernels_that_ran_are_named_as_numpy_and_openblas_chose_them():
     (``CROPCRAFT_KERNELS=native`` in a second interpreter) and where the environment turns the
     machine's best ones off (a third with the top target disabled and OpenBLAS told to use its
     Haswell kernels)."""
-    import os
-    import subprocess
-
     from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
     from threadpoolctl import threadpool_info
+
+    from tests.test_kernels import _child
 
     env = environment_versions()
     enabled = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
@@ -426,24 +425,17 @@ def test_the_cpu_kernels_that_ran_are_named_as_numpy_and_openblas_chose_them():
         "print(json.dumps([k(), [t for t in d if f.get(t)]]))"
     )
 
-    def child(**extra: str):
-        pinned = ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")
-        base = {k: v for k, v in os.environ.items() if k not in pinned}
-        out = subprocess.run(
-            [sys.executable, "-c", code],
-            env={**base, "CROPCRAFT_KERNELS": "native", **extra},
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return json.loads(out.stdout)
-
-    native, enabled = child()
+    native, enabled = _child(code, CROPCRAFT_KERNELS="native")
     if enabled:
         assert native["numpy-simd"] == enabled[-1]
     if len(enabled) < 2 or not __cpu_features__.get("AVX2"):
         pytest.skip("needs two of numpy's dispatch targets and AVX2 (Haswell kernels)")
-    forced, _ = child(NPY_DISABLE_CPU_FEATURES=enabled[-1], OPENBLAS_CORETYPE="Haswell")
+    forced, _ = _child(
+        code,
+        CROPCRAFT_KERNELS="native",
+        NPY_DISABLE_CPU_FEATURES=enabled[-1],
+        OPENBLAS_CORETYPE="Haswell",
+    )
     assert forced == {"numpy-simd": enabled[-2], "openblas-core": "Haswell"}
 
 
