@@ -9,9 +9,11 @@ with the same code and the same locked libraries the demo's LAI read −1.8 %, +
 :func:`pin` therefore adds the two environment variables that make every host with AVX2 and
 FMA (x86-64-v3: Intel since 2013, AMD since 2015) choose the same kernels: numpy's dispatch
 capped at ``X86_V3`` and OpenBLAS's Haswell kernels. The libraries read them when they load,
-so the pin is made before numpy is imported, by importing ``flows`` (the CLI, and every flow
-run a Prefect worker starts); the processes they spawn (the process pools, Dask's nannies)
-inherit it, and ``deploy/dask`` sets the same for a cluster's workers. A user's own value of
+so the pin is made before numpy is imported, by importing ``flows`` (the CLI, the tests); the
+processes they spawn (the process pools, Dask's nannies) inherit it. A Prefect worker loads a
+deployment's flow file by path, which imports numpy before ``flows``, so ``deploy/prefect.yaml``
+gives every deployment the same two variables as job variables, and ``deploy/dask`` gives them
+to a cluster's workers. A user's own value of
 either variable wins; ``CROPCRAFT_KERNELS=native`` keeps each host's own choice.
 
 Measured on one AVX-512 machine (benchmarks/RESULTS.md *#portable-kernels*): each of the two
@@ -83,7 +85,7 @@ def pin() -> dict[str, str]:
     already runs the host's own kernels must not hand other ones to the workers it spawns (they
     inherit ``os.environ``), or a seed fitted in a worker would differ from the same seed fitted
     in the process. So a process and its workers always run the same kernels; the entry points
-    (``flows``, which the CLI and every flow run import first) pin them."""
+    (``flows``, which the CLI imports first) pin them."""
     if "numpy" in sys.modules:
         return {}
     add = portable_environ()

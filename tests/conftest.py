@@ -7,7 +7,7 @@ first and starts at once on one worker while the other works through the rest.
 
 from __future__ import annotations
 
-# The test processes pin their CPU kernels as the CLI and every flow run do (before anything
+# The test processes pin their CPU kernels as the CLI does (before anything
 # loads numpy: cropcraft_core.kernels), whichever test file a worker happens to import first.
 import flows  # noqa: F401
 

@@ -125,6 +125,12 @@ def test_prefect_deploy_creates_both_deployments_and_schedule(prefect_server, tm
     assert bench["entrypoint"] == "flows/benchmark.py:benchmark"
     assert bench["parameters"] == {"crop": "soybean", "quick": True}
 
+    # every flow run pins the CPU kernels as the CLI does (its file loads numpy before `flows`)
+    from cropcraft_core.kernels import PORTABLE
+
+    for d in (season, scene, gpu, bench):
+        assert d["job_variables"]["env"] == PORTABLE, d["name"]
+
 
 def test_compose_and_images_reference_the_pools():
     compose = (REPO / "docker" / "compose.yaml").read_text()
