@@ -13,8 +13,8 @@ so the pin is made before numpy is imported, by importing ``flows`` (the CLI, th
 processes they spawn (the process pools, Dask's nannies) inherit it. A Prefect worker loads a
 deployment's flow file by path, which imports numpy before ``flows``, so ``deploy/prefect.yaml``
 gives every deployment the same two variables as job variables, and ``deploy/dask`` gives them
-to a cluster's workers. A user's own value of
-either variable wins; ``CROPCRAFT_KERNELS=native`` keeps each host's own choice.
+to a cluster's workers. A user's own value of either variable wins; ``CROPCRAFT_KERNELS=native``
+keeps each host's own choice.
 
 Measured on one AVX-512 machine (benchmarks/RESULTS.md *#portable-kernels*): each of the two
 alone moved a demo seed's losses (numpy's from its first GP step, OpenBLAS's SkylakeX kernels
