@@ -69,10 +69,11 @@ PINNED = {"numpy-simd": "X86_V3", "openblas-core": "Haswell"}
 
 @needs_v3
 def test_a_process_that_imports_the_flows_first_and_its_workers_run_the_portable_kernels():
-    """The CLI's and a flow run's process, and the spawned workers that fit their seeds, read
-    X86_V3 and Haswell in their stage records; a process whose numpy was loaded before the flows
-    (a notebook) keeps its own kernels and hands none to its workers, so that the two agree;
-    ``CROPCRAFT_KERNELS=native`` keeps the host's."""
+    """The CLI's process and the spawned workers that fit its seeds read X86_V3 and Haswell in
+    their stage records (a deployment's flow run gets the same from ``deploy/prefect.yaml``);
+    a process whose numpy was loaded before the flows (a notebook) keeps its own kernels and
+    hands none to its workers, so that the two agree; ``CROPCRAFT_KERNELS=native`` keeps the
+    host's."""
     code = (
         "import flows, json\n"
         "from cropcraft_core.parallel import pool\n"
