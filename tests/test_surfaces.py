@@ -266,6 +266,72 @@ def test_stereo_scores_are_the_same_compiled_fresh_or_loaded_from_the_cache(tmp_
     assert np.array_equal(outs[0], outs[1])
 
 
+def _sweep_ncc_by_definition(ref, srcs, homs, half, m_best):
+    """The plane sweep's matching score written out plainly (numpy, one plane, source, channel
+    and window at a time): each source warped bilinearly where the plane's pixel maps inside it
+    (0 elsewhere), the NCC of every clipped window, the channels' mean, -1 where the source does
+    not see the pixel, and per pixel the mean of the best ``m_best`` sources."""
+    n_c, h, w = ref.shape
+    n_d, n_s = homs.shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    out = np.empty((h, w, n_d))
+    for k in range(n_d):
+        per_source = np.empty((n_s, h, w))
+        for s in range(n_s):
+            m = homs[k, s]
+            hs, ws = srcs.shape[2:]
+            pz = m[2, 0] * xs + m[2, 1] * ys + m[2, 2]
+            u = (m[0, 0] * xs + m[0, 1] * ys + m[0, 2]) / pz
+            v = (m[1, 0] * xs + m[1, 1] * ys + m[1, 2]) / pz
+            seen = (pz > 1e-9) & (u >= 0) & (v >= 0) & (u <= ws - 1) & (v <= hs - 1)
+            x0 = np.clip(np.where(seen, u, 0).astype(int), 0, ws - 2)
+            y0 = np.clip(np.where(seen, v, 0).astype(int), 0, hs - 2)
+            fx, fy = np.where(seen, u - x0, 0), np.where(seen, v - y0, 0)
+            img = srcs[s].astype(np.float64)
+            warped = (
+                img[:, y0, x0] * (1 - fx) * (1 - fy) + img[:, y0, x0 + 1] * fx * (1 - fy)
+                + img[:, y0 + 1, x0] * (1 - fx) * fy + img[:, y0 + 1, x0 + 1] * fx * fy
+            ) * seen  # fmt: skip
+            score = np.zeros((h, w))
+            for y in range(h):
+                for x in range(w):
+                    win = np.s_[:, max(0, y - half) : y + half + 1, max(0, x - half) : x + half + 1]
+                    r, q = ref[win].reshape(n_c, -1), warped[win].reshape(n_c, -1)
+                    vr = np.maximum(r.var(axis=1) + 1e-5, 1e-5)
+                    vq = np.maximum(q.var(axis=1) + 1e-5, 1e-5)
+                    cov = (r * q).mean(axis=1) - r.mean(axis=1) * q.mean(axis=1)
+                    score[y, x] = np.mean(cov / np.sqrt(vr * vq))
+            per_source[s] = np.where(seen, score, -1.0)
+        out[..., k] = np.sort(per_source, axis=0)[::-1][:m_best].mean(axis=0)
+    return out
+
+
+@pytest.mark.parametrize("n_c, h, w", [(3, 17, 23), (1, 9, 4)])
+def test_sweep_scores_are_the_windowed_ncc_by_its_definition(n_c, h, w):
+    """The streamed kernel (rows warped, column sums, running sums along the row) scores what
+    its definition does, at the clipped windows of the border, where a source sees only part of
+    a window, and on an image narrower than the window."""
+    from cropcraft_core.surfaces import tsdf
+
+    rng = np.random.default_rng(3)
+    n_s, n_d, half, m_best = 3, 4, 2, 2
+    ref = rng.random((n_c, h, w), dtype=np.float32)
+    srcs = rng.random((n_s, n_c, h, w), dtype=np.float32)
+    homs = np.tile(np.eye(3), (n_d, n_s, 1, 1))
+    homs[..., 0, 2] = rng.uniform(-4, 4, (n_d, n_s))  # shifts: part of each view falls outside
+    homs[..., 1, 2] = rng.uniform(-3, 3, (n_d, n_s))
+    homs[..., :2, :2] += rng.normal(0, 0.03, (n_d, n_s, 2, 2))
+    homs[..., 2, :2] = rng.normal(0, 0.002, (n_d, n_s, 2))
+    for s in range(n_s):  # on plane 0 each source sees the reference moved by (s, 1) pixels
+        srcs[s, :, 1:, s:] = ref[:, : h - 1, : w - s]
+        homs[0, s] = [[1, 0, s], [0, 1, 1], [0, 0, 1]]
+    out = np.empty((h, w, n_d), np.float32)
+    tsdf._sweep_ncc(ref, srcs, np.array([[h, w]] * n_s, np.int64), homs, half, 0, m_best, out)
+    want = _sweep_ncc_by_definition(ref, srcs, homs, half, m_best)
+    assert (want == -1).any() and (want[..., 0] > 0.99).any()  # unseen pixels, true matches
+    np.testing.assert_allclose(out, want, rtol=0, atol=2e-5)
+
+
 def test_soil_height_is_the_layer_where_soil_points_pile_up_or_none():
     from cropcraft_core.surfaces.tsdf import soil_height
 

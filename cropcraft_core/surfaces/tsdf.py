@@ -290,107 +290,156 @@ def best_of(n_sources: int, best_sources: int) -> int:
 # turn on those (benchmarks/RESULTS.md, *#compile-state*). Without it the two agree to the bit.
 @njit(cache=True, parallel=True, fastmath=False)
 def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no cover - numba
-    """ref (C, h, w) float32; srcs (S, C, hs, ws) float32; src_hw (S, 2) int64 real sizes;
-    homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32 aggregated
-    NCC (per source the mean over the C channels of their NCC, with ``shift`` > 0 the best of
-    that over the windows centred up to ``shift`` pixels away in x and y; the mean of the best
-    m_best sources; -1 where fewer sources see the pixel)."""
+    """ref (C, h, w) float32; srcs (S, C, hs, ws) float32, C-contiguous; src_hw (S, 2) int64 real
+    sizes; homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32
+    aggregated NCC (per source the mean over the C channels of their NCC, with ``shift`` > 0 the
+    best of that over the windows centred up to ``shift`` pixels away in x and y; the mean of the
+    best m_best sources; -1 where fewer sources see the pixel).
+
+    Windows are (2 half + 1)² pixels clipped at the image border; a source pixel that does not
+    see the plane counts as 0 in its neighbours' windows. Each thread takes whole planes and
+    streams each source through it a row at a time (RESULTS, *#stereo-stream*): the row is
+    warped (bilinear), its products q, q², q·r summed into column sums over the window's rows
+    (the row leaving the window subtracted again), and the output row's window sums read from
+    running sums along those columns, so the working set is a few rows and every pass but the
+    warp runs along contiguous rows."""
     n_c, h, w = ref.shape
     n_d, n_s = homs.shape[0], homs.shape[1]
-    # reference window statistics (integral images)
-    ir = np.zeros((n_c, h + 1, w + 1))
-    ir2 = np.zeros((n_c, h + 1, w + 1))
-    for c in range(n_c):
-        for y in range(h):
-            for x in range(w):
-                r = ref[c, y, x]
-                ir[c, y + 1, x + 1] = ir[c, y, x + 1] + ir[c, y + 1, x] - ir[c, y, x] + r
-                ir2[c, y + 1, x + 1] = ir2[c, y, x + 1] + ir2[c, y + 1, x] - ir2[c, y, x] + r * r
-    # the reference's window sums and variances, the same for every plane and source
-    ref_s = np.empty((n_c, h, w))
-    ref_v = np.empty((n_c, h, w))
-    for c in range(n_c):
-        for y in range(h):
-            y0 = max(0, y - half)
-            y1 = min(h, y + half + 1)
+    wp = srcs.shape[3]
+    plane = srcs.shape[2] * wp
+    flat = srcs.reshape(n_s * n_c * plane)
+    # unsigned offsets: numba adds a negative-index check to every signed index
+    uwp = np.uint64(wp)
+    uplane = np.uint64(plane)
+    one = np.uint64(1)
+    nwin = 2 * half + 1
+    inv_nx = np.empty(w)  # 1 / the window's width at each column
+    for x in range(w):
+        inv_nx[x] = 1.0 / (min(w, x + half + 1) - max(0, x - half))
+    # the reference's window mean and 1 / standard deviation, the same for every plane and source
+    ref_m = np.empty((h, n_c, w))
+    ref_is = np.empty((h, n_c, w))
+    for y in range(h):
+        y0 = max(0, y - half)
+        y1 = min(h, y + half + 1)
+        for c in range(n_c):
             for x in range(w):
                 x0 = max(0, x - half)
                 x1 = min(w, x + half + 1)
-                n = (y1 - y0) * (x1 - x0)
-                sr = ir[c, y1, x1] - ir[c, y0, x1] - ir[c, y1, x0] + ir[c, y0, x0]
-                sr2 = ir2[c, y1, x1] - ir2[c, y0, x1] - ir2[c, y1, x0] + ir2[c, y0, x0]
-                vr = sr2 / n - (sr / n) ** 2 + 1e-5
-                if vr < 1e-5:
-                    vr = 1e-5
-                ref_s[c, y, x] = sr
-                ref_v[c, y, x] = vr
+                t1 = 0.0
+                t2 = 0.0
+                for yy in range(y0, y1):
+                    for xx in range(x0, x1):
+                        r = np.float64(ref[c, yy, xx])
+                        t1 += r
+                        t2 += r * r
+                inv = inv_nx[x] / (y1 - y0)
+                mr = t1 * inv
+                vr = max(t2 * inv - mr * mr + 1e-5, 1e-5)
+                ref_m[y, c, x] = mr
+                ref_is[y, c, x] = 1.0 / np.sqrt(vr)
     for k in prange(n_d):
-        scores = np.full((n_s, h, w), -1.0, np.float32)
-        wimg = np.zeros((n_c, h, w))
-        seen = np.zeros((h, w), np.bool_)
-        iw = np.zeros((h + 1, w + 1))
-        iw2 = np.zeros((h + 1, w + 1))
-        irw = np.zeros((h + 1, w + 1))
+        scores = np.empty((n_s, h, w), np.float32)
+        seen = np.empty((h, w), np.bool_)
+        qring = np.empty((nwin, n_c, w), np.float32)  # the warped rows of the current window
+        col = np.empty((n_c, 3, w))  # column sums of q, q², q·r over the window's rows
+        pre = np.empty((3, w + 1))  # running sums of those along the output row
+        acc = np.empty(w)
         tmp = np.empty((h, w), np.float32)
+        rank = np.empty(w, np.int32)
+        tot = np.empty(w)
         for s in range(n_s):
             hs, ws = src_hw[s, 0], src_hw[s, 1]
+            wsm = ws - 1.0
+            hsm = hs - 1.0
             m = homs[k, s]
-            for y in range(h):
-                for x in range(w):
-                    pz = m[2, 0] * x + m[2, 1] * y + m[2, 2]
-                    ok = False
-                    if pz > 1e-9:
-                        u = (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / pz
-                        v = (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / pz
-                        if u >= 0.0 and v >= 0.0 and u <= ws - 1.0 and v <= hs - 1.0:
-                            x0 = min(int(u), ws - 2)
-                            y0 = min(int(v), hs - 2)
-                            fx = u - x0
-                            fy = v - y0
+            h00, h01, h02 = m[0, 0], m[0, 1], m[0, 2]
+            h10, h11, h12 = m[1, 0], m[1, 1], m[1, 2]
+            h20, h21, h22 = m[2, 0], m[2, 1], m[2, 2]
+            base = np.uint64(s * n_c * plane)
+            col[:, :, :] = 0.0
+            for y in range(h + half):
+                if y < h:
+                    # warp row y of the source onto the plane (0 where it does not see it)
+                    wq = qring[y % nwin]
+                    ax = h01 * y + h02
+                    bx = h11 * y + h12
+                    cz = h21 * y + h22
+                    for x in range(w):
+                        pz = h20 * x + cz
+                        ok = False
+                        if pz > 1e-9:
+                            ip = 1.0 / pz
+                            u = (h00 * x + ax) * ip
+                            v = (h10 * x + bx) * ip
+                            if u >= 0.0 and v >= 0.0 and u <= wsm and v <= hsm:
+                                x0 = min(int(u), ws - 2)
+                                y0 = min(int(v), hs - 2)
+                                fx = np.float32(u - x0)
+                                fy = np.float32(v - y0)
+                                gx = np.float32(1.0) - fx
+                                gy = np.float32(1.0) - fy
+                                i = base + np.uint64(y0 * wp + x0)
+                                for c in range(n_c):
+                                    j = i + uwp
+                                    a = flat[i] * gx + flat[i + one] * fx
+                                    b = flat[j] * gx + flat[j + one] * fx
+                                    wq[c, x] = a * gy + b * fy
+                                    i += uplane
+                                ok = True
+                        if not ok:
                             for c in range(n_c):
-                                a = srcs[s, c, y0, x0] * (1 - fx) + srcs[s, c, y0, x0 + 1] * fx
-                                b = (
-                                    srcs[s, c, y0 + 1, x0] * (1 - fx)
-                                    + srcs[s, c, y0 + 1, x0 + 1] * fx
-                                )
-                                wimg[c, y, x] = a * (1 - fy) + b * fy
-                            ok = True
-                    if not ok:
-                        for c in range(n_c):
-                            wimg[c, y, x] = 0.0
-                    seen[y, x] = ok
-            for y in range(h):
-                for x in range(w):
-                    if seen[y, x]:
-                        scores[s, y, x] = 0.0
-            for c in range(n_c):
-                for y in range(h):
+                                wq[c, x] = 0.0
+                        seen[y, x] = ok
+                    _add_row(col, wq, ref, y, 1.0)
+                yo = y - half
+                if yo < 0:
+                    continue
+                # output row yo: the window's rows max(0, yo - half) .. min(h - 1, yo + half)
+                inv_ny = 1.0 / (min(h, yo + half + 1) - max(0, yo - half))
+                acc[:] = 0.0
+                for c in range(n_c):
+                    p0 = pre[0]
+                    p1 = pre[1]
+                    p2 = pre[2]
+                    c0 = col[c, 0]
+                    c1 = col[c, 1]
+                    c2 = col[c, 2]
+                    r0 = 0.0
+                    r1 = 0.0
+                    r2 = 0.0
+                    p0[0] = 0.0
+                    p1[0] = 0.0
+                    p2[0] = 0.0
                     for x in range(w):
-                        q = wimg[c, y, x]
-                        iw[y + 1, x + 1] = iw[y, x + 1] + iw[y + 1, x] - iw[y, x] + q
-                        iw2[y + 1, x + 1] = iw2[y, x + 1] + iw2[y + 1, x] - iw2[y, x] + q * q
-                        irw[y + 1, x + 1] = (
-                            irw[y, x + 1] + irw[y + 1, x] - irw[y, x] + q * ref[c, y, x]
-                        )
-                for y in range(h):
-                    y0 = max(0, y - half)
-                    y1 = min(h, y + half + 1)
-                    for x in range(w):
-                        if not seen[y, x]:
-                            continue
-                        x0 = max(0, x - half)
+                        r0 += c0[x]
+                        r1 += c1[x]
+                        r2 += c2[x]
+                        p0[x + 1] = r0
+                        p1[x + 1] = r1
+                        p2[x + 1] = r2
+                    rm = ref_m[yo, c]
+                    ri = ref_is[yo, c]
+                    for x in range(min(half, w)):  # windows clipped on the left
                         x1 = min(w, x + half + 1)
-                        n = (y1 - y0) * (x1 - x0)
-                        sr = ref_s[c, y, x]
-                        vr = ref_v[c, y, x]
-                        sw = iw[y1, x1] - iw[y0, x1] - iw[y1, x0] + iw[y0, x0]
-                        sw2 = iw2[y1, x1] - iw2[y0, x1] - iw2[y1, x0] + iw2[y0, x0]
-                        srw = irw[y1, x1] - irw[y0, x1] - irw[y1, x0] + irw[y0, x0]
-                        vw = sw2 / n - (sw / n) ** 2 + 1e-5
-                        if vw < 1e-5:
-                            vw = 1e-5
-                        ncc = (srw / n - sr * sw / (n * n)) / np.sqrt(vr * vw)
-                        scores[s, y, x] += ncc / n_c
+                        acc[x] += _ncc(p0[x1] - p0[0], p1[x1] - p1[0], p2[x1] - p2[0],
+                                       inv_nx[x] * inv_ny, rm[x], ri[x])  # fmt: skip
+                    for x in range(half, w - half):
+                        x0 = x - half
+                        x1 = x + half + 1
+                        acc[x] += _ncc(p0[x1] - p0[x0], p1[x1] - p1[x0], p2[x1] - p2[x0],
+                                       inv_nx[x] * inv_ny, rm[x], ri[x])  # fmt: skip
+                    for x in range(max(half, w - half), w):  # clipped on the right
+                        x0 = max(0, x - half)
+                        acc[x] += _ncc(p0[w] - p0[x0], p1[w] - p1[x0], p2[w] - p2[x0],
+                                       inv_nx[x] * inv_ny, rm[x], ri[x])  # fmt: skip
+                sy = scores[s, yo]
+                sn = seen[yo]
+                for x in range(w):
+                    sy[x] = acc[x] / n_c if sn[x] else -1.0
+                ylo = yo - half  # the row leaving the window
+                if ylo >= 0:
+                    _add_row(col, qring[ylo % nwin], ref, ylo, -1.0)
             if shift > 0:
                 # shiftable windows: the best of the windows that contain the pixel (a max
                 # filter of the centred windows' scores), rows then columns
@@ -410,21 +459,51 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                             if tmp[yy, x] > b:
                                 b = tmp[yy, x]
                         scores[s, y, x] = b
-        # aggregate: mean of the best m_best sources
+        # aggregate: the mean of the best m_best sources. A source counts where fewer than
+        # m_best others beat it (ties to the lower index): counted along the row, without the
+        # data-dependent branches of a selection
         for y in range(h):
+            tot[:] = 0.0
+            for s in range(n_s):
+                mine = scores[s, y]
+                rank[:] = 0
+                for t in range(s):
+                    other = scores[t, y]
+                    for x in range(w):
+                        rank[x] += np.int32(other[x] >= mine[x])
+                for t in range(s + 1, n_s):
+                    other = scores[t, y]
+                    for x in range(w):
+                        rank[x] += np.int32(other[x] > mine[x])
+                for x in range(w):
+                    tot[x] += mine[x] if rank[x] < m_best else np.float32(0.0)
             for x in range(w):
-                tot = 0.0
-                for _t in range(m_best):
-                    bi = -1
-                    bv = -3.0
-                    for s in range(n_s):
-                        sv = scores[s, y, x]
-                        if sv > bv:
-                            bv = sv
-                            bi = s
-                    tot += bv
-                    scores[bi, y, x] = -4.0
-                out[y, x, k] = tot / m_best
+                out[y, x, k] = tot[x] / m_best
+
+
+@njit(cache=True, inline="always")
+def _add_row(col, wq, ref, y, sign):  # pragma: no cover - numba
+    """col (C, 3, w) += sign × (q, q², q·r) of the warped row wq (C, w) against ref's row y."""
+    for c in range(wq.shape[0]):
+        qr = wq[c]
+        rr = ref[c, y]
+        c0 = col[c, 0]
+        c1 = col[c, 1]
+        c2 = col[c, 2]
+        for x in range(wq.shape[1]):
+            q = np.float64(qr[x])
+            c0[x] += sign * q
+            c1[x] += sign * (q * q)
+            c2[x] += sign * (q * rr[x])
+
+
+@njit(cache=True, inline="always")
+def _ncc(s0, s1, s2, inv, rm, ri):  # pragma: no cover - numba
+    """NCC of a window from its sums of q, q², q·r, 1 / its pixel count, the reference's window
+    mean and 1 / standard deviation (variances floored at 1e-5, as the reference's)."""
+    mw = s0 * inv
+    vw = max(s1 * inv - mw * mw + 1e-5, 1e-5)
+    return (s2 * inv - rm * mw) * (ri / np.sqrt(vw))
 
 
 @njit(cache=True)
