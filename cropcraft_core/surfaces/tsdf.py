@@ -343,7 +343,10 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
         seen = np.empty((h, w), np.bool_)
         qring = np.empty((nwin, n_c, w), np.float32)  # the warped rows of the current window
         col = np.empty((n_c, 3, w))  # column sums of q, q², q·r over the window's rows
-        pre = np.empty((3, w + 1))  # running sums of those along the output row
+        pre = np.zeros((3, w + 1))  # running sums of those along the output row (pre[:, 0] = 0)
+        p0 = pre[0]
+        p1 = pre[1]
+        p2 = pre[2]
         acc = np.empty(w)
         tmp = np.empty((h, w), np.float32)
         rank = np.empty(w, np.int32)
@@ -399,18 +402,12 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                 inv_ny = 1.0 / (min(h, yo + half + 1) - max(0, yo - half))
                 acc[:] = 0.0
                 for c in range(n_c):
-                    p0 = pre[0]
-                    p1 = pre[1]
-                    p2 = pre[2]
                     c0 = col[c, 0]
                     c1 = col[c, 1]
                     c2 = col[c, 2]
                     r0 = 0.0
                     r1 = 0.0
                     r2 = 0.0
-                    p0[0] = 0.0
-                    p1[0] = 0.0
-                    p2[0] = 0.0
                     for x in range(w):
                         r0 += c0[x]
                         r1 += c1[x]
