@@ -276,9 +276,7 @@ def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma:
                     old = zf[o]
                     # Inside edge e: E > 0 on the interior side, E == 0 owned iff positive
                     # side; then the strict depth test.
-                    take = (
-                        ((e0 < 0.0) != p0) & ((e1 < 0.0) != p1) & ((e2 < 0.0) != p2) & (iz > old)
-                    )
+                    take = ((e0 < 0.0) != p0) & ((e1 < 0.0) != p1) & ((e2 < 0.0) != p2) & (iz > old)
                     zf[o] = iz if take else old
                     ff[o] = kk if take else ff[o]
 
