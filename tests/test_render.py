@@ -262,6 +262,49 @@ def test_nearest_face_wins_and_render_is_deterministic():
     assert np.array_equal(res.depth, again.depth, equal_nan=True)
 
 
+@pytest.mark.parametrize("width", [1, 7, 9, 994])
+def test_spans_ending_at_the_image_edge_cover_exactly_their_pixels(width):
+    """The rasteriser finishes each span in whole groups of pixels, past its end into a padded
+    row, and keeps only what lies inside: a square reaching past both side edges (and a
+    second, nearer one ending inside the image) covers exactly the pixels whose centres it
+    holds, at any width. The padding (where a group past the last column is stored back
+    unchanged) is a whole number of groups wide."""
+    from cropcraft_core.render.raster import LANES, padded_width
+
+    stride = padded_width(width)
+    assert stride % LANES == 0 and stride >= width + LANES - 1
+    cam = PinholeCamera(
+        width, 12, 40.0, 40.0, width / 2, 6.0, PinholeCamera.look_down(height_m=1.0).cam_to_world
+    )
+    half_w = 0.6 * width / 40.0 + 0.013  # past both side edges
+    wide = np.array(
+        [
+            [-half_w, -0.0737, 0.0],
+            [half_w, -0.0737, 0.0],
+            [half_w, 0.0811, 0.0],
+            [-half_w, 0.0811, 0.0],
+        ]
+    )
+    near = wide * [0.21, 0.5, 1.0] + [0.0, 0.0, 0.5]
+    v = np.vstack([wide, near])
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]], np.int32)
+    res = render_depth(v, f, cam)
+    assert res.face_id.flags.c_contiguous and res.face_id.shape == (12, width)
+    u = np.arange(width) + 0.5
+    w = np.arange(12) + 0.5
+    for quad, depth, ids in ((wide, 1.0, {0, 1}), (near, 0.5, {2, 3})):
+        uv, _ = cam.project(quad)
+        inside = ((w > uv[:, 1].min()) & (w < uv[:, 1].max()))[:, None] & (
+            (u > uv[:, 0].min()) & (u < uv[:, 0].max())
+        )[None, :]
+        if depth == 1.0:
+            inside &= ~np.isin(res.face_id, [2, 3])
+        got = np.isin(res.face_id, list(ids))
+        assert np.array_equal(got, inside)
+        np.testing.assert_allclose(res.depth[got], depth, rtol=1e-6)
+    assert np.all(np.isnan(res.depth[res.face_id < 0]))
+
+
 def test_empty_mesh_and_bad_input():
     cam = ROW_CAM.scaled(0.25)
     res = render_depth(np.zeros((0, 3)), np.zeros((0, 3), np.int32), cam)

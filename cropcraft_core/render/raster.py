@@ -63,6 +63,16 @@ def _band_order(n_bands: int) -> np.ndarray:
 
 _BAND_ORDER = _band_order(N_BANDS)
 
+#: Pixels the rasteriser's inner loop tests at a time (a multiple of every SIMD width: 8
+#: doubles is one AVX-512 register, two AVX2 ones).
+LANES = 8
+
+
+def padded_width(width: int) -> int:
+    """Row stride of the rasteriser's working images: room for a span ending at the last
+    column to be finished in whole groups of ``LANES`` pixels."""
+    return -(-(width + LANES - 1) // LANES) * LANES
+
 
 @njit(cache=True, parallel=True, fastmath=False)
 def _project(vertices, w2c, fx, fy, cx, cy, pc, uv):  # pragma: no cover - numba
@@ -189,12 +199,13 @@ def _bin(box, band_h, n_bands):  # pragma: no cover - numba
 def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma: no cover
     """Rasterize every band (parallel over bands; each band owns its rows of invz / fid).
 
-    The pixel loop is written so that LLVM vectorises it: the pixels of a row's span are
-    addressed by unsigned offsets into the flat images (numba adds no negative-index
-    wrap-around to them), and the depth test is a select that stores every pixel of the span
-    back, changed or not, instead of a branch around the store. It computes the same value
-    for every pixel as the scalar loop, in any vector width, because nothing is reordered or
-    fused."""
+    invz, fid: (H, ``padded_width(W)``) working images. The pixel loop is written so that
+    LLVM vectorises it: the pixels of a row's span are addressed by unsigned offsets into the
+    flat images (numba adds no negative-index wrap-around to them), the span is covered in
+    whole groups of ``LANES`` pixels (no scalar remainder loop), and the depth test is a
+    select that stores every pixel of the group back, changed or not, instead of a branch
+    around the store. Every pixel gets the value the scalar loop gives it, in any vector
+    width, because nothing is reordered or fused."""
     height = invz.shape[0]
     uw = np.uint64(invz.shape[1])
     zf = invz.reshape(-1)
@@ -266,7 +277,12 @@ def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma:
                 zrow = zb * py + zc
                 start = np.uint64(y) * uw + np.uint64(xs)
                 px0 = xs + 0.5
-                for t in range(np.uint64(xe - xs + 1)):
+                n = np.uint64(xe - xs + 1)
+                # Whole groups of LANES pixels: the loop has no scalar remainder, which most
+                # spans (a few to a few tens of pixels) would otherwise spend their time in.
+                # The pixels past the span's end, up to LANES - 1 of them (in the row's
+                # padding where it ends at the image's edge), are stored back unchanged.
+                for t in range((n + np.uint64(LANES - 1)) // np.uint64(LANES) * np.uint64(LANES)):
                     px = px0 + np.float64(t)  # x + 0.5, exactly (small integers)
                     e0 = (px - ax0) * dy0 - q0
                     e1 = (px - ax1) * dy1 - q1
@@ -276,15 +292,22 @@ def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma:
                     old = zf[o]
                     # Inside edge e: E > 0 on the interior side, E == 0 owned iff positive
                     # side; then the strict depth test.
-                    take = ((e0 < 0.0) != p0) & ((e1 < 0.0) != p1) & ((e2 < 0.0) != p2) & (iz > old)
+                    take = (
+                        ((e0 < 0.0) != p0)
+                        & ((e1 < 0.0) != p1)
+                        & ((e2 < 0.0) != p2)
+                        & (iz > old)
+                        & (t < n)
+                    )
                     zf[o] = iz if take else old
                     ff[o] = kk if take else ff[o]
 
 
 @njit(cache=True, parallel=True, fastmath=False)
 def _finish(invz, depth):  # pragma: no cover - numba
-    """invz (H, W) float64 (0 = background) → depth (H, W) float32 (NaN = background)."""
-    h, w = invz.shape
+    """invz (H, W + padding) float64 (0 = background) → depth (H, W) float32 (NaN =
+    background)."""
+    h, w = depth.shape
     for y in prange(h):
         for x in range(w):
             iz = invz[y, x]
@@ -324,9 +347,10 @@ def render_depth(
         _setup(f, pc, uv, camera.fx, camera.fy, camera.cx, camera.cy, near, w, h, tri, box)
     band_h = -(-h // N_BANDS)
     offsets, items = _bin(box, band_h, N_BANDS)
-    invz = np.zeros((h, w))
-    fid = np.full((h, w), -1, np.int32)
+    stride = padded_width(w)
+    invz = np.zeros((h, stride))
+    fid = np.full((h, stride), -1, np.int32)
     _raster(tri, box, offsets, items, band_h, _BAND_ORDER, invz, fid)
     depth = np.empty((h, w), np.float32)
     _finish(invz, depth)
-    return RenderResult(depth=depth, face_id=fid, camera=camera)
+    return RenderResult(depth=depth, face_id=np.ascontiguousarray(fid[:, :w]), camera=camera)
