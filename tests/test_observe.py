@@ -251,6 +251,41 @@ def test_depth_histogram_matches_numpy_on_a_canopy():
     assert s.mask_area == m.mean()
 
 
+@pytest.mark.parametrize("crop_preset", [SOY, MAIZE], ids=["soybean", "maize"])
+def test_binning_by_computed_edges_counts_what_the_edge_arrays_count(crop_preset):
+    """The vectorised binning computes each bin's edges as ``k * step + lo``; it must count
+    exactly what binning against ``numpy.linspace``'s edge arrays counts, values exactly on
+    an edge (and on ``hi``) included, and edges it cannot compute must be refused."""
+    from cropcraft_core.observe import histograms as H
+
+    e = bin_edges(crop_preset)
+    linear = [H._linear_edges(e[k]) for k in ("depth", "lateral", "sobel")]
+    assert all(par is not None for par in linear)
+    cam = crop_preset.row_camera().scaled(0.25)
+    rng = np.random.default_rng(7)
+    d = rng.uniform(0.0, crop_preset.render_height * 1.05, (cam.height, cam.width))
+    d.flat[: len(e["depth"])] = e["depth"]  # every depth edge exactly
+    m = rng.random(d.shape) < 0.7
+    d[~m] = np.nan
+    dx = rng.uniform(-0.003, 0.003, d.shape).astype(np.float32)
+    dy = rng.uniform(-0.003, 0.003, d.shape).astype(np.float32)
+    dx.flat[: len(e["sobel"])] = e["sobel"]  # every sobel edge exactly (dy 0 there)
+    dy.flat[: len(e["sobel"])] = 0.0
+    yfac = H.lateral_factor(cam)
+    for with_sobel in (True, False):
+        got = H._histograms(d, m, yfac, dx, dy, *linear, with_sobel)
+        ref = H._histograms_by_edges(
+            d, m, yfac, dx, dy, e["depth"], e["lateral"], e["sobel"], with_sobel
+        )
+        for a, b in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(a, b)
+    ref_depth, _ = np.histogram(d[m], bins=e["depth"])
+    np.testing.assert_array_equal(got[0], ref_depth)
+    bent = e["depth"].copy()
+    bent[3] = np.nextafter(bent[3], 1.0)
+    assert H._linear_edges(bent) is None
+
+
 # --------------------------------------------------------------------------- lateral histogram
 def test_lateral_histogram_of_a_known_strip():
     # plane at depth 0.8: row v sees |y| = |v + 0.5 - 369| * 0.8 / F, F = 791.32 px. The strip
