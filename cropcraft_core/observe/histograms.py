@@ -421,36 +421,36 @@ def _derivatives(filled: np.ndarray, preset: ObservePreset) -> tuple[np.ndarray,
     return dx, dy
 
 
-_EDGE_CACHE: dict[tuple[float, float, int], np.ndarray] = {}
-_LINEAR_CACHE: dict[bytes, np.ndarray | None] = {}
+_EDGE_CACHE: dict[tuple[float, float, int], tuple[np.ndarray, np.ndarray | None]] = {}
+
+
+def _made_edges(lo: float, hi: float, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The n + 1 edges over [lo, hi] (``numpy.linspace``) and their :func:`_linear_edges`,
+    made once per range."""
+    key = (lo, hi, n)
+    got = _EDGE_CACHE.get(key)
+    if got is None:
+        e = np.linspace(lo, hi, n + 1)
+        got = (e, _linear_edges(e))
+        if len(_EDGE_CACHE) < 256:
+            _EDGE_CACHE[key] = got
+    return got
 
 
 def _edges(lo: float, hi: float, n: int) -> np.ndarray:
-    key = (lo, hi, n)
-    e = _EDGE_CACHE.get(key)
-    if e is None:
-        e = np.linspace(lo, hi, n + 1)
-        if len(_EDGE_CACHE) < 256:
-            _EDGE_CACHE[key] = e
-    return e
+    return _made_edges(lo, hi, n)[0]
 
 
 def _linear_edges(edges: np.ndarray) -> np.ndarray | None:
     """(lo, hi, step, n) as float64 if ``edges`` (n + 1 of them) are exactly
     ``k * step + lo`` for k < n and ``hi`` last, with ``step = (hi - lo) / n``, as
     ``numpy.linspace`` computes them; else None (then the bins are looked up in ``edges``)."""
-    key = edges.tobytes()
-    if key in _LINEAR_CACHE:
-        return _LINEAR_CACHE[key]
     n = len(edges) - 1
     lo, hi = float(edges[0]), float(edges[n])
     step = (hi - lo) / n
     made = np.arange(n + 1, dtype=np.float64) * step + lo
     made[n] = hi
-    par = np.array([lo, hi, step, n], np.float64) if np.array_equal(made, edges) else None
-    if len(_LINEAR_CACHE) < 256:
-        _LINEAR_CACHE[key] = par
-    return par
+    return np.array([lo, hi, step, n], np.float64) if np.array_equal(made, edges) else None
 
 
 def bin_edges(preset: ObservePreset) -> dict[str, np.ndarray]:
@@ -502,15 +502,14 @@ def compute_stats(
         dx, dy = _derivatives(filled, preset)
     else:
         dx = dy = filled  # not read
-    e = bin_edges(preset)
-    linear = [_linear_edges(e[k]) for k in ("depth", "lateral", "sobel")]
+    made = [_made_edges(*r) for r in (preset.depth_range, preset.lateral_range, preset.sobel_range)]
+    edges = [e for e, _ in made]
+    linear = [par for _, par in made]
     yfac = lateral_factor(camera)
     if all(par is not None for par in linear):
         hd, hl, hs = _histograms(d, m, yfac, dx, dy, *linear, with_sobel)
     else:
-        hd, hl, hs = _histograms_by_edges(
-            d, m, yfac, dx, dy, e["depth"], e["lateral"], e["sobel"], with_sobel
-        )
+        hd, hl, hs = _histograms_by_edges(d, m, yfac, dx, dy, *edges, with_sobel)
     n_pix = d.size
     denom = n_pix if preset.loss.normalisation == "image" else max(n_fg, 1)
     return HistogramStats(
