@@ -13,6 +13,7 @@ from cropcraft_core.render import (
     RenderResult,
     build_scene,
     cast_rays,
+    depth_map,
     depth_to_rgb,
     oblique_camera,
     raycast_depth,
@@ -303,6 +304,36 @@ def test_spans_ending_at_the_image_edge_cover_exactly_their_pixels(width):
         assert np.array_equal(got, inside)
         np.testing.assert_allclose(res.depth[got], depth, rtol=1e-6)
     assert np.all(np.isnan(res.depth[res.face_id < 0]))
+
+
+def test_depth_map_is_render_depths_depth_to_the_bit():
+    """The fit's renderer, which skips the face ids, gives the depths ``render_depth`` gives, on
+    a random soup at two sizes and near planes and on the fit's own canopies of both crops."""
+    from cropcraft_core.config import default_layout, resolve_params
+    from cropcraft_core.fit.forward import row_frame_camera
+    from cropcraft_core.observe import preset
+    from cropcraft_core.procedural import generate_canopy, max_reach, view_region
+
+    v, f = _random_soup(3000, 5, size=0.05)
+    for cam, near in ((ROW_CAM, 0.01), (ROW_CAM.scaled(0.37), 0.5)):
+        a = render_depth(v, f, cam, near=near).depth
+        b = depth_map(v, f, cam, near=near)
+        assert b.dtype == np.float32 and b.shape == a.shape
+        assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    for crop, params in (("soybean", {}), ("maize", {"leaf_length": 1.2, "num_nodes": 14.0})):
+        cam = row_frame_camera(preset(crop).row_camera())
+        layout = default_layout(crop).with_(row_azimuth_deg=0.0)
+        p = resolve_params(crop, params)
+        region = view_region(cam, layout, max_reach(crop, p))
+        mesh = generate_canopy(crop, p, layout, seed=3, region=region, view=cam).mesh
+        a = render_depth(mesh.vertices, mesh.faces, cam).depth
+        b = depth_map(mesh.vertices, mesh.faces, cam)
+        assert np.isfinite(b).mean() > 0.05
+        assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    with pytest.raises(GeometryError, match="near"):
+        depth_map(v, f, ROW_CAM, near=-1.0)
+    with pytest.raises(GeometryError, match="PinholeCamera"):
+        depth_map(v, f, "camera")
 
 
 def test_empty_mesh_and_bad_input():

