@@ -309,10 +309,11 @@ def test_spans_ending_at_the_image_edge_cover_exactly_their_pixels(width):
 def test_depth_map_is_render_depths_depth_to_the_bit():
     """The fit's renderer, which skips the face ids, gives the depths ``render_depth`` gives, on
     a random soup at two sizes and near planes and on the fit's own canopies of both crops."""
-    from cropcraft_core.config import default_layout, resolve_params
-    from cropcraft_core.fit.forward import row_frame_camera
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.fit import observe_canopy
+    from cropcraft_core.fit.forward import ForwardModel
     from cropcraft_core.observe import preset
-    from cropcraft_core.procedural import generate_canopy, max_reach, view_region
+    from cropcraft_core.procedural import generate_canopy
 
     v, f = _random_soup(3000, 5, size=0.05)
     for cam, near in ((ROW_CAM, 0.01), (ROW_CAM.scaled(0.37), 0.5)):
@@ -321,11 +322,9 @@ def test_depth_map_is_render_depths_depth_to_the_bit():
         assert b.dtype == np.float32 and b.shape == a.shape
         assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
     for crop, params in (("soybean", {}), ("maize", {"leaf_length": 1.2, "num_nodes": 14.0})):
-        cam = row_frame_camera(preset(crop).row_camera())
-        layout = default_layout(crop).with_(row_azimuth_deg=0.0)
-        p = resolve_params(crop, params)
-        region = view_region(cam, layout, max_reach(crop, p))
-        mesh = generate_canopy(crop, p, layout, seed=3, region=region, view=cam).mesh
+        truth = generate_canopy(crop, params, default_layout(crop), seed=2)
+        fm = ForwardModel(observe_canopy(truth, preset(crop)))
+        mesh, cam = fm.canopy(params, seed=3, culled=True).mesh, fm.camera
         a = render_depth(mesh.vertices, mesh.faces, cam).depth
         b = depth_map(mesh.vertices, mesh.faces, cam)
         assert np.isfinite(b).mean() > 0.05

@@ -318,16 +318,13 @@ def _finish(invz, depth):  # pragma: no cover - numba
             depth[y, x] = 1.0 / iz if iz > 0.0 else np.nan
 
 
-def _check(vertices, faces, camera, near):
+def _render(vertices, faces, camera, near, with_ids):
+    """(depth (H, W) float32, face ids (H, W) int32 or None without ``with_ids``)."""
     if not isinstance(camera, PinholeCamera):
         raise GeometryError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
     if not (near > 0 and math.isfinite(near)):
         raise GeometryError(f"near must be a positive finite distance in metres, got {near}")
-    return check_vertices_faces(vertices, faces)
-
-
-def _render(v, f, camera, near, with_ids):
-    """(depth (H, W) float32, face ids (H, W) int32 or None) of checked ``v``, ``f``."""
+    v, f = check_vertices_faces(vertices, faces)
     h, w = camera.height, camera.width
     n, m = len(v), len(f)
     pc = np.empty((n, 3))
@@ -365,7 +362,7 @@ def render_depth(
 
     Raises ``GeometryError`` for malformed vertices/faces or a non-positive ``near``.
     """
-    depth, fid = _render(*_check(vertices, faces, camera, near), camera, near, True)
+    depth, fid = _render(vertices, faces, camera, near, True)
     return RenderResult(depth=depth, face_id=fid, camera=camera)
 
 
@@ -379,4 +376,4 @@ def depth_map(
     (H, W) float32 z-depth, NaN for background. What the fit renders (thousands of maps a
     scene), about 10 % faster a canopy than with the ids it never reads. Raises as
     ``render_depth`` does."""
-    return _render(*_check(vertices, faces, camera, near), camera, near, False)[0]
+    return _render(vertices, faces, camera, near, False)[0]
