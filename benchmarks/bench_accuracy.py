@@ -548,7 +548,7 @@ class _Scenes:
         crop = self.observations[0].crop
         tag = f"{label}-x{b.scale:g}-e{cfg.n_evals}-i{cfg.n_initial}-k{cfg.canopies_per_eval or 0}"
         if not cfg.papers_optimiser(crop):  # another optimiser: its own checkpoints
-            tag += f"-g{cfg.gp_output}-l{cfg.local_evals(crop)}"
+            tag += f"-g{cfg.resolved(crop).gp_output}-l{cfg.local_evals(crop)}"
         if cfg.loss_estimator != "pooled":  # another objective: its own checkpoints
             tag += f"-{cfg.loss_estimator}"
         # another loss or other statistics: another fit, its own checkpoints

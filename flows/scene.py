@@ -78,7 +78,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "box": {},
         "common_random_numbers": True,
         "refit_every": 10,
-        "gp_output": "none",  # what BO's GP models: the loss ("none") or its logarithm ("log")
+        # what BO's GP models: the loss ("none") or its logarithm ("log"); None: the crop's
+        # (FitConfig, DEFAULT_GP_OUTPUT)
+        "gp_output": None,
         "local_share": None,  # share of each seed's evaluations spent last on Nelder-Mead
         # "pooled" (the loss of the canopies' mean statistics) or "unbiased" (without their
         # draw variance; FitConfig.loss_estimator)
@@ -268,11 +270,11 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     """The config each task sees (and its cache key hashes): its own section, plus the planting
     layout for the stages that build canopies. With ``crop``, the fit settings left to the
     crop's defaults are written out -- the answer rule (``DEFAULT_COMBINE``), the canopies
-    averaged per evaluation (``DEFAULT_CANOPIES``) and BO's closing local search
-    (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a default re-aggregates or refits
-    cached seeds instead of serving the old default's answer; likewise the surfaces' ``"auto"``
-    scene box is written out as the crop's box (``SCENE_BOX``). (nerfacto's defaults are
-    written out by :func:`resolve_config`.)"""
+    averaged per evaluation (``DEFAULT_CANOPIES``), what BO's GP models (``DEFAULT_GP_OUTPUT``)
+    and BO's closing local search (``DEFAULT_LOCAL_SHARE``) -- so that a release changing a
+    default re-aggregates or refits cached seeds instead of serving the old default's answer;
+    likewise the surfaces' ``"auto"`` scene box is written out as the crop's box
+    (``SCENE_BOX``). (nerfacto's defaults are written out by :func:`resolve_config`.)"""
     from cropcraft_core.fit.fitting import FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
@@ -286,6 +288,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         resolved = FitConfig(**fit).resolved(crop)
         fit["canopies_per_eval"] = resolved.canopies_per_eval
         fit["local_share"] = resolved.local_share
+        fit["gp_output"] = resolved.gp_output
         agg_only["combine"] = resolved.combine
         # The paper's optimiser is hashed as it was before these settings existed, so that
         # seeds fitted then are still served; any other optimiser (or default) is a key of

@@ -515,19 +515,32 @@ def test_local_share_is_a_share_of_the_seed_budget_capped_after_the_design():
 
 def test_resolved_writes_out_the_crop_defaults_and_keeps_what_was_given():
     """One place reads the crop defaults; what a user set is never replaced."""
-    from cropcraft_core.fit.fitting import DEFAULT_CANOPIES, DEFAULT_COMBINE, DEFAULT_LOCAL_SHARE
+    from cropcraft_core.fit.fitting import (
+        DEFAULT_CANOPIES,
+        DEFAULT_COMBINE,
+        DEFAULT_GP_OUTPUT,
+        DEFAULT_LOCAL_SHARE,
+    )
 
     for crop in ("soybean", "maize"):
         r = FitConfig().resolved(crop)
-        assert (r.combine, r.canopies_per_eval, r.local_share) == (
+        assert (r.combine, r.canopies_per_eval, r.local_share, r.gp_output) == (
             DEFAULT_COMBINE[crop],
             DEFAULT_CANOPIES[crop],
             DEFAULT_LOCAL_SHARE[crop],
+            DEFAULT_GP_OUTPUT[crop],
         )
-        given = FitConfig(combine="mean", canopies_per_eval=3, local_share=0.0, n_evals=80)
-        assert given.resolved(crop) == FitConfig(
-            combine="mean", canopies_per_eval=3, local_share=0.0, n_evals=80
-        )
+        mine = {"combine": "mean", "canopies_per_eval": 3, "local_share": 0.0, "n_evals": 80}
+        for gp in ("none", "log"):
+            assert FitConfig(**mine, gp_output=gp).resolved(crop) == FitConfig(**mine, gp_output=gp)
+        # the unbiased estimator can go negative: its default GP models the loss itself
+        unbiased = FitConfig(loss_estimator="unbiased", canopies_per_eval=2)
+        assert unbiased.resolved(crop).gp_output == "none"
+        assert unbiased.validate().bo_config(crop).validate().output_transform == "none"
+        assert FitConfig().bo_config(crop).output_transform == DEFAULT_GP_OUTPUT[crop]
+        # the baselines have no GP: their fits are the paper's whatever the GP settings say
+        assert FitConfig(method="random", gp_output="log").papers_optimiser(crop)
+        assert not FitConfig(gp_output="log").papers_optimiser(crop)
     assert FitConfig().resolved("soybean").resolved("soybean") == FitConfig().resolved("soybean")
 
 

@@ -450,6 +450,10 @@ def test_the_papers_optimiser_keeps_the_seed_keys_it_had_before_the_local_search
     assert seed_config({"fit.gp_output": "log"})["gp_output"] == "log"
     monkeypatch.setitem(fitting.DEFAULT_LOCAL_SHARE, CROP, 0.2)
     assert seed_config({})["local_share"] == 0.2
+    monkeypatch.setitem(fitting.DEFAULT_LOCAL_SHARE, CROP, 0.0)
+    monkeypatch.setitem(fitting.DEFAULT_GP_OUTPUT, CROP, "log")
+    assert seed_config({})["gp_output"] == "log"
+    assert seed_config({"fit.gp_output": "none"}) == default
 
 
 def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
