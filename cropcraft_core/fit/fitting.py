@@ -86,7 +86,9 @@ DEFAULT_LOCAL_SHARE = {"soybean": 0.0, "maize": 0.0}
 # floors as one flat zero and EI explores instead of resolving them; on log(loss) the floors
 # keep their shape. Measured on maize scenes 16-29 (pinned, 10 x 500): LAIE 0.396 -> 0.234,
 # LAIPE 0.063 -> 0.044, median LAIPE 0.048 -> 0.039, NDPE 0.087 -> 0.078, NCPE 0.098 -> 0.105
-# (benchmarks/RESULTS.md, *#maize-log*). Maize switches to "log" once scenes 0-15 are in too.
+# (benchmarks/RESULTS.md, *#maize-log*); on scenes 0-15 the other way (LAIE 0.135 -> 0.193,
+# NDPE 0.037 -> 0.044, NCPE 0.042 -> 0.033). All 30: LAIE 0.288 -> 0.213, NDPE tied (0.0603 ->
+# 0.0599), NCPE 0.068 -> 0.067; fresh scenes decide (the rule is in RESULTS).
 DEFAULT_GP_OUTPUT = {"soybean": "none", "maize": "none"}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 
