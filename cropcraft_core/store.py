@@ -907,10 +907,16 @@ class SceneStore:
         assert f.sha256 is not None
         return f.sha256
 
-    def put_tree(self, local_dir: str | os.PathLike[str], prefix: str) -> dict[str, str]:
+    def put_tree(
+        self, local_dir: str | os.PathLike[str], prefix: str, *, prune: bool = True
+    ) -> dict[str, str]:
         """Copy every file under a local folder to ``prefix/...`` (each file atomically).
 
-        Returns ``{key: sha256}``. Hidden files (names starting with '.') are skipped.
+        Returns ``{key: sha256}``. Hidden files (names starting with '.') are skipped. With
+        ``prune`` (the default) the folder then holds exactly this tree: objects under
+        ``prefix`` that the tree lacks (a photo since removed, a file an earlier version wrote)
+        are deleted, after every new file is in place, so readers that list the folder never
+        see leftovers. Hidden objects (other writers' temporaries) are left alone.
         """
         root = Path(local_dir)
         if not root.is_dir():
@@ -921,6 +927,10 @@ class SceneStore:
             rel = path.relative_to(root).as_posix()
             if path.is_file() and not any(p.startswith(".") for p in rel.split("/")):
                 out[f"{prefix}/{rel}"] = self.put_file(path, f"{prefix}/{rel}")
+        if prune:
+            for key in self.list(prefix):
+                if key not in out and key != prefix:
+                    self.delete(key)
         return out
 
     # ---- reading --------------------------------------------------------------------------

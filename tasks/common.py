@@ -346,25 +346,40 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
 
     The identity is the object's size plus its ETag / checksum / modification time, whatever the
     backend reports: cheap (no file is read), and any edit, replacement or re-upload changes it.
-    A file gives one entry; a folder one per file directly in it (hidden files skipped).
-    Raises InputError naming the URI when nothing is there.
+    A file gives one entry; a folder of images one per file directly in it (what ingest reads),
+    a poses folder one per file anywhere under it (a COLMAP project keeps its model in
+    ``sparse/0/``), named by relative path; hidden files and folders are skipped. Listings are
+    read afresh (fsspec caches an S3 folder's listing for the process's life, which would hide
+    photos uploaded since). Raises InputError naming the URI when nothing is there.
     """
     from fsspec.core import url_to_fs
 
     try:
         fs, path = url_to_fs(os.fspath(uri))
+        with contextlib.suppress(Exception):
+            fs.invalidate_cache(path)
+        root = str(path).rstrip("/")
         if fs.isfile(path):
-            infos = [fs.info(path)]
+            infos = {str(path).rsplit("/", 1)[-1]: fs.info(path)}
+        elif what == "images":
+            infos = {
+                str(i["name"]).rstrip("/").rsplit("/", 1)[-1]: i
+                for i in fs.ls(path, detail=True)
+                if i.get("type") == "file"
+            }
         else:
-            infos = [i for i in fs.ls(path, detail=True) if i.get("type") == "file"]
+            infos = {
+                str(name)[len(root) + 1 :]: i
+                for name, i in fs.find(path, detail=True).items()
+                if i.get("type") == "file" and str(name).startswith(root + "/")
+            }
     except FileNotFoundError:
-        infos = []
+        infos = {}
     except (OSError, ValueError) as exc:
         raise InputError(f"cannot list {what} at {uri!r}: {exc}") from exc
     out: dict[str, str] = {}
-    for info in infos:
-        name = str(info["name"]).rstrip("/").rsplit("/", 1)[-1]
-        if name.startswith("."):
+    for name, info in infos.items():
+        if any(part.startswith(".") for part in name.split("/")):
             continue
         if what == "images" and not name.lower().endswith(PHOTO_EXTENSIONS):
             continue

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import io
 import json
 import pickle
 import sys
@@ -155,6 +156,18 @@ def test_files_and_open_local(store, tmp_path):
     with store.open_local(prefix) as path:
         assert (path / "sparse" / "0" / "cameras.txt").read_text() == "cams"
         assert (path / "database.db").read_bytes() == b"db"
+    # Storing the folder again holds exactly the new tree: a file since removed goes (a photo
+    # the user dropped must not reach SfM), another writer's hidden temporary stays.
+    store.put_bytes(f"{prefix}/sparse/0/images.txt", b"old poses")
+    (tree / "database.db").unlink()
+    (tree / "sparse" / "0" / "cameras.txt").write_text("cams 2")
+    temp = store._full(f"{prefix}/{TMP_PREFIX}0123-late.bin")  # a writer still busy
+    store.fs.pipe_file(temp, b"half an upload")
+    written = store.put_tree(tree, prefix)
+    assert store.fs.exists(temp)
+    assert sorted(written) == [f"{prefix}/sparse/0/cameras.txt"]
+    assert store.list(prefix) == [f"{prefix}/sparse/0/cameras.txt"]
+    assert store.get_bytes(f"{prefix}/sparse/0/cameras.txt") == b"cams 2"
     with pytest.raises(InputError), store.open_local("plotA/none"):
         pass
 
@@ -531,3 +544,64 @@ def test_default_root_is_local_folder(tmp_path, monkeypatch):
 def test_manifest_model_is_plain_json():
     m = Manifest(site="p", crop="maize", date="2024-07-01")
     assert Manifest.model_validate_json(m.model_dump_json()) == m
+
+
+# ---- input fingerprints ---------------------------------------------------------------------
+
+
+def _photo(seed: int) -> bytes:
+    from PIL import Image
+
+    rng = np.random.default_rng(seed)
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_photo_listings_on_s3_see_uploads_since(s3_server, tmp_path, monkeypatch):
+    """fsspec keeps an S3 folder's listing for the life of the process: the input fingerprint
+    and ingest must list afresh, or photos uploaded between two runs of a long-lived worker are
+    silently left out (and the old set cached under the new run)."""
+    import fsspec
+
+    from cropcraft_core.sfm import ingest_images
+    from tasks.common import fingerprint
+
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", s3_server.key)
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", s3_server.secret)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", s3_server.region)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", s3_server.endpoint)
+    folder = f"{s3_server.bucket}/{uuid.uuid4().hex}/photos"
+    other = fsspec.filesystem("s3", skip_instance_cache=True, **s3_server.storage_options())
+    for i in range(3):
+        other.pipe(f"{folder}/p{i}.png", _photo(i))
+    first = fingerprint(f"s3://{folder}")
+    assert sorted(first) == ["p0.png", "p1.png", "p2.png"]
+    assert len(ingest_images(f"s3://{folder}", tmp_path / "a")) == 3
+
+    other.pipe(f"{folder}/p3.png", _photo(3))  # another client: a new photo, one replaced
+    other.pipe(f"{folder}/p0.png", _photo(10))
+    second = fingerprint(f"s3://{folder}")
+    assert sorted(second) == ["p0.png", "p1.png", "p2.png", "p3.png"]
+    assert second["p0.png"] != first["p0.png"]
+    assert len(ingest_images(f"s3://{folder}", tmp_path / "b")) == 4
+
+
+def test_poses_fingerprint_covers_a_colmap_project(tmp_path):
+    """A COLMAP project keeps its model in sparse/0/, which the poses stage reads: the
+    fingerprint lists it, so an edited model is not served from the cache."""
+    from tasks.common import fingerprint
+
+    model = tmp_path / "proj" / "sparse" / "0"
+    model.mkdir(parents=True)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        (model / name).write_text("x")
+    (tmp_path / "proj" / ".cache").mkdir()
+    (tmp_path / "proj" / ".cache" / "junk").write_text("skip me")
+    first = fingerprint(str(tmp_path / "proj"), what="poses")
+    assert sorted(first) == ["sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt"]
+    (model / "images.txt").write_text("edited poses")
+    assert fingerprint(str(tmp_path / "proj"), what="poses") != first
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no poses found"):
+        fingerprint(str(tmp_path / "empty"), what="poses")

@@ -270,6 +270,35 @@ def test_ingest_dedup_manifest_and_exif(tmp_path):
     assert len(e["sha256_pixels"]) == 64
 
 
+def test_ingest_malformed_exif(tmp_path):
+    """A photo whose EXIF has one mis-typed tag (the pixels are fine) ingests, turned upright by
+    its orientation tag; one whose orientation tag cannot be parsed is an error naming it."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for i in range(2):
+        _png((60 * i, 100, 100)).save(src / f"ok{i}.jpg", quality=90)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    exif[0x010F] = "Canon"
+    buf = io.BytesIO()
+    _png((120, 120, 20)).save(buf, format="JPEG", exif=exif, quality=95)
+    raw = buf.getvalue()
+    make = raw.find(b"\x01\x0f\x00\x02")  # big-endian IFD entry: Make (0x010F), ASCII
+    orient = raw.find(b"\x01\x12\x00\x03")  # Orientation (0x0112), SHORT
+    assert make > 0 and orient > 0
+    mistyped = bytearray(raw)
+    mistyped[make + 1] = 0x00  # re-tagged as ImageWidth (0x0100) with an ASCII value
+    (src / "IMG_1.JPG").write_bytes(bytes(mistyped))
+    man = ingest_images(str(src), tmp_path / "o1")
+    rot = next(im for im in man.images if im.source == "IMG_1.JPG")
+    assert rot.exif_orientation == 6 and (rot.width, rot.height) == (30, 40)
+    unparseable = bytearray(raw)
+    unparseable[orient + 3] = 0x07  # the orientation's type: SHORT -> UNDEFINED
+    (src / "IMG_1.JPG").write_bytes(bytes(unparseable))
+    with pytest.raises(InputError, match=r"IMG_1\.JPG.*EXIF"):
+        ingest_images(str(src), tmp_path / "o2")
+
+
 def test_ingest_names_corrupt_and_truncated(tmp_path):
     src = tmp_path / "src"
     src.mkdir()
@@ -298,6 +327,26 @@ def test_ingest_names_corrupt_and_truncated(tmp_path):
         ingest_images(str(src), tmp_path / "o6", min_images=4)
     with pytest.raises(InputError, match="does not exist"):
         ingest_images(str(tmp_path / "nope"), tmp_path / "o7")
+
+
+def test_ingest_stage_drops_photos_removed_since(tmp_path):
+    """SfM and the surfaces read every file in the store's images folder: a photo removed from
+    the source between two runs must go from there too, not ride along into the model."""
+    from cropcraft_core.store import SceneStore
+    from tasks.ingest import ingest
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for i in range(4):
+        _png((60 * i, 100, 100)).save(src / f"p{i}.png")
+    scene, store_root = "plotA/soybean/2024-07-01", str(tmp_path / "store")
+    first = ingest.fn(store_root, scene, {"min_images": 3}, {}, str(src))
+    (src / "p3.png").unlink()
+    second = ingest.fn(store_root, scene, {"min_images": 3}, {}, str(src))
+    assert (first["summary"]["n_images"], second["summary"]["n_images"]) == (4, 3)
+    folder = second["artefacts"]["images"]
+    images = [k for k in SceneStore(store_root).list(folder) if k.endswith(".png")]
+    assert sorted(k.rsplit("/", 1)[-1] for k in images) == ["p0.png", "p1.png", "p2.png"]
 
 
 def test_ingest_memory_filesystem(tmp_path):

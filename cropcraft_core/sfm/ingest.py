@@ -18,6 +18,7 @@ duplicates and ignored files.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -25,7 +26,7 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
 
-from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
+from PIL import Image, ImageFile, UnidentifiedImageError
 
 from cropcraft_core.errors import InputError, OutputError
 
@@ -107,6 +108,8 @@ def _list_source(source: str) -> tuple[object, list[str], str]:
         fs, root = fsspec.core.url_to_fs(source)
     except (ValueError, ImportError) as e:
         raise InputError(f"cannot open image source {source!r}: {e}") from None
+    with contextlib.suppress(Exception):
+        fs.invalidate_cache(root)  # s3fs keeps a folder's listing for the process's life
     try:
         if not fs.isdir(root):
             what = "is a file, not a folder" if fs.isfile(root) else "does not exist"
@@ -118,6 +121,33 @@ def _list_source(source: str) -> tuple[object, list[str], str]:
         raise InputError(f"cannot list image source {source!r}: {e}") from None
     files = sorted(e["name"] for e in entries if e.get("type") == "file")
     return fs, files, root
+
+
+# EXIF orientation -> the transpose that makes the pixels upright (EXIF 2.32, tag 0x0112).
+_UPRIGHT = {
+    2: Image.Transpose.FLIP_LEFT_RIGHT,
+    3: Image.Transpose.ROTATE_180,
+    4: Image.Transpose.FLIP_TOP_BOTTOM,
+    5: Image.Transpose.TRANSPOSE,
+    6: Image.Transpose.ROTATE_270,
+    7: Image.Transpose.TRANSVERSE,
+    8: Image.Transpose.ROTATE_90,
+}
+
+
+def _orientation(img: Image.Image, label: str) -> int:
+    """The EXIF orientation tag of a decoded image (1 if none). Only that tag is read, so a
+    photo whose other EXIF tags are malformed still ingests (the pixels carry no EXIF on);
+    EXIF that cannot be parsed at all leaves the orientation unknown: an InputError naming
+    the file, since guessing would store the photo sideways."""
+    try:
+        value = img.getexif().get(0x0112, 1)
+        return int(value or 1)
+    except Exception as e:  # PIL raises struct.error, TypeError, KeyError... on bad EXIF
+        raise InputError(
+            f"image {label}: its EXIF metadata cannot be parsed ({type(e).__name__}: {e}), so "
+            "its orientation is unknown; re-save it without EXIF (e.g. exiftool -all= FILE)"
+        ) from None
 
 
 def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
@@ -136,8 +166,9 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
         if fmt not in _FORMATS:
             raise InputError(f"image {label} is {fmt}, not JPEG or PNG: convert it first")
         img.load()
-        orientation = int(img.getexif().get(0x0112, 1) or 1)
-        img = ImageOps.exif_transpose(img)
+        orientation = _orientation(img, label)
+        if orientation in _UPRIGHT:
+            img = img.transpose(_UPRIGHT[orientation])
         if img.mode != "RGB":
             img = img.convert("RGB")
     except InputError:
