@@ -955,8 +955,10 @@ class SceneStore:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 return {name: npz[name] for name in npz.files}
-        except (ValueError, OSError, EOFError) as exc:
-            raise InputError(f"{self.url(key)} is not a readable pickle-free .npz ({exc})") from exc
+        except Exception as exc:  # a damaged zip raises BadZipFile, zlib.error, TokenError, ...
+            raise InputError(
+                f"{self.url(key)} is not a readable pickle-free .npz ({type(exc).__name__}: {exc})"
+            ) from exc
 
     def get_file(self, key: str, local_path: str | os.PathLike[str]) -> Path:
         """Copy ``key`` to a local file (written via a temporary sibling); return its path."""
@@ -1194,10 +1196,13 @@ class SceneStore:
             raise InputError(f"scene config for {scene} must be a mapping, got {type(config)}")
         chash = config_hash(data)
         with self._manifest_lock(scene):
+            recovered: dict[str, str] | None = None
             try:
                 old = self.load_manifest(scene)
             except InputError:
                 old = None
+                if self.isfile(manifest_key(scene)):
+                    recovered = self._set_aside_manifest(scene)
             manifest = Manifest(
                 site=scene.site,
                 crop=scene.crop,
@@ -1213,8 +1218,24 @@ class SceneStore:
                 manifest.written = old.written  # the store's files do not change with the config
                 if old.inputs == manifest.inputs and old.config_hash == chash:
                     manifest.stages = old.stages
+            elif recovered is not None:
+                manifest.written = recovered
             self.save_manifest(manifest)
         return manifest
+
+    def _set_aside_manifest(self, scene: SceneKey) -> dict[str, str]:
+        """A scene's manifest is there but unreadable (damaged, or written by a newer version):
+        keep a copy beside it (``manifest.unreadable-<UTC time>.json``) and return the sha256 of
+        every object of the scene now, the ``written`` that its replacement starts from (what
+        the lost one would say, unless someone changed the files by hand): without it, cached
+        stage records of other settings would be served over files since overwritten."""
+        key = manifest_key(scene)
+        stamp = _now().strftime("%Y%m%dT%H%M%S%fZ")
+        aside = f"{scene.prefix}/manifest.unreadable-{stamp}.json"
+        self.put_bytes(aside, self.get_bytes(key))
+        log.warning("%s is unreadable: kept as %s, replaced", self.url(key), self.url(aside))
+        skip = f"{scene.prefix}/manifest"
+        return {k: self.sha256(k) for k in self.list(scene.prefix) if not k.startswith(skip)}
 
     @contextlib.contextmanager
     def _manifest_lock(self, scene: SceneKey) -> Iterator[None]:

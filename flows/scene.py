@@ -502,22 +502,42 @@ def _flatten(upstream: Mapping[str, Any]) -> dict[str, str]:
     return out
 
 
-def _written(store: SceneStore, scene: SceneKey) -> dict[str, str]:
-    """The manifest's ``written``: the sha256 of the last write at each artefact key ({} when
-    the scene has no manifest yet)."""
+@dataclasses.dataclass(frozen=True)
+class _Stored:
+    """What the store holds of a scene, to judge cached stage records by: ``written``, the
+    manifest's sha256 of the last write at each artefact key ({} when the scene has no manifest
+    yet), and ``present``, every key under the scene (None when it could not be listed)."""
+
+    written: Mapping[str, str]
+    present: frozenset[str] | None
+
+
+def _stored(store: SceneStore, scene: SceneKey) -> _Stored:
+    """The store's :class:`_Stored` of ``scene`` now (one manifest read, one listing)."""
     try:
-        return store.load_manifest(scene).written
+        written = store.load_manifest(scene).written
     except InputError:
-        return {}
+        written = {}
+    try:
+        present: frozenset[str] | None = frozenset(store.list(scene.prefix))
+    except Exception:  # judged on ``written`` alone; the stage's own reads will say why
+        present = None
+    return _Stored(written, present)
 
 
-def _overwritten(written: Mapping[str, str], rec: dict) -> bool:
+def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
     """Whether a cached stage record's artefacts are no longer what the store holds: artefacts
-    live at one key per scene and stage, so a run with other settings since wrote over them.
-    ``written`` (:func:`_written`) has the hash of the last write at each key; a key it does not
-    know (a manifest lost, or from before it kept them) counts as unchanged. Such a record is
-    recomputed, not served: the store must hold what a run reports."""
-    return any(written.get(k, h) != h for k, h in rec["hashes"].items())
+    live at one key per scene and stage, so a run with other settings since wrote over them, or
+    someone deleted them. ``stored.written`` has the hash of the last write at each key; a key
+    it does not know (a manifest lost, or from before it kept them) counts as unchanged if it
+    is there. Such a record is recomputed, not served: the store must hold what a run
+    reports."""
+    hashes = rec["hashes"]
+    if stored.present is not None:
+        inside = f"{scene.prefix}/"
+        if any(k.startswith(inside) and k not in stored.present for k in hashes):
+            return True
+    return any(stored.written.get(k, h) != h for k, h in hashes.items())
 
 
 def _left_behind(store: SceneStore, scene: SceneKey, stage: str) -> dict[str, str]:
@@ -529,7 +549,7 @@ def _left_behind(store: SceneStore, scene: SceneKey, stage: str) -> dict[str, st
     from tasks.common import STAGE_FOLDERS
 
     try:
-        written = _written(store, scene)
+        written = _stored(store, scene).written
         keys = store.list(f"{scene.prefix}/{STAGE_FOLDERS[stage]}")
         current = {k: store.sha256(k) for k in keys}
     except Exception:  # the failure's own cause (e.g. the store) is what gets reported
@@ -546,7 +566,7 @@ class _CacheWalk:
         self.store = SceneStore(req.store_root)
         self.base = self.store.fs._strip_protocol(self.store.root).rstrip("/")
         self.states: dict[str, str] = {}
-        self.written = _written(self.store, req.scene)  # a walk writes nothing: read it once
+        self.stored = _stored(self.store, req.scene)  # a walk writes nothing: read it once
 
     def _read(self, key: str) -> dict:
         from prefect._internal.result_records import ResultRecord
@@ -565,7 +585,7 @@ class _CacheWalk:
         cfg = self.req.stages[stage]
         key = stage_key(stage, self.req.scene.prefix, cfg, upstream, {"row": row})
         rec = self._read(key)
-        if _overwritten(self.written, rec):
+        if _overwritten(self.stored, rec, self.req.scene):
             raise _Miss(key)
         self.states[_state_name(stage, row)] = "Cached"
         return rec
@@ -584,7 +604,7 @@ class _CacheWalk:
                 extra = {"seed": s, "row": row}
                 key = stage_key("fit_seed", self.req.scene.prefix, cfg, upstream, extra)
                 rec = out[row][f"seed-{s}"] = self._read(key)
-                if _overwritten(self.written, rec):
+                if _overwritten(self.stored, rec, self.req.scene):
                     raise _Miss(key)
                 self.states[_state_name(f"fit_seed-{s}", row)] = "Cached"
         return out
@@ -707,7 +727,7 @@ class _PrefectRun:
         try:
             rec = fut.result()
             cached = fut.state.name == "Cached"
-            if cached and _overwritten(_written(self.store, self.req.scene), rec):
+            if cached and _overwritten(_stored(self.store, self.req.scene), rec, self.req.scene):
                 self.log.info("%s: cached, but its artefacts were since overwritten", name)
                 fut = self._submit(stage, upstream, refresh=True, **kwargs)
                 fut.wait()
@@ -745,12 +765,12 @@ class _PrefectRun:
         for futs in futures.values():
             for fut in futs.values():
                 fut.wait()
-        written = _written(self.store, self.req.scene)
+        stored = _stored(self.store, self.req.scene)
         for row, futs in futures.items():
             stale = [
                 s
                 for s, fut in futs.items()
-                if fut.state.name == "Cached" and _overwritten(written, fut.result())
+                if fut.state.name == "Cached" and _overwritten(stored, fut.result(), self.req.scene)
             ]
             if stale:
                 self.log.info(
@@ -961,6 +981,12 @@ def reconstruct_scene(
         sources={"images": _located(images), "poses": _located(poses)},
     )
     ex = _PrefectRun(req, result_storage(req.store_root))
+    try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
+        swept = st.sweep_tmp(req.scene.prefix)
+        if swept:
+            ex.log.info("%s: removed %d stale temporary objects", req.scene.prefix, len(swept))
+    except Exception as exc:  # housekeeping must not fail the run
+        ex.log.warning("%s: could not sweep temporary objects: %s", req.scene.prefix, exc)
     records = _wire(ex, req)
     out = summarize(req, records, ex.states)
     for warning in (out["observation"]["warning"], (out["consistency"] or {}).get("warning")):

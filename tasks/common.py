@@ -264,7 +264,13 @@ def load_observation(store: SceneStore, upstream: Mapping[str, Any]):
 
     from cropcraft_core.observe import Observation
 
-    return Observation.load(io.BytesIO(store.get_bytes(key_of(upstream["observe"], "observation"))))
+    key = key_of(upstream["observe"], "observation")
+    try:
+        return Observation.load(io.BytesIO(store.get_bytes(key)))
+    except InputError as exc:
+        if store.url(key) in str(exc):
+            raise
+        raise InputError(f"{store.url(key)}: {exc}") from exc
 
 
 def artefact(scene: str, stage: str, name: str, row: int | None = None) -> str:

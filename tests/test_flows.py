@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import shutil
 import socket
 import time
@@ -28,7 +29,7 @@ pytest.importorskip("cropcraft_core.surfaces")
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError  # noqa: E402
 from cropcraft_core.observe import Observation, coverage_warning  # noqa: E402
-from cropcraft_core.store import SceneKey, SceneStore, StoreError  # noqa: E402
+from cropcraft_core.store import TMP_PREFIX, SceneKey, SceneStore, StoreError  # noqa: E402
 from tests.conftest_s3 import s3_server  # noqa: E402, F401
 
 CROP = "soybean"
@@ -649,6 +650,28 @@ def test_a_cached_run_whose_artefacts_were_overwritten_is_recomputed(base_run, s
     assert _timeless(store.get_json(fit_key)) == _timeless(default)
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
     assert _cached(base_run["store"], scene_dir)["params"] == default["params"]
+
+
+def test_a_cached_run_whose_artefact_was_deleted_is_recomputed(base_run, scene_dir):
+    """Someone deletes an artefact (clearing space, or by hand): the record that names it must
+    not be served, or every rerun fails on the missing object; the stage that wrote it runs
+    again, and the next rerun is all cached."""
+    store = SceneStore(str(base_run["store"]))
+    fit_key = f"plotA/{CROP}/{DATE}/fit/fit.json"
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    default = store.get_json(fit_key)
+    store.delete(fit_key)
+    assert _cached(base_run["store"], scene_dir) is None
+    # and a writer killed mid-write long ago left a temporary object: the run sweeps it
+    dead = Path(base_run["store"]) / f"plotA/{CROP}/{DATE}/fit/{TMP_PREFIX}dead-fit.json"
+    dead.write_bytes(b"half")
+    os.utime(dead, (time.time() - 7200, time.time() - 7200))
+    executed = set(_executed(_run("plotA", base_run["store"], scene_dir)["states"]))
+    assert not dead.exists()
+    assert "aggregate" in executed
+    assert not any(k.startswith("fit_seed") for k in executed)
+    assert _timeless(store.get_json(fit_key)) == _timeless(default)
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
 def test_a_stage_that_fails_part_way_does_not_leave_a_cached_record_served(

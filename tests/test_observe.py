@@ -643,6 +643,10 @@ def test_save_load_round_trip_is_exact(obs, tmp_path):
     obs.save(buf)
     buf.seek(0)
     assert Observation.load(buf).equals(obs)
+    data = buf.getvalue()
+    for damaged in (data[: len(data) // 2], data[:30] + b"\x00" * 8 + data[38:]):
+        with pytest.raises(InputError, match="cannot read observation npz"):
+            Observation.load(io.BytesIO(damaged))
 
 
 def test_load_recomputes_stats_when_the_stored_preset_was_edited(obs, tmp_path):

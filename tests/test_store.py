@@ -9,6 +9,7 @@ import pickle
 import sys
 import time
 import uuid
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -128,6 +129,24 @@ def test_npz_roundtrip(store):
         for name, value in arrays.items():
             np.testing.assert_array_equal(back[name], value)
             assert back[name].dtype == np.asarray(value).dtype
+    # damaged objects (cut short, a byte flipped in the header or the data) are named errors
+    raw = store.get_bytes(key)
+    first = zipfile.ZipFile(io.BytesIO(raw)).infolist()[0]
+    data_at = (
+        first.header_offset
+        + 30
+        + len(first.filename)
+        + int.from_bytes(raw[first.header_offset + 28 : first.header_offset + 30], "little")
+    )
+    for damaged in (raw[: len(raw) // 2], flip(raw, data_at + 3), flip(raw, len(raw) - 30)):
+        store.put_bytes(key, damaged)
+        with pytest.raises(InputError, match=r"obs\.npz is not a readable"):
+            store.get_npz(key)
+
+
+def flip(data: bytes, pos: int) -> bytes:
+    """``data`` with the byte at ``pos`` inverted."""
+    return data[:pos] + bytes([data[pos] ^ 0xFF]) + data[pos + 1 :]
 
 
 def test_files_and_open_local(store, tmp_path):
@@ -281,6 +300,21 @@ def test_manifest_roundtrip_and_stage_updates(store):
     assert store.list(scene_prefix(SCENE)) == sorted(
         [cameras, img, f"{scene_prefix(SCENE)}/manifest.json"]
     )
+
+    # a manifest there but unreadable (cut short, or a newer version's) is kept aside, not
+    # lost, and its replacement's ``written`` is read from the files: a cached record is still
+    # judged against what the store holds
+    mkey = f"{scene_prefix(SCENE)}/manifest.json"
+    damaged = store.get_bytes(mkey)[:-40]
+    store.put_bytes(mkey, damaged)
+    with pytest.raises(InputError, match="manifest.json"):
+        store.load_manifest(SCENE)
+    m = store.init_manifest(SCENE, inputs, config)
+    assert m.stages == {}
+    assert m.written == {cameras: store.sha256(cameras), img: store.sha256(img)}
+    aside = [k for k in store.list(scene_prefix(SCENE)) if "manifest.unreadable-" in k]
+    assert len(aside) == 1 and store.get_bytes(aside[0]) == damaged
+    assert store.load_manifest(SCENE) == m
 
 
 def test_concurrent_stage_updates_are_not_lost(store):

@@ -35,7 +35,6 @@ string array ``record``. :meth:`Observation.load` reads either.
 from __future__ import annotations
 
 import functools
-import io
 import json
 import os
 from collections.abc import Callable
@@ -651,8 +650,10 @@ def _read_npz(src: Any, label: str) -> tuple[dict[str, np.ndarray], str | None]:
             arrays = {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise InputError(f"no observation file {label}") from None
-    except (OSError, ValueError, EOFError, io.UnsupportedOperation) as e:
-        raise InputError(f"cannot read observation npz {label}: {e}") from None
+    except Exception as e:  # a damaged zip raises BadZipFile, zlib.error, TokenError, ...
+        raise InputError(
+            f"cannot read observation npz {label} (damaged?): {type(e).__name__}: {e}"
+        ) from None
     text = arrays.pop("record", None)
     return arrays, (str(text[()]) if text is not None else None)
 
