@@ -149,6 +149,17 @@ def _check_date(value: object) -> str:
     raise ConfigError(f"invalid scene date {value!r}: use an ISO date YYYY-MM-DD, e.g. 2024-07-01")
 
 
+def _is_date(name: str) -> bool:
+    """Whether a folder name is a scene date (``YYYY-MM-DD``, a real day)."""
+    if not _DATE_RE.match(name):
+        return False
+    try:
+        _check_date(name)
+    except ConfigError:
+        return False
+    return True
+
+
 def _check_key(key: object, *, allow_empty: bool = False) -> str:
     """Validate a store key (relative POSIX path) and return it without a trailing slash."""
     if not isinstance(key, str):
@@ -1369,17 +1380,24 @@ class SceneStore:
         prefix = f"{site}/{crop}"
         dates = []
         for name in self._children(prefix):
-            if not _DATE_RE.match(name):
-                continue
-            try:
-                _check_date(name)
-            except ConfigError:
+            if not _is_date(name):
                 continue
             if self._children(f"{prefix}/{name}/{IMAGES_STAGE}") or (
                 with_runs and self.isfile(f"{prefix}/{name}/{MANIFEST_NAME}")
             ):
                 dates.append(name)
         return dates
+
+    def misnamed_dates(self, site: str, crop: str) -> list[str]:
+        """Folders of ``site``/``crop`` with photos in an ``images/`` inbox whose names are not
+        ISO dates (``2024-7-02``, ``20240703``, ``2024-02-30``): the season cannot run them,
+        and says so rather than skip them unseen."""
+        prefix = f"{site}/{crop}"
+        return [
+            name
+            for name in self._children(prefix)
+            if not _is_date(name) and self._children(f"{prefix}/{name}/{IMAGES_STAGE}")
+        ]
 
     def discover(self, site: str, crop: str, *, with_runs: bool = False) -> list[DiscoveredScene]:
         """Every dated scene of ``site``/``crop`` with images (and with ``with_runs`` every one

@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import math
 import os
 import time
 from collections.abc import Iterable, Mapping
@@ -196,7 +197,9 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         resolve_bbox(cfg["surfaces"]["bbox"], crop)
     for key in ("camera_height", "prior_camera_height"):
         v = cfg["poses"][key]
-        if v is not None and (not isinstance(v, int | float) or isinstance(v, bool) or v <= 0):
+        if v is not None and (
+            not isinstance(v, int | float) or isinstance(v, bool) or not 0 < v < math.inf
+        ):
             raise ConfigError(f"poses.{key} must be a positive number of metres or null, got {v!r}")
     cd = cfg["poses"]["camera_distance"]
     if cd is not None and not (
@@ -205,7 +208,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         and all(isinstance(x, str) and x for x in cd[:2])
         and isinstance(cd[2], int | float)
         and not isinstance(cd[2], bool)
-        and cd[2] > 0
+        and 0 < cd[2] < math.inf
     ):
         raise ConfigError(
             "poses.camera_distance must be [photo A, photo B, metres between their cameras] "
@@ -457,6 +460,12 @@ def prepare(
     return SceneRequest(scene, st.root, str(uri), poses_uri and str(poses_uri), cfg, inputs)
 
 
+def manifest_inputs(inputs: Mapping[str, Mapping[str, str]]) -> dict[str, str]:
+    """A request's input fingerprints as the manifest keeps them: ``{"images:IMG_1.jpg":
+    identity, "poses:transforms.json": identity, ...}``."""
+    return {f"{k}:{n}": v for k, fp in inputs.items() for n, v in fp.items()}
+
+
 def _located(uri: str | None) -> str | None:
     """A run's ``images`` / ``poses`` argument as the manifest keeps it: a local path made
     absolute (``cropcraft status`` may run from another folder), a URL as given."""
@@ -640,9 +649,10 @@ def _manifest_stage(stage: str, row: int | None) -> str:
 class _PrefectRun:
     """Executes the wiring with Prefect tasks, recording each stage in the manifest."""
 
-    def __init__(self, req: SceneRequest, storage: Any) -> None:
+    def __init__(self, req: SceneRequest, storage: Any, refresh: bool = False) -> None:
         self.req = req
         self.storage = storage
+        self.refresh = refresh  # recompute every stage, replacing its cached result
         self.store = SceneStore(req.store_root)
         self.states: dict[str, str] = {}
         self.log = get_run_logger()
@@ -651,7 +661,7 @@ class _PrefectRun:
         """The stage's task on the scene's result storage; ``refresh``: recompute and replace
         its cached result (otherwise Prefect's own setting applies)."""
         task = get_task(stage).with_options(result_storage=self.storage)
-        return task.with_options(refresh_cache=True) if refresh else task
+        return task.with_options(refresh_cache=True) if refresh or self.refresh else task
 
     def _record(
         self,
@@ -958,6 +968,7 @@ def reconstruct_scene(
     poses: str | None = None,
     overrides: dict[str, Any] | None = None,
     store: str | None = None,
+    refresh: bool = False,
 ) -> dict[str, Any]:
     """Reconstruct one scene (``site``/``crop``/``date``) from its photos.
 
@@ -966,7 +977,8 @@ def reconstruct_scene(
     folder to import instead of running SfM (default: ``images/transforms.json`` in the inbox
     if present); a ``known.json`` beside the photos holds parameters measured in the field
     (:data:`KNOWN_FILE`). overrides: config overrides (see :func:`resolve_config`). store:
-    scene store root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``).
+    scene store root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``). refresh: compute
+    every stage anew and replace its cached result (``cropcraft run --force``).
 
     Returns :func:`summarize`'s record, with ``states`` telling which stages ran and which
     were ``Cached``.
@@ -976,11 +988,11 @@ def reconstruct_scene(
     st = SceneStore(req.store_root)
     st.init_manifest(
         req.scene,
-        {f"{k}:{n}": v for k, fp in req.inputs.items() for n, v in fp.items()},
+        manifest_inputs(req.inputs),
         req.config,
         sources={"images": _located(images), "poses": _located(poses)},
     )
-    ex = _PrefectRun(req, result_storage(req.store_root))
+    ex = _PrefectRun(req, result_storage(req.store_root), refresh=refresh)
     try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
         swept = st.sweep_tmp(req.scene.prefix)
         if swept:
@@ -1011,8 +1023,10 @@ def run_scene(
     overrides: Mapping[str, Any] | None = None,
     store: str | None = None,
     runner: str = DEFAULT_RUNNER,
+    refresh: bool = False,
 ) -> dict[str, Any]:
-    """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``).
+    """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``);
+    ``refresh`` recomputes every stage.
 
     Validation happens here first, so bad input fails before Prefect starts.
     """
@@ -1025,6 +1039,7 @@ def run_scene(
         poses=poses,
         overrides=dict(overrides or {}),
         store=store,
+        refresh=refresh,
     )
 
 

@@ -7,6 +7,7 @@ import math
 from typing import Any
 
 from prefect import flow, get_run_logger
+from prefect.states import Failed
 
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.store import SceneKey, SceneStore, manifest_key
@@ -14,8 +15,34 @@ from flows.runners import DEFAULT_RUNNER
 
 
 def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
-    """Dates of ``site``/``crop`` with photos in their inbox whose report stage is not done."""
-    return [d.scene.date for d in store.discover(site, crop) if d.stages.get("report") != "done"]
+    """Dates of ``site``/``crop`` with photos in their inbox whose report stage is not done, or
+    whose inbox changed since the run that finished it (photos uploaded late or replaced,
+    new poses): that night's run saw a part of them."""
+    return [
+        d.scene.date
+        for d in store.discover(site, crop)
+        if d.stages.get("report") != "done" or _inbox_changed(store, d.scene)
+    ]
+
+
+def _inbox_changed(store: SceneStore, scene: SceneKey) -> bool:
+    """Whether the scene's inbox (photos, ``transforms.json``) differs from the inputs its
+    manifest recorded; False for a scene last run from photos kept elsewhere (``cropcraft run
+    --images URI``), whose inbox that run did not read."""
+    from flows.scene import default_images_uri, default_poses_uri, manifest_inputs
+    from tasks.common import fingerprint
+
+    manifest = store.load_manifest(scene)
+    if manifest.sources.get("images") is not None:
+        return False
+    try:
+        now = {"images": fingerprint(default_images_uri(store, scene), what="images")}
+        poses = default_poses_uri(store, scene)
+        if poses:
+            now["poses"] = fingerprint(poses, what="poses")
+    except CropCraftError:  # the inbox holds no photos now: the run will say so
+        return True
+    return manifest_inputs(now) != manifest.inputs
 
 
 def _no_surface(store: SceneStore, folder: str) -> float | None:
@@ -122,20 +149,31 @@ def process_season(
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
     runner: str = DEFAULT_RUNNER,
-) -> dict[str, Any]:
+) -> Any:
     """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
     ``transforms.json`` beside them) and no finished report, one after another, on ``runner``;
     a failed date does not stop the others. Then write the season summary.
 
     Returns ``{"scenes": {date: final state, with the reason where not Completed}, "failed":
-    [dates], "csv": URL, "png": URL or None}``.
+    [dates], "misnamed": [folders], "csv": URL, "png": URL or None}``; where a date failed, or
+    the summary could not be written, as the data of a Failed state, so the run reads Failed in
+    the UI and its alerts fire (:func:`run_season` returns the record either way).
     """
     from flows.runners import make_task_runner
     from flows.scene import prepare, reconstruct_scene
 
     log = get_run_logger()
     st = SceneStore.connect(store)
+    misnamed = st.misnamed_dates(site, crop)
+    for name in misnamed:
+        log.warning(
+            "%s/%s/%s has photos but is not a date (YYYY-MM-DD, a real day): not processed; "
+            "rename the folder",
+            site,
+            crop,
+            name,
+        )
     dates = pending_dates(st, site, crop)
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
     scenes: dict[str, str] = {}
@@ -147,6 +185,7 @@ def process_season(
         except CropCraftError as exc:
             scenes[date] = f"invalid: {exc}"
             failed.append(date)
+            log.error("%s/%s/%s not run: %s", site, crop, date, exc)
             continue
         state = sub(
             site=site,
@@ -161,8 +200,17 @@ def process_season(
         if not state.is_completed():
             failed.append(date)
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
-    summary = write_summary(st, site, crop)
-    return {"scenes": scenes, "failed": failed, "csv": summary["csv"], "png": summary["png"]}
+    out: dict[str, Any] = {"scenes": scenes, "failed": failed, "misnamed": misnamed}
+    try:
+        summary = write_summary(st, site, crop)
+        out.update(csv=summary["csv"], png=summary["png"])
+    except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
+        log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
+        out.update(csv=None, png=None, summary_error=str(exc))
+    problems = [f"{len(failed)} of {len(dates)} date(s) failed: {', '.join(failed)}"] * bool(failed)
+    if "summary_error" in out:
+        problems.append("the season summary was not written")
+    return Failed(message="; ".join(problems), data=out) if problems else out
 
 
 def run_season(
@@ -181,4 +229,8 @@ def run_season(
     resolve_config(crop, overrides)
     parse_runner(runner)
     SceneStore.connect(store)
-    return process_season(site, crop, store, dict(overrides or {}), runner)
+    state = process_season(site, crop, store, dict(overrides or {}), runner, return_state=True)
+    out = state.result(raise_on_failure=False)
+    if isinstance(out, BaseException):  # the flow itself broke (not a date): its own error
+        raise out
+    return {**out, "state": state.name}

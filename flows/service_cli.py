@@ -430,8 +430,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         _print_summary(hit)
         return 0
     _quiet_prefect()
-    if args.force:
-        os.environ["PREFECT_TASKS_REFRESH_CACHE"] = "true"
     with run_progress(not args.no_progress):
         out = run_scene(
             scene.site,
@@ -442,6 +440,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             overrides,
             args.store,
             runner=args.runner,
+            refresh=args.force,
         )
     _print_summary(out)
     return 0
@@ -454,15 +453,17 @@ def cmd_season(args: argparse.Namespace) -> int:
     """``cropcraft season SITE/CROP``: every dated scene with photos and no results."""
     from flows.season import run_season
 
-    site, _, crop = args.site_crop.partition("/")
+    site, _, crop = args.site_crop.strip("/").partition("/")
     _quiet_prefect()
     with run_progress(not args.no_progress):
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
         print(f"{date}  {state}")
-    print(f"summary  {out.get('csv')}")
+    for name in out.get("misnamed", []):
+        print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
+    print(f"summary  {out.get('csv') or 'not written: ' + out.get('summary_error', '?')}")
     print(f"plot     {out.get('png')}")
-    return 0 if not out.get("failed") else 1
+    return 0 if out.get("state", "Completed") == "Completed" else 1
 
 
 # --------------------------------------------------------------------------- status

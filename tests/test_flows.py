@@ -76,7 +76,7 @@ def scene_dir(tmp_path_factory) -> Path:
     return out
 
 
-def _run(site, store, scene_dir, overrides=OVERRIDES, runner="threads"):
+def _run(site, store, scene_dir, overrides=OVERRIDES, runner="threads", refresh=False):
     from flows.scene import run_scene
 
     return run_scene(
@@ -88,6 +88,7 @@ def _run(site, store, scene_dir, overrides=OVERRIDES, runner="threads"):
         overrides=overrides,
         store=str(store),
         runner=runner,
+        refresh=refresh,
     )
 
 
@@ -269,10 +270,14 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     )
     for p in photos[:2]:
         store.put_bytes(f"plotS/{CROP}/{bad}/images/{p.name}", p.read_bytes())
+    # a folder whose name is not a date is named, not silently skipped
+    store.put_bytes(f"plotS/{CROP}/2024-7-22/images/{photos[0].name}", photos[0].read_bytes())
     assert pending_dates(store, "plotS", CROP) == [good, bad]
 
     out = run_season("plotS", CROP, str(tmp_path / "store"), OVERRIDES)
     assert out["failed"] == [bad] and out["scenes"][good] == "Completed", out["scenes"]
+    assert out["state"] == "Failed"  # the run reads Failed in the UI: its alerts fire
+    assert out["misnamed"] == ["2024-7-22"]
     # the reason, named: ingest's error for the inbox holding two photos
     assert (
         out["scenes"][bad].startswith("Failed: ") and "at least 3 are needed" in out["scenes"][bad]
@@ -282,6 +287,10 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     assert store.isfile(f"plotS/{CROP}/season/summary.png")
     assert store.isfile(f"plotS/{CROP}/{good}/export/bundle/canopy.helios.xml")
     assert pending_dates(store, "plotS", CROP) == [bad]
+    # a photo uploaded after the night that finished the date: the date is pending again
+    late = photos[0].with_name("late_" + photos[0].name)
+    store.put_bytes(f"plotS/{CROP}/{good}/images/{late.name}", photos[0].read_bytes())
+    assert pending_dates(store, "plotS", CROP) == [good, bad]
 
 
 def test_rerun_is_cached_everywhere(base_run):
@@ -291,6 +300,15 @@ def test_rerun_is_cached_everywhere(base_run):
     assert len(api) == N_TASKS
     assert [s for s in api if s != "Cached"] == [], f"executed on rerun: {api}"
     assert second["params"] == base_run["first"]["params"]
+
+
+def test_force_recomputes_every_stage_and_keeps_the_answer(base_run, scene_dir):
+    """``cropcraft run --force`` (``refresh``): no stage is served from the cache, each one's
+    cached result is replaced, the answer is the same, and the next plain rerun is cached."""
+    forced = _run("plotA", base_run["store"], scene_dir, refresh=True)
+    assert set(forced["states"].values()) == {"Completed"}, forced["states"]
+    assert forced["params"] == base_run["first"]["params"]
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
 def _cached(store, scene_dir, overrides=OVERRIDES):
@@ -875,6 +893,11 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"observe.prediction_blur": -0.01}, "observe.prediction_blur must be"),
         ({"observe.prediction_blur": "voxel"}, "observe.prediction_blur must be"),
         ({"observe.preset.prediction_blur_m": 0.01}, "set observe.prediction_blur"),
+        # not finite: SfM would run for minutes before the poses stage refused it
+        ({"poses.camera_height": math.nan}, "poses.camera_height must be a positive"),
+        ({"poses.camera_height": math.inf}, "poses.camera_height must be a positive"),
+        ({"poses.prior_camera_height": math.nan}, "poses.prior_camera_height must be"),
+        ({"poses.camera_distance": ["a.png", "b.png", math.inf]}, "camera_distance must be"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)
