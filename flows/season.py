@@ -152,7 +152,8 @@ def process_season(
 ) -> Any:
     """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
-    ``transforms.json`` beside them) and no finished report, one after another, on ``runner``;
+    ``transforms.json`` beside them) and no finished report, or an inbox changed since its
+    report (:func:`pending_dates`), one after another, on ``runner``;
     a failed date does not stop the others. Then write the season summary.
 
     Returns ``{"scenes": {date: final state, with the reason where not Completed}, "failed":
@@ -207,7 +208,9 @@ def process_season(
     except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
         log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
         out.update(csv=None, png=None, summary_error=str(exc))
-    problems = [f"{len(failed)} of {len(dates)} date(s) failed: {', '.join(failed)}"] * bool(failed)
+    problems = []
+    if failed:
+        problems.append(f"{len(failed)} of {len(dates)} date(s) failed: {', '.join(failed)}")
     if "summary_error" in out:
         problems.append("the season summary was not written")
     return Failed(message="; ".join(problems), data=out) if problems else out
