@@ -151,8 +151,6 @@ def _check_date(value: object) -> str:
 
 def _is_date(name: str) -> bool:
     """Whether a folder name is a scene date (``YYYY-MM-DD``, a real day)."""
-    if not _DATE_RE.match(name):
-        return False
     try:
         _check_date(name)
     except ConfigError:

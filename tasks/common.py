@@ -366,17 +366,12 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
             fs.invalidate_cache(path)
         root = str(path).rstrip("/")
         if fs.isfile(path):
-            infos = {str(path).rsplit("/", 1)[-1]: fs.info(path)}
-        elif what == "images":
-            infos = {
-                str(i["name"]).rstrip("/").rsplit("/", 1)[-1]: i
-                for i in fs.ls(path, detail=True)
-                if i.get("type") == "file"
-            }
+            infos = {root.rsplit("/", 1)[-1]: fs.info(path)}
         else:
+            depth = 1 if what == "images" else None
             infos = {
                 str(name)[len(root) + 1 :]: i
-                for name, i in fs.find(path, detail=True).items()
+                for name, i in fs.find(path, maxdepth=depth, detail=True).items()
                 if i.get("type") == "file" and str(name).startswith(root + "/")
             }
     except FileNotFoundError:
