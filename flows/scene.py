@@ -27,7 +27,7 @@ import os
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from prefect import flow, get_run_logger, unmapped
 
@@ -142,6 +142,26 @@ def _set_dotted(cfg: dict, dotted: str, value: Any) -> None:
         target[rest] = value
     else:
         cfg[section][head] = value
+
+
+#: The surfaces backends a scene flow takes as its own ``surfaces_backend`` parameter (the UI
+#: offers them as a choice): :data:`cropcraft_core.surfaces.BACKENDS` but the benchmarks' truth.
+SurfacesBackend = Literal["tsdf", "points", "nerfacto"]
+
+
+def with_backend(
+    overrides: Mapping[str, Any] | None, backend: SurfacesBackend | None
+) -> dict[str, Any]:
+    """``overrides`` over ``surfaces.backend = backend`` (``None``: the crop's default backend).
+
+    A deployment names its backend in this parameter, not in ``overrides``: Prefect merges a
+    run's parameters into the deployment's one level deep, so a run's own ``overrides`` would
+    replace the deployment's whole and drop its backend. A run's own ``surfaces.backend``
+    override still wins.
+    """
+    if backend is None:
+        return dict(overrides or {})
+    return {"surfaces.backend": backend, **dict(overrides or {})}
 
 
 def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -969,6 +989,7 @@ def reconstruct_scene(
     overrides: dict[str, Any] | None = None,
     store: str | None = None,
     refresh: bool = False,
+    surfaces_backend: SurfacesBackend | None = None,
 ) -> dict[str, Any]:
     """Reconstruct one scene (``site``/``crop``/``date``) from its photos.
 
@@ -979,11 +1000,14 @@ def reconstruct_scene(
     (:data:`KNOWN_FILE`). overrides: config overrides (see :func:`resolve_config`). store:
     scene store root (default ``$CROPCRAFT_STORE`` or ``./cropcraft-data``). refresh: compute
     every stage anew and replace its cached result (``cropcraft run --force``).
+    surfaces_backend: tsdf, points or nerfacto (default: the crop's; an ``overrides``
+    ``surfaces.backend`` wins; see :func:`with_backend`).
 
     Returns :func:`summarize`'s record, with ``states`` telling which stages ran and which
     were ``Cached``.
     """
     t0 = time.perf_counter()
+    overrides = with_backend(overrides, surfaces_backend)
     req = prepare(site, crop, date, images, poses, overrides, store)
     st = SceneStore(req.store_root)
     st.init_manifest(
@@ -1024,13 +1048,14 @@ def run_scene(
     store: str | None = None,
     runner: str = DEFAULT_RUNNER,
     refresh: bool = False,
+    surfaces_backend: SurfacesBackend | None = None,
 ) -> dict[str, Any]:
     """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``);
     ``refresh`` recomputes every stage.
 
     Validation happens here first, so bad input fails before Prefect starts.
     """
-    prepare(site, crop, date, images, poses, overrides, store)
+    prepare(site, crop, date, images, poses, with_backend(overrides, surfaces_backend), store)
     return reconstruct_scene.with_options(task_runner=make_task_runner(runner))(
         site=site,
         crop=crop,
@@ -1040,6 +1065,7 @@ def run_scene(
         overrides=dict(overrides or {}),
         store=store,
         refresh=refresh,
+        surfaces_backend=surfaces_backend,
     )
 
 
@@ -1053,5 +1079,6 @@ __all__ = [
     "resolve_config",
     "result_storage",
     "run_scene",
+    "with_backend",
     "InputError",
 ]

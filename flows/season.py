@@ -12,6 +12,7 @@ from prefect.states import Failed
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.store import SceneKey, SceneStore, manifest_key
 from flows.runners import DEFAULT_RUNNER
+from flows.scene import SurfacesBackend
 
 
 def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
@@ -149,12 +150,14 @@ def process_season(
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
     runner: str = DEFAULT_RUNNER,
+    surfaces_backend: SurfacesBackend | None = None,
 ) -> Any:
     """Run :func:`flows.scene.reconstruct_scene` as a subflow for every date of ``site``/``crop``
     that has photos in the store (``{site}/{crop}/{date}/images/``, with an optional
     ``transforms.json`` beside them) and no finished report, or an inbox changed since its
     report (:func:`pending_dates`), one after another, on ``runner``;
-    a failed date does not stop the others. Then write the season summary.
+    a failed date does not stop the others. Then write the season summary. surfaces_backend:
+    as :func:`flows.scene.reconstruct_scene`'s (a GPU deployment's nerfacto).
 
     Returns ``{"scenes": {date: final state, with the reason where not Completed}, "failed":
     [dates], "misnamed": [folders], "csv": URL, "png": URL or None}``; where a date failed, or
@@ -162,9 +165,10 @@ def process_season(
     the UI and its alerts fire (:func:`run_season` returns the record either way).
     """
     from flows.runners import make_task_runner
-    from flows.scene import prepare, reconstruct_scene
+    from flows.scene import prepare, reconstruct_scene, with_backend
 
     log = get_run_logger()
+    overrides = with_backend(overrides, surfaces_backend)
     st = SceneStore.connect(store)
     misnamed = st.misnamed_dates(site, crop)
     for name in misnamed:
@@ -222,17 +226,20 @@ def run_season(
     store: str | None = None,
     overrides: dict[str, Any] | None = None,
     runner: str = DEFAULT_RUNNER,
+    surfaces_backend: SurfacesBackend | None = None,
 ) -> dict[str, Any]:
     """Validate (names, store, settings), then run :func:`process_season`."""
     from cropcraft_core.store import SceneKey
     from flows.runners import parse_runner
-    from flows.scene import resolve_config
+    from flows.scene import resolve_config, with_backend
 
     SceneKey(site, crop, "2000-01-01")
-    resolve_config(crop, overrides)
+    resolve_config(crop, with_backend(overrides, surfaces_backend))
     parse_runner(runner)
     SceneStore.connect(store)
-    state = process_season(site, crop, store, dict(overrides or {}), runner, return_state=True)
+    state = process_season(
+        site, crop, store, dict(overrides or {}), runner, surfaces_backend, return_state=True
+    )
     out = state.result(raise_on_failure=False)
     if isinstance(out, BaseException):  # the flow itself broke (not a date): its own error
         raise out

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -117,7 +118,23 @@ def test_prefect_deploy_creates_both_deployments_and_schedule(prefect_server, tm
         )
     )
     assert gpu["work_pool_name"] == "cropcraft-gpu"
-    assert gpu["parameters"]["overrides"] == {"surfaces.backend": "nerfacto"}
+    assert gpu["parameters"] == {"surfaces_backend": "nerfacto"}
+    # a run given its own overrides keeps the deployment's backend: Prefect merges a run's
+    # parameters into the deployment's one level deep (overrides would replace a whole dict)
+    out = _prefect(
+        env, "deployment", "run", "reconstruct-scene/scene-nerfacto",
+        "--param", "site=plotA", "--param", "crop=soybean", "--param", "date=2026-07-01",
+        "--param", 'overrides={"fit.n_seeds": 2}',
+    )  # fmt: skip
+    run_id = re.search(r"UUID:\s*([0-9a-f-]{36})", out).group(1)
+    params = json.loads(_prefect(env, "flow-run", "inspect", run_id, "--output", "json"))[
+        "parameters"
+    ]
+    assert params["surfaces_backend"] == "nerfacto" and params["overrides"] == {"fit.n_seeds": 2}
+    from flows.scene import resolve_config, with_backend
+
+    cfg = resolve_config("soybean", with_backend(params["overrides"], params["surfaces_backend"]))
+    assert cfg["surfaces"]["backend"] == "nerfacto" and cfg["fit"]["n_seeds"] == 2
 
     bench = json.loads(
         _prefect(env, "deployment", "inspect", "benchmark/accuracy", "--output", "json")

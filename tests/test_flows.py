@@ -529,6 +529,29 @@ def test_the_flows_embedded_defaults_are_the_core_configs_own():
     assert DEFAULTS["ingest"]["min_images"] == min_images
 
 
+def test_the_surfaces_backend_parameter_sits_beneath_the_overrides():
+    """A deployment names its backend in ``surfaces_backend`` (Prefect would drop it from a
+    deployment's ``overrides`` once a run brings its own); a run's own ``surfaces.backend``,
+    dotted or nested, still wins; the flow's choices are the backends but the benchmarks'
+    truth; an unknown one is refused before any work."""
+    import typing
+
+    from cropcraft_core.surfaces import BACKENDS
+    from flows.scene import SurfacesBackend, resolve_config, with_backend
+
+    assert set(typing.get_args(SurfacesBackend)) == set(BACKENDS) - {"truth"}
+
+    def backend(overrides, choice):
+        return resolve_config("maize", with_backend(overrides, choice))["surfaces"]["backend"]
+
+    assert backend(None, None) == "points"  # maize's own default
+    assert backend({"fit.n_seeds": 2}, "tsdf") == "tsdf"
+    assert backend({"surfaces.backend": "points"}, "tsdf") == "points"
+    assert backend({"surfaces": {"backend": "points"}}, "tsdf") == "points"
+    with pytest.raises(ConfigError, match="unknown surfaces backend 'nerf'"):
+        resolve_config("maize", with_backend(None, "nerf"))
+
+
 def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
     """Pooling the observation over neighbouring rows needs the planting row spacing, so the
     observe stage then hashes the layout; otherwise its key is what it was before pooling
