@@ -60,6 +60,17 @@ def gap_fraction_canopy(canopy: Canopy) -> Canopy:
     return generate_canopy(canopy.crop, canopy.params, canopy.layout, canopy.seed, region=region)
 
 
+def measure_canopy(canopy: Canopy, gap_fraction: bool = True, rng: int | None = None) -> dict:
+    """``canopy``'s metrics (:func:`cropcraft_core.metrics.canopy_metrics`), the gap-fraction
+    rays cast through :func:`gap_fraction_canopy`'s wider border around the same plants (the
+    plot's traits are the same plants' either way; ``n_faces_total`` is ``canopy``'s own).
+    rng: the sensors' seed (None: the canopy's), so one canopy reads the same everywhere."""
+    from cropcraft_core.metrics import canopy_metrics
+
+    wide = gap_fraction_canopy(canopy) if gap_fraction else None
+    return canopy_metrics(canopy, gap_fraction, rng, gap_canopy=wide)
+
+
 def write_bundle(
     canopy: Canopy,
     out_dir: str | os.PathLike,
@@ -71,16 +82,13 @@ def write_bundle(
     ``definitions`` joined to the traits' own), e.g. the seeds' traits
     (:func:`cropcraft_core.metrics.seeds.seed_metrics`)."""
     from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
-    from cropcraft_core.metrics import canopy_metrics, join_metrics
+    from cropcraft_core.metrics import join_metrics
     from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
 
     out = check_output_dir(out_dir)
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    # The wide canopy holds the very same plot plants (plants do not depend on the generated
-    # region), so its plot metrics equal the exported canopy's, and its border is wide enough
-    # for the gap-fraction rays.
-    metrics = canopy_metrics(gap_fraction_canopy(canopy))
+    metrics = measure_canopy(canopy)
     if more_metrics:
         metrics = join_metrics(metrics, more_metrics)
     timings["metrics_s"] = time.perf_counter() - t

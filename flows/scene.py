@@ -106,7 +106,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # off on the demo's canopy through SfM: cropcraft_core.rowfit.neighbours)
     "rows": {"neighbours": 0, "max_no_surface": 0.18, "answer": "best", "snap": None},
     "generate": {"seed": 0},
-    "metrics": {"gap_fraction": True, "seed": 0, "seed_traits": True},
+    # seed: the gap-fraction sensors' (None: the canopy's, as cropcraft generate measures it)
+    "metrics": {"gap_fraction": True, "seed": None, "seed_traits": True},
     "export": {},
     "report": {"n_thumbnails": 6, "thumbnail_px": 192},
 }
@@ -282,6 +283,9 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     for key in ("gap_fraction", "seed_traits"):
         if not isinstance(cfg["metrics"][key], bool):
             raise ConfigError(f"metrics.{key} must be true or false, got {cfg['metrics'][key]!r}")
+    seed = cfg["metrics"]["seed"]
+    if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
+        raise ConfigError(f"metrics.seed must be null or a whole number >= 0, got {seed!r}")
     return cfg
 
 

@@ -92,6 +92,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # observation itself; before, the low leaves it drops counted on the predicted side only
     "fit_seed": 2,
     "aggregate": 2,
+    # 2: n_faces_total counts the generated canopy's faces, not those of the wider canopy the
+    # gap-fraction rays cross; the sensors' seed defaults to the canopy's (as in generate)
+    "metrics": 2,
 }
 
 #: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).

@@ -13,9 +13,9 @@ from tasks.generate import canopy_from_recipe
 def metrics(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
-    """:func:`cropcraft_core.metrics.canopy_metrics` of the generated canopy (on the wider
-    canopy of :func:`cropcraft_core.bundle.gap_fraction_canopy`, so gap-fraction rays see no
-    edge); stores ``{scene}/metrics/metrics.json`` with a ``definitions`` block (unit, method).
+    """:func:`cropcraft_core.bundle.measure_canopy` of the generated canopy (gap-fraction rays
+    through a wider border, so they see no edge); stores ``{scene}/metrics/metrics.json``
+    with a ``definitions`` block (unit, method).
     With the answer's ``aggregate`` record upstream and ``seed_traits`` on, also the traits of
     every optimiser seed's answer and their spread
     (:func:`cropcraft_core.metrics.seeds.seed_traits`: ``seeds``, ``lai_seeds_min``,
@@ -23,12 +23,12 @@ def metrics(
     (:func:`~cropcraft_core.metrics.seeds.answer_seeds`; not the mean of several rows' answers:
     ``rows.json`` has their spread).
 
-    config: ``gap_fraction`` (bool), ``seed`` (gap-fraction sensor randomness),
-    ``seed_traits`` (bool, default on).
+    config: ``gap_fraction`` (bool), ``seed`` (gap-fraction sensor randomness; null: the
+    canopy's seed, as ``cropcraft generate`` measures it), ``seed_traits`` (bool, default on).
     """
-    from cropcraft_core.bundle import gap_fraction_canopy
+    from cropcraft_core.bundle import measure_canopy
     from cropcraft_core.config import CanopyLayout
-    from cropcraft_core.metrics import canopy_metrics, join_metrics
+    from cropcraft_core.metrics import join_metrics
     from cropcraft_core.metrics.seeds import (
         LAI_SEEDS_MAX,
         LAI_SEEDS_MIN,
@@ -44,12 +44,7 @@ def metrics(
         seeds = answer_seeds(store.get_json(key_of(upstream["aggregate"], "fit")))
     with Timer() as t:
         canopy = canopy_from_recipe(recipe)
-        gap = bool(config.get("gap_fraction", True))
-        values = canopy_metrics(
-            gap_fraction_canopy(canopy) if gap else canopy,
-            gap_fraction=gap,
-            rng=int(config.get("seed", 0)),
-        )
+        values = measure_canopy(canopy, bool(config.get("gap_fraction", True)), config.get("seed"))
         if seeds is not None:
             layout = CanopyLayout(**recipe["layout"])
             block = seed_traits(recipe["crop"], seeds, layout, int(recipe["seed"]))

@@ -30,6 +30,7 @@ from cropcraft_core.metrics import (
     canopy_traits,
     evaluate,
     gap_fraction_lai,
+    leaf_angle_histogram,
     lai_from_transmittance,
     mean_abs_percent_error,
     nearest_reference_distribution,
@@ -329,6 +330,37 @@ def test_bad_canopies_raise():
         canopy_metrics(make_canopy(make_mesh([ok]), [True], crop="wheat"), False)
     with pytest.raises(InputError, match="node_plant"):
         canopy_metrics(make_canopy(make_mesh([ok]), [True], nodes=[(4, 0, -1, 0.1)]), False)
+    # a NaN corner would drop its faces' area silently (the gap-fraction path named it already)
+    mesh = make_mesh([ok, (*quad([0.2, 0, 0.2], X, Y, 0.05), Organ.LEAF, 0, 0)])
+    mesh.vertices[0, 2] = np.nan
+    for gap in (False, True):
+        with pytest.raises(GeometryError, match="non-finite vertices"):
+            canopy_metrics(make_canopy(mesh, [True]), gap)
+    for width in (0.0, -5.0, math.nan, math.inf):
+        with pytest.raises(ConfigError, match="bin width"):
+            leaf_angle_histogram(np.zeros(2), np.ones(2), width)
+
+
+def test_a_canopy_reads_the_same_from_generate_and_from_the_scene_flow():
+    """``cropcraft generate``'s bundle and the scene flow's metrics stage measure one canopy
+    through :func:`measure_canopy`: the gap-fraction rays cross a wider border around the same
+    plants, their sensors are seeded by the canopy's seed, and ``n_faces_total`` is the
+    canopy's own, not the wider one's."""
+    from cropcraft_core.bundle import gap_fraction_canopy, measure_canopy
+    from cropcraft_core.procedural import generate_canopy
+
+    layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
+    canopy = generate_canopy("soybean", {"num_nodes": 5.0}, layout, seed=3)
+    wide = gap_fraction_canopy(canopy)
+    assert wide.mesh.n_faces > canopy.mesh.n_faces
+    m = measure_canopy(canopy)
+    assert m["n_faces_total"] == canopy.mesh.n_faces
+    assert m == canopy_metrics(canopy, rng=3, gap_canopy=wide)
+    assert m["lai_gap_fraction_border_ok"] is True
+    plain = canopy_metrics(canopy, gap_fraction=False)
+    assert {k: m[k] for k in plain if "gap_fraction" not in k} == {
+        k: v for k, v in plain.items() if "gap_fraction" not in k
+    }
 
 
 # ------------------------------------------------------------------------------------------------

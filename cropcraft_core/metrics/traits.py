@@ -117,6 +117,10 @@ def leaf_angle_histogram(
     to 1 (all zeros when there is no leaf area), edges_deg (b + 1,) from 0 to 90 in ``bin_deg``
     steps; a 90° leaf falls into the last bin.
     """
+    if not (isinstance(bin_deg, int | float) and math.isfinite(bin_deg) and bin_deg > 0):
+        raise ConfigError(
+            f"leaf-angle bin width must be a positive number of degrees, got {bin_deg!r}"
+        )
     n_bins = round(90.0 / bin_deg)
     if n_bins < 1 or not math.isclose(n_bins * bin_deg, 90.0):
         raise ConfigError(f"leaf-angle bin width {bin_deg!r}° must divide 90° evenly")
@@ -180,6 +184,8 @@ def _check_canopy(canopy: Canopy) -> None:
         raise InputError(f"canopy.node_plant holds plant ids outside 0..{p - 1}")
     if not (math.isfinite(canopy.ground_area) and canopy.ground_area > 0):
         raise GeometryError(f"canopy ground area must be positive, got {canopy.ground_area!r}")
+    if mesh.n_faces and not np.isfinite(mesh.vertices).all():  # NaN area would drop silently
+        raise GeometryError("canopy mesh has non-finite vertices")
 
 
 def _leaflets_per_node(crop: str, leaflets_per_node: int | None) -> int:
@@ -208,6 +214,7 @@ def canopy_traits(
     n_azimuths: int = 64,
     leaflets_per_node: int | None = None,
     gap_region: SensorRegion | None = None,
+    gap_canopy: Canopy | None = None,
 ) -> list[Trait]:
     """Measure ``canopy``; one ``Trait`` per number (see ``canopy_metrics`` for the list).
 
@@ -217,7 +224,9 @@ def canopy_traits(
     ``canopy.seed``, so the same canopy always gives the same numbers).
     ``gap_region`` overrides where the sensors stand (default: the measured plot); a
     ``BorderWarning`` says when the planted border is narrower than canopy height × tan 68°.
-    ``leaflets_per_node`` overrides the crop's count (``LEAFLETS_PER_NODE``).
+    ``leaflets_per_node`` overrides the crop's count (``LEAFLETS_PER_NODE``). ``gap_canopy``:
+    the canopy the rays cross instead (the same plants with a wider planted border,
+    :func:`cropcraft_core.bundle.gap_fraction_canopy`); every other trait is ``canopy``'s.
     """
     _check_canopy(canopy)
     leaflets = _leaflets_per_node(canopy.crop, leaflets_per_node)
@@ -330,8 +339,9 @@ def canopy_traits(
             "internode_mean_m",
             _none_if_nan(internode),
             "m",
-            "mean length of the main-stem internodes (segment below each main-stem node, "
-            "node_stem == -1) of the in-plot plants",
+            "mean length of the main-stem internodes of the in-plot plants (node_stem == -1; "
+            "the crop profile's internode below each node, node 1's above the short base stem "
+            "from the ground, which is not counted; branches' internodes are not counted)",
         ),
         Trait(
             "plant_height_m",
@@ -353,7 +363,7 @@ def canopy_traits(
         if rng is None:
             rng = canopy.seed
         gf = canopy_gap_fraction(
-            canopy,
+            canopy if gap_canopy is None else gap_canopy,
             rng=np.random.default_rng(rng),
             region=gap_region,
             n_sensors=n_sensors,
@@ -420,6 +430,7 @@ def canopy_metrics(
     n_azimuths: int = 64,
     leaflets_per_node: int | None = None,
     gap_region: SensorRegion | None = None,
+    gap_canopy: Canopy | None = None,
 ) -> dict[str, Any]:
     """The canopy's traits as a flat, JSON-ready dict with a ``definitions`` block.
 
@@ -440,5 +451,6 @@ def canopy_metrics(
             n_azimuths=n_azimuths,
             leaflets_per_node=leaflets_per_node,
             gap_region=gap_region,
+            gap_canopy=gap_canopy,
         )
     )
