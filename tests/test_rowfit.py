@@ -202,6 +202,19 @@ def test_deterministic_given_seed():
     assert [r.n_inliers for r in a.rows] == [r.n_inliers for r in b.rows]
 
 
+def test_a_point_with_a_non_finite_colour_is_dropped_without_rescaling_the_others():
+    """Colours over 1 mean a 0-255 scale; one inf colour (dropped with its point) made every
+    other colour read 255 times too dark, and then no soil was found."""
+    pts, col, _ = make_cloud("soybean", YOUNG_SOY, 10.0, seed=7, density=1500)
+    p = preset("soybean", box_size=None)
+    bad = col.copy()
+    bad[0] = [np.inf, 0.3, 0.2]
+    a = fit_ground_and_rows(pts, bad, "soybean", p, rng=11)
+    b = fit_ground_and_rows(pts[1:], col[1:], "soybean", p, rng=11)
+    assert a.diagnostics["n_finite"] == b.diagnostics["n_finite"] == len(pts) - 1
+    assert np.array_equal(a.camera.cam_to_world, b.camera.cam_to_world)
+
+
 # --------------------------------------------------------------------------- scale
 @pytest.mark.parametrize(
     "crop,params,kw",

@@ -456,9 +456,11 @@ CANOPY_TOP_PERCENTILE = 0.5
 
 def resolve_depth_range(p: ObservePreset, foreground_depths: np.ndarray) -> ObservePreset:
     """``p`` with its depth histogram fitted to an observed canopy when ``p`` asks for it
-    (``depth_top_margin`` set): ``depth_min`` raised to ``t - margin * (hi - t)`` (never
-    lowered, never past the top ``t``: the :data:`CANOPY_TOP_PERCENTILE` th percentile of the
-    observation's foreground z-depths, metres) and ``depth_top_margin`` cleared, so the result
+    (``depth_top_margin`` set): ``depth_min`` raised to ``t - margin * (hi - t)`` but never
+    past the top ``t`` (the :data:`CANOPY_TOP_PERCENTILE` th percentile of the observation's
+    foreground z-depths, metres), so a canopy reaching nearer the camera than ``depth_min``
+    moves it down to its top, where the fixed bins would drop the canopy's top from both
+    sides of the loss; ``depth_top_margin`` cleared, so the result
     is an ordinary fixed-range preset that predictions share. ``p`` itself when it does not
     ask. ``InputError`` for no finite foreground depth."""
     margin = p.loss.depth_top_margin

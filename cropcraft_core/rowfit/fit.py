@@ -394,10 +394,10 @@ def fit_ground_and_rows(
         raise InputError(f"colors must have the same shape as points {pts.shape}, got {col.shape}")
     lab_max = 255.0 if np.issubdtype(col.dtype, np.integer) else None
     col = col.astype(np.float64)
-    if lab_max is None:
-        lab_max = 255.0 if col.size and float(np.nanmax(col)) > 1.0 else 1.0
     finite = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(col), axis=1)
     pts, col = pts[finite], col[finite]
+    if lab_max is None:  # the scale from the points kept: one inf colour made every colour dark
+        lab_max = 255.0 if col.size and float(col.max()) > 1.0 else 1.0
     diag: dict = {"n_input": int(len(finite)), "n_finite": int(finite.sum())}
 
     # 1. scene box and sampling
@@ -933,7 +933,7 @@ def fit_rows_with_scale(
        the user's camera height in :func:`cropcraft_core.sfm.level_poses`);
     2. ``scale_hint`` (a user-given metres per scene unit) → ``"user_hint"``;
     3. ``known_row_spacing`` (metres): fit at scale 1, measure the row spacing, rescale and refit
-       until the correction is within ``tolerance`` (at most ``max_passes`` fits) →
+       until the correction is within ``tolerance`` (at most ``max_passes`` refits) →
        ``"row_spacing"``; if the spacing cannot be measured the last fit is returned with
        ``"assumed_metric"`` and ``diagnostics["scale_fallback"]`` explains why;
     4. nothing → scale 1, ``"assumed_metric"``.
