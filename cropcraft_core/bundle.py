@@ -1,8 +1,8 @@
 """One canopy → the files a user gets: meshes, Helios XML, parameters, metrics and a preview.
 
-Everything is written into a temporary directory beside ``out_dir`` and moved into place file by
-file only when all of it succeeded, so a failure never leaves a half-written bundle (and an older
-bundle in ``out_dir`` stays intact until the new one is complete).
+Everything is written into a temporary directory inside ``out_dir`` and moved into place only when
+all of it succeeded, as one set (:func:`cropcraft_core.export.publish`: a failure part-way puts the
+older bundle's files back), so ``out_dir`` never holds a half-written bundle or two canopies' files.
 """
 
 from __future__ import annotations
@@ -71,6 +71,49 @@ def measure_canopy(canopy: Canopy, gap_fraction: bool = True, rng: int | None = 
     return canopy_metrics(canopy, gap_fraction, rng, gap_canopy=wide)
 
 
+def write_bundle_files(
+    canopy: Canopy, folder: str | os.PathLike, metrics: dict, extra: dict | None = None
+) -> dict[str, float]:
+    """Write :data:`BUNDLE_FILES` of ``canopy`` into ``folder`` (a staging folder: the files
+    are written in place) with ``metrics`` as ``metrics.json`` and ``extra`` joined to
+    ``params.json`` (crop, params, seed, layout, plants in the plot and in all); returns the
+    seconds of the mesh files and of the preview. ``cropcraft generate`` / ``fit`` and the
+    scene flow's export stage write their bundles through this one function."""
+    from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
+    from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
+
+    folder = Path(folder)
+    t = time.perf_counter()
+    # The files hold the plot's plants; the planted border (there only so that views and
+    # gap-fraction rays see no edge) is rebuilt from params.json's parameters and seed.
+    plot = canopy.plot_mesh()
+    write_ply(folder / "canopy.ply", plot)
+    write_obj(folder / "canopy.obj", plot)
+    write_glb(folder / "canopy.glb", plot)
+    write_helios_xml(folder / "canopy.helios.xml", plot)
+    timings = {"export_s": time.perf_counter() - t}
+    t = time.perf_counter()
+    lay = canopy.layout
+    half = 0.5 * max(lay.plot_length, lay.plot_width)
+    top = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.5
+    cam = oblique_camera((-half, half, -half, half), height=top)
+    save_png(folder / "preview.png", shade_rgb(canopy.mesh, cam))
+    timings["preview_s"] = time.perf_counter() - t
+    params = {
+        "crop": canopy.crop,
+        "params": canopy.params,
+        "seed": canopy.seed,
+        "layout": lay.to_dict(),
+        "plants_in_plot": canopy.n_plants,
+        "plants_total": len(canopy.plant_in_plot),
+        **(extra or {}),
+    }
+    for name, data in (("params.json", params), ("metrics.json", metrics)):
+        text = json.dumps(data, indent=2, sort_keys=True, default=float) + "\n"
+        (folder / name).write_text(text)
+    return timings
+
+
 def write_bundle(
     canopy: Canopy,
     out_dir: str | os.PathLike,
@@ -81,52 +124,27 @@ def write_bundle(
     ``extra``: more of ``params.json``; ``more_metrics``: more of ``metrics.json`` (its
     ``definitions`` joined to the traits' own), e.g. the seeds' traits
     (:func:`cropcraft_core.metrics.seeds.seed_metrics`)."""
-    from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
+    from cropcraft_core.export import publish
     from cropcraft_core.metrics import join_metrics
-    from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
 
     out = check_output_dir(out_dir)
-    timings: dict[str, float] = {}
     t = time.perf_counter()
     metrics = measure_canopy(canopy)
     if more_metrics:
         metrics = join_metrics(metrics, more_metrics)
-    timings["metrics_s"] = time.perf_counter() - t
+    seconds = time.perf_counter() - t
 
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))
     try:
-        t = time.perf_counter()
-        # The files hold the plot's plants; the planted border (there only so that views and
-        # gap-fraction rays see no edge) is rebuilt from params.json's parameters and seed.
-        plot = canopy.plot_mesh()
-        write_ply(tmp / "canopy.ply", plot)
-        write_obj(tmp / "canopy.obj", plot)
-        write_glb(tmp / "canopy.glb", plot)
-        write_helios_xml(tmp / "canopy.helios.xml", plot)
-        timings["export_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        lay = canopy.layout
-        half = 0.5 * max(lay.plot_length, lay.plot_width)
-        top = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.5
-        cam = oblique_camera((-half, half, -half, half), height=top)
-        save_png(tmp / "preview.png", shade_rgb(canopy.mesh, cam))
-        timings["preview_s"] = time.perf_counter() - t
-        params = {
-            "crop": canopy.crop,
-            "params": canopy.params,
-            "seed": canopy.seed,
-            "layout": lay.to_dict(),
-            "plants_in_plot": canopy.n_plants,
-            "plants_total": len(canopy.plant_in_plot),
-            **(extra or {}),
-        }
-        (tmp / "params.json").write_text(json.dumps(params, indent=2, sort_keys=True) + "\n")
-        metrics = {**metrics, "timings": timings}
-        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+        # the files' own seconds are known once they are written: metrics.json is rewritten
+        timings = write_bundle_files(canopy, tmp, metrics, extra)
+        metrics = {**metrics, "timings": {"metrics_s": seconds, **timings}}
+        text = json.dumps(metrics, indent=2, sort_keys=True, default=float) + "\n"
+        (tmp / "metrics.json").write_text(text)
         mode = 0o666 & ~_umask()
         for name in BUNDLE_FILES:
             os.chmod(tmp / name, mode)
-            os.replace(tmp / name, out / name)
+        publish(tmp, out, BUNDLE_FILES)  # all files or none: never two canopies' side by side
     except OSError as e:
         raise OutputError(f"cannot write {out}: {e}") from None
     finally:

@@ -360,7 +360,11 @@ def season_csv(rows: Sequence[Mapping[str, Any]]) -> str:
         cells = []
         for _, col in SEASON_COLUMNS:
             v = r.get(col)
-            cells.append("" if v is None else v if isinstance(v, str) else f"{float(v):.6g}")
+            if isinstance(v, str):
+                cells.append(v)
+            else:  # a NaN or inf (JSON reads them from a metrics.json) is not a value either
+                x = math.nan if v is None else float(v)
+                cells.append(f"{x:.6g}" if math.isfinite(x) else "")
         writer.writerow([r["date"], *cells])
     return buf.getvalue()
 

@@ -86,32 +86,13 @@ def _resolution(text: str) -> tuple[int, int]:
         ) from None
 
 
-def _publish_tree(tmp: Path, out: Path, entries: tuple[str, ...]) -> None:
-    """Move ``entries`` of the complete ``tmp`` folder into ``out``, each replacing the old one
-    whole (a folder is renamed aside first, then removed), so ``out`` never mixes two scenes'
-    files of one kind and a failure before this point leaves it untouched."""
-    import shutil
-
-    for name in entries:
-        src, dst = tmp / name, out / name
-        if not src.exists():
-            continue
-        old = None
-        if dst.is_dir():
-            old = tmp / f".old-{name}"
-            os.replace(dst, old)
-        os.replace(src, dst)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-
-
 def cmd_synth(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
 
     from cropcraft_core.bundle import check_output_dir
     from cropcraft_core.config import resolve_params
-    from cropcraft_core.errors import OutputError
+    from cropcraft_core.export import publish
     from cropcraft_core.synth import make_scene
 
     params = resolve_params(args.crop, _param_pairs(args.param))
@@ -134,10 +115,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
             layout=layout,
             image_format=args.format,
         )
-        try:
-            _publish_tree(tmp, out, SYNTH_ENTRIES)
-        except OSError as e:
-            raise OutputError(f"cannot write the scene into {out}: {e}") from None
+        publish(tmp, out, SYNTH_ENTRIES)  # every entry replaced whole, all or none
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     lo, hi = summary["camera_height_range_m"]

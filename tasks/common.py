@@ -95,6 +95,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: n_faces_total counts the generated canopy's faces, not those of the wider canopy the
     # gap-fraction rays cross; the sensors' seed defaults to the canopy's (as in generate)
     "metrics": 2,
+    # 2: params.json as cropcraft generate's and fit's (plants in the plot and in all; "fit"
+    # holds the answer's fit record, not only its settings)
+    "export": 2,
 }
 
 #: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).

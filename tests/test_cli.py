@@ -111,6 +111,38 @@ def test_generate_keeps_old_bundle_when_writing_fails(tmp_path, monkeypatch):
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
+def test_generate_replaces_the_bundle_as_one_set(tmp_path, monkeypatch, capsys):
+    """A bundle is published all or nothing: a folder in the way of one file stops it before
+    any file moves, and a move failing part-way (injected: a real one cannot be provoked on
+    demand) puts every earlier file back; never two canopies' files side by side."""
+    import os
+
+    out = tmp_path / "out"
+    args = ["generate", "soybean", "--plot", "1.6,0.5", "--out", str(out)]
+    assert main(args) == 0
+    files = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    (out / "preview.png").unlink()
+    (out / "preview.png").mkdir()
+    assert main([*args, "--seed", "9"]) == 2
+    assert "preview.png: a folder of that name is in the way" in capsys.readouterr().err
+    assert all((out / n).read_bytes() == b for n, b in files.items() if n != "preview.png")
+    (out / "preview.png").rmdir()
+    (out / "preview.png").write_bytes(files["preview.png"])
+
+    replace = os.replace
+
+    def failing(src, dst, *a, **k):
+        if str(dst) == str(out / "metrics.json") and ".previous-" not in str(src):
+            raise OSError(28, "No space left on device")
+        return replace(src, dst, *a, **k)
+
+    monkeypatch.setattr(os, "replace", failing)
+    assert main([*args, "--seed", "9"]) == 2
+    monkeypatch.setattr(os, "replace", replace)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == files
+
+
 def test_demo_inputs_are_remade_when_the_demo_scene_changes(tmp_path, monkeypatch):
     """A store holding the demo scene of other settings (an older release's) gets the current
     one, with no photo of the old scene left in the inbox; the same settings are not remade."""

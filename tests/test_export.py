@@ -177,6 +177,45 @@ def test_malformed_ply_errors_name_the_file(tmp_path: Path, mesh: CanopyMesh) ->
     (tmp_path / "badorgan.ply").write_text(bad_organ)
     with pytest.raises(InputError, match="badorgan.ply.*organ"):
         read_ply(tmp_path / "badorgan.ply")
+    # a damaged list length: negative, or far past the file's end
+    face = "property list char int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    head = bad_index[: bad_index.index("property list")]
+    (tmp_path / "negative.ply").write_text(head + face + "-1 0 1 2\n")
+    pts = np.zeros((3, 3), "<f4").tobytes()
+    binary = head.replace("ascii", "binary_little_endian")
+    for name, count in (("negative.bin.ply", b"\xff"), ("huge.bin.ply", b"\x7f")):
+        (tmp_path / name).write_bytes(
+            binary.encode() + face[: face.index("end_header") + 11].encode() + pts + count
+        )
+    for name, what in (
+        ("negative.ply", "negative list length -1"),
+        ("negative.bin.ply", "negative list length -1"),
+        ("huge.bin.ply", "ends inside element 'face'"),
+    ):
+        with pytest.raises(InputError, match=f"{name}: .*{what}"):
+            read_ply(tmp_path / name)
+
+
+def test_ascii_colours_keep_the_scale_of_their_declared_type(tmp_path: Path) -> None:
+    """Colours are scaled by the type the header declares, in ASCII files as in binary ones:
+    ushort by 65535 (was 255), a dark uchar cloud of values 0-1 by 255 (was taken as 0-1)."""
+    for kind, row, expect in (
+        ("ushort", "65535 32896 0", [1.0, 32896 / 65535, 0.0]),
+        ("uchar", "1 0 1", [1 / 255, 0.0, 1 / 255]),
+        ("float", "0.5 0.25 1", [0.5, 0.25, 1.0]),
+    ):
+        text = (
+            "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+            f"property float z\nproperty {kind} red\nproperty {kind} green\n"
+            f"property {kind} blue\nend_header\n0 0 0 {row}\n"
+        )
+        (tmp_path / f"{kind}.ply").write_text(text)
+        cloud = read_geometry(tmp_path / f"{kind}.ply")
+        assert np.allclose(cloud.colors[0], expect), kind
+    bad = text.replace("float red", "uchar red").replace("0.5 0.25", "0.5 0")
+    (tmp_path / "bad.ply").write_text(bad)
+    with pytest.raises(InputError, match="bad.ply: PLY property 'red'.*declared uint8"):
+        read_geometry(tmp_path / "bad.ply")
 
 
 # --------------------------------------------------------------------------- OBJ / GLB
@@ -330,18 +369,61 @@ def test_atomic_path_keeps_old_file_when_writer_raises(tmp_path: Path) -> None:
     assert target.read_bytes() == b"new" and target.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
-def test_helios_writer_failing_midway_leaves_previous_file(tmp_path: Path) -> None:
-    big = make_mesh(n_random=30_000, seed=2)
-    node = big.node.astype(np.float64)
-    node[25_000] = np.nan  # "%d" fails on the second 20k-triangle chunk, after the first is written
-    broken = CanopyMesh(big.vertices, big.faces, big.organ, big.plant, node)
-    target = tmp_path / "canopy.xml"
-    write_helios_xml(target, make_mesh(10))
-    before = target.read_bytes()
-    with pytest.raises(ValueError, match="NaN"):
-        write_helios_xml(target, broken)
-    assert target.read_bytes() == before
-    assert [p.name for p in tmp_path.iterdir()] == ["canopy.xml"]
+def test_writers_failing_midway_leave_the_previous_file(tmp_path: Path) -> None:
+    """A file-size limit (as a full disk) stops each writer part-way through its temporary
+    file, in a process of its own: OutputError naming the target, the previous file intact,
+    no temporary left behind."""
+    script = """
+import resource, signal, sys
+from pathlib import Path
+from cropcraft_core.export import write_helios_xml, write_obj, write_ply
+from cropcraft_core.errors import OutputError
+from tests.test_export import make_mesh
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG
+big = make_mesh(n_random=30_000, seed=2)
+folder = Path(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, resource.RLIM_INFINITY))
+for writer, name in ((write_ply, "c.ply"), (write_obj, "c.obj"), (write_helios_xml, "c.xml")):
+    try:
+        writer(folder / name, big)
+    except OutputError as e:
+        assert str(folder / name) in str(e), e
+    else:
+        raise SystemExit(name + " was written past the limit")
+"""
+    for name in ("c.ply", "c.obj", "c.xml"):
+        (tmp_path / name).write_text("previous\n")
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    run = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path)],
+        cwd=repo,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    for name in ("c.ply", "c.obj", "c.xml"):
+        assert (tmp_path / name).read_text() == "previous\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.mtl", "c.obj", "c.ply", "c.xml"]
+
+
+def test_face_labels_that_are_not_integers_are_refused_by_every_writer(tmp_path: Path) -> None:
+    base = make_mesh(10)
+    node = base.node.astype(np.float64)
+    node[3] = np.nan
+    bad = CanopyMesh(base.vertices, base.faces, base.organ, base.plant, node)
+    for writer, name in (
+        (write_ply, "m.ply"),
+        (write_obj, "m.obj"),
+        (write_glb, "m.glb"),
+        (write_helios_xml, "m.xml"),
+    ):
+        with pytest.raises(GeometryError, match="node ids of dtype float64"):
+            writer(tmp_path / name, bad)
+    assert not list(tmp_path.iterdir())
 
 
 def test_unwritable_output_raises_output_error(tmp_path: Path, mesh: CanopyMesh) -> None:

@@ -1026,6 +1026,9 @@ def test_report_builder_is_self_contained():
     assert "<td>lai</td><td class='num'>2</td><td class='num'>2</td><td class='num'>1.5" in seeds
     csv = season_csv(season_rows({"2024-07-01": {"lai": 2.0}, "2024-06-01": {"lai": 1.0}}))
     assert csv.splitlines()[1].startswith("2024-06-01,1")
+    # an unknown value is an empty cell, NaN and inf (read from a metrics.json) too
+    csv = season_csv(season_rows({"2024-06-01": {"lai": float("nan"), "plant_height_m": 1e999}}))
+    assert csv.splitlines()[1] == "2024-06-01" + "," * (csv.splitlines()[0].count(","))
 
 
 @pytest.mark.slow

@@ -1,6 +1,11 @@
 """Exporters: crash-safe writes, PLY/OBJ/GLB mesh files and Helios XML."""
 
-from cropcraft_core.export.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from cropcraft_core.export.atomic import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_text,
+    publish,
+)
 from cropcraft_core.export.helios import HELIOS_LABELS, helios_transforms, write_helios_xml
 from cropcraft_core.export.meshio import (
     ORGAN_COLORS,
@@ -20,6 +25,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "helios_transforms",
+    "publish",
     "read_geometry",
     "read_ply",
     "write_glb",

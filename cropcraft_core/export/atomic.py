@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from cropcraft_core.errors import CropCraftError, OutputError
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "publish"]
 
 
 def _current_umask() -> int:
@@ -38,6 +38,9 @@ def _current_umask() -> int:
 
 
 _FILE_MODE = 0o666 & ~_current_umask()
+
+#: Characters of the final name's stem kept in its temporary's name (file names end at 255).
+_STEM_CHARS = 64
 
 
 def _prepare_dir(path: Path) -> Path:
@@ -68,16 +71,17 @@ def atomic_path(path: str | os.PathLike[str], *, fsync: bool = True) -> Iterator
     """Yield a temporary path next to ``path``; on success move it onto ``path`` atomically.
 
     The temporary name keeps the suffix of ``path`` (``.canopy-<random>.tmp.ply`` for
-    ``canopy.ply``), so libraries that pick a format from the extension work on it. If the body
-    raises, the temporary file is removed, ``path`` is left as it was and the exception propagates;
-    an ``OSError`` from the body (disk full, ...) is re-raised as ``OutputError`` naming ``path``.
-    With ``fsync`` the data is flushed to disk before the rename.
+    ``canopy.ply``; a long stem cut to 64 characters), so libraries that pick a format from
+    the extension work on it. If the body raises, the temporary file is removed, ``path`` is
+    left as it was and the exception propagates; an ``OSError`` from the body (disk full, ...)
+    is re-raised as ``OutputError`` naming ``path``. With ``fsync`` the data is flushed to
+    disk before the rename.
     """
     final = Path(path)
     parent = _prepare_dir(final)
     try:
-        fd, tmp_name = tempfile.mkstemp(
-            prefix=f".{final.stem}-", suffix=f".tmp{final.suffix}", dir=parent
+        fd, tmp_name = tempfile.mkstemp(  # the stem cut short: a 250-character name still fits
+            prefix=f".{final.stem[:_STEM_CHARS]}-", suffix=f".tmp{final.suffix}", dir=parent
         )
     except OSError as e:
         raise OutputError(f"cannot write {final}: directory {parent} is not writable ({e})") from e
@@ -100,6 +104,49 @@ def atomic_path(path: str | os.PathLike[str], *, fsync: bool = True) -> Iterator
         except OSError:
             pass
         raise
+
+
+def publish(
+    staged: str | os.PathLike[str], out: str | os.PathLike[str], names: Iterable[str]
+) -> None:
+    """Move the entries ``names`` (files or folders) of the complete folder ``staged`` into
+    ``out`` as one set: each replaces the entry of its name whole, and a failure part-way puts
+    every previous entry back, so ``out`` never holds some files of one run beside others of
+    the run before. Names missing from ``staged`` are skipped.
+
+    ``staged`` must be on ``out``'s file system (a temporary folder inside it): the previous
+    entries are parked in it and leave with it. Nothing moves, and OutputError names the entry,
+    where a folder would replace a file or a file a folder (someone's own folder of that name).
+    """
+    staged, out = Path(staged), Path(out)
+    todo = [n for n in names if (staged / n).exists()]
+    for name in todo:
+        dst = out / name
+        if os.path.lexists(dst) and (staged / name).is_dir() != dst.is_dir():
+            kind = "folder" if dst.is_dir() else "file"
+            raise OutputError(f"cannot write {dst}: a {kind} of that name is in the way")
+    parked = Path(tempfile.mkdtemp(dir=staged, prefix=".previous-"))
+    moved: list[str] = []
+    kept: list[str] = []
+    try:
+        for name in todo:
+            if os.path.lexists(out / name):
+                os.replace(out / name, parked / name)
+                kept.append(name)
+            os.replace(staged / name, out / name)
+            moved.append(name)
+    except OSError as e:
+        for name in reversed(moved):  # undo: the new entries back, the previous ones in place
+            try:
+                os.replace(out / name, staged / name)
+            except OSError:
+                pass
+        for name in kept:
+            try:
+                os.replace(parked / name, out / name)
+            except OSError:
+                pass
+        raise OutputError(f"cannot write {out}: {e}") from None
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | bytearray | memoryview) -> Path:

@@ -31,6 +31,7 @@ import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,6 +91,15 @@ def _check_mesh(mesh: CanopyMesh) -> None:
         raise GeometryError(
             f"cannot export a mesh whose faces index outside its {len(mesh.vertices)} vertices"
         )
+    for name in ("plant", "node"):  # PLY stores them as int32, Helios as integers
+        ids = np.asarray(getattr(mesh, name))
+        if ids.shape != (mesh.n_faces,) or not np.issubdtype(ids.dtype, np.integer):
+            raise GeometryError(
+                f"cannot export face {name} ids of dtype {ids.dtype}, shape {ids.shape}: "
+                f"one integer per face ({mesh.n_faces}) is needed"
+            )
+        if ids.size and (ids.min() < np.iinfo(np.int32).min or ids.max() > np.iinfo(np.int32).max):
+            raise GeometryError(f"cannot export face {name} ids outside the 32-bit range")
     if not np.isin(mesh.organ, [int(o) for o in Organ]).all():
         bad = sorted(set(np.unique(mesh.organ).tolist()) - {int(o) for o in Organ})
         raise GeometryError(f"cannot export faces with unknown organ labels {bad}")
@@ -265,9 +275,11 @@ def _read_binary_element(
             cdt = np.dtype(bo + p.count_dtype)
             if pos + cdt.itemsize > len(data):
                 raise truncated()
-            k = int(np.frombuffer(data, cdt, 1, pos)[0])
+            k = _list_length(np.frombuffer(data, cdt, 1, pos)[0], el, path)
             lens.append(k)
             pos += cdt.itemsize + k * np.dtype(p.dtype).itemsize
+            if pos > len(data):
+                raise truncated()
     dt = _record_dtype(el, bo, lens)
     end = offset + el.count * dt.itemsize
     uniform = False
@@ -293,7 +305,7 @@ def _read_binary_element(
                 cdt, vdt = np.dtype(bo + p.count_dtype), np.dtype(bo + p.dtype)
                 if pos + cdt.itemsize > len(data):
                     raise truncated()
-                k = int(np.frombuffer(data, cdt, 1, pos)[0])
+                k = _list_length(np.frombuffer(data, cdt, 1, pos)[0], el, path)
                 pos += cdt.itemsize
                 if pos + k * vdt.itemsize > len(data):
                     raise truncated()
@@ -328,7 +340,8 @@ def _read_ascii_elements(
                 raise InputError(f"{path}: PLY data ends inside element '{el.name}'")
             vals = vals.reshape(el.count, k)
             pos += el.count * k
-            result[el.name] = {p.name: vals[:, i] for i, p in enumerate(el.props)}
+            res = {p.name: vals[:, i] for i, p in enumerate(el.props)}
+            result[el.name] = _declared_types(res, el, path)
             continue
         # Records with lists: try "every record like the first", else go record by record.
         res: dict[str, np.ndarray | list[np.ndarray]] | None = None
@@ -340,10 +353,12 @@ def _read_ascii_elements(
                         rec_len += 1
                         q += 1
                     else:
-                        k = int(tokens[q])
+                        k = _list_length(int(tokens[q]), el, path)
                         lens.append(k)
                         rec_len += 1 + k
                         q += 1 + k
+            except InputError:
+                raise
             except (IndexError, ValueError):
                 raise InputError(f"{path}: malformed PLY element '{el.name}'") from None
             block = tokens[pos : pos + el.count * rec_len]
@@ -375,19 +390,50 @@ def _read_ascii_elements(
                             out[p.name].append(float(tokens[pos]))
                             pos += 1
                         else:
-                            k = int(tokens[pos])
+                            k = _list_length(int(tokens[pos]), el, path)
                             out[p.name].append(num(tokens[pos + 1 : pos + 1 + k], el.name))
                             if len(out[p.name][-1]) != k:
                                 raise IndexError
                             pos += 1 + k
+            except InputError:
+                raise
             except (IndexError, ValueError):
                 raise InputError(f"{path}: PLY data ends inside element '{el.name}'") from None
             res = {
                 p.name: (out[p.name] if p.count_dtype else np.asarray(out[p.name]))
                 for p in el.props
             }
-        result[el.name] = res
+        result[el.name] = _declared_types(res, el, path)
     return result
+
+
+def _list_length(value: Any, el: _Element, path: Path) -> int:
+    """A list property's length prefix, refused when negative (a damaged file)."""
+    k = int(value)
+    if k < 0:
+        raise InputError(f"{path}: negative list length {k} in PLY element '{el.name}'")
+    return k
+
+
+def _declared_types(
+    res: dict[str, np.ndarray | list[np.ndarray]], el: _Element, path: Path
+) -> dict[str, np.ndarray | list[np.ndarray]]:
+    """An ASCII element's integer properties (read as float64) in their declared types, as a
+    binary file gives them: colours keep their scale (uchar / 255, ushort / 65535)."""
+    for p in el.props:
+        if p.count_dtype is not None or np.dtype(p.dtype).kind not in "iu":
+            continue
+        v = np.asarray(res[p.name], dtype=np.float64)
+        info = np.iinfo(p.dtype)
+        if v.size and not (
+            np.all(v == np.round(v)) and v.min() >= info.min and v.max() <= info.max
+        ):
+            raise InputError(
+                f"{path}: PLY property '{p.name}' of element '{el.name}' is declared "
+                f"{np.dtype(p.dtype).name} but holds other values"
+            )
+        res[p.name] = v.astype(p.dtype)
+    return res
 
 
 def _read_ply_elements(path: Path) -> dict[str, dict[str, np.ndarray | list[np.ndarray]]]:
@@ -540,6 +586,20 @@ def write_obj(
     order = np.argsort(mesh.organ, kind="stable")
     organs_sorted = mesh.organ[order]
     with atomic_path(out) as tmp, open(tmp, "w", encoding="ascii", newline="\n") as f:
+        # the materials before the OBJ replaces its old self: never an OBJ naming a missing .mtl
+        if mtl:
+            lines = ["# CropCraft organ materials"]
+            for organ, (r, g, b) in rgb.items():
+                lines += [
+                    f"newmtl {ORGAN_NAMES[organ]}",
+                    f"Kd {r:.4f} {g:.4f} {b:.4f}",
+                    "Ka 0 0 0",
+                    "Ks 0 0 0",
+                    "d 1",
+                    "illum 1",
+                    "",
+                ]
+            atomic_write_text(mtl_path, "\n".join(lines))
         f.write("\n".join(head) + "\n")
         vfmt = f"v %.{decimals}f %.{decimals}f %.{decimals}f\n"
         chunk = 100_000
@@ -555,19 +615,6 @@ def write_obj(
             for s in range(lo, hi, chunk):
                 tri = mesh.faces[order[s : min(s + chunk, hi)]].astype(np.int64) + 1
                 f.write(("f %d %d %d\n" * len(tri)) % tuple(tri.ravel().tolist()))
-    if mtl:
-        lines = ["# CropCraft organ materials"]
-        for organ, (r, g, b) in rgb.items():
-            lines += [
-                f"newmtl {ORGAN_NAMES[organ]}",
-                f"Kd {r:.4f} {g:.4f} {b:.4f}",
-                "Ka 0 0 0",
-                "Ks 0 0 0",
-                "d 1",
-                "illum 1",
-                "",
-            ]
-        atomic_write_text(mtl_path, "\n".join(lines))
     return out
 
 

@@ -563,18 +563,11 @@ def render_view(
 
 
 def _truth_metrics(canopy: Canopy, seed: int) -> dict:
-    try:
-        from cropcraft_core.metrics import canopy_metrics
-    except ImportError:  # pragma: no cover - metrics ships with the package
-        m = canopy.plot_mesh()
-        leaf = float(m.face_areas()[m.organ == Organ.LEAF].sum())
-        return {
-            "n_plants": canopy.n_plants,
-            "ground_area_m2": canopy.ground_area,
-            "leaf_area_m2": leaf,
-            "lai": leaf / canopy.ground_area,
-        }
-    return canopy_metrics(canopy, gap_fraction=True, rng=np.random.default_rng(seed))
+    """The truth's metrics as ``cropcraft generate`` measures a canopy (gap-fraction rays
+    through a border wide enough for them), the sensors seeded by the scene's seed."""
+    from cropcraft_core.bundle import measure_canopy
+
+    return measure_canopy(canopy, rng=seed)
 
 
 def _write_ply(path: Path, mesh: CanopyMesh) -> None:
