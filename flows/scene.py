@@ -165,6 +165,73 @@ def with_backend(
     return {"surfaces.backend": backend, **dict(overrides or {})}
 
 
+#: Settings whose value may be of another kind than their default's (checked where used).
+_OTHER_KINDS = {("observe", "prediction_blur"), ("poses", "imported_metric")}
+
+
+def _check_kinds(cfg: dict[str, Any]) -> None:
+    """Every setting whose default is a boolean, whole number, number or text holds one of the
+    same kind (a whole number may be written 1e1; it is stored as 10): ``--set`` keeps a value
+    that is not JSON as text, so ``fit.n_seeds=abc`` or ``poses.guided_matching=False`` (not
+    JSON's false, and true as Python reads a non-empty text) must stop here, not in a stage
+    after the photos were ingested."""
+    for section, defaults in DEFAULTS.items():
+        if section in _OPEN_SECTIONS:
+            continue
+        for key, default in defaults.items():
+            if (section, key) in _OTHER_KINDS or default is None or isinstance(default, dict):
+                continue
+            v = cfg[section][key]
+            name = f"{section}.{key}"
+            if isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise ConfigError(f"{name} must be true or false, got {v!r}")
+            elif isinstance(default, int):
+                whole = isinstance(v, float) and math.isfinite(v) and v == int(v)
+                if not (isinstance(v, int) and not isinstance(v, bool)) and not whole:
+                    raise ConfigError(f"{name} must be a whole number, got {v!r}")
+                cfg[section][key] = int(v)
+            elif isinstance(default, float):
+                if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+                    raise ConfigError(f"{name} must be a number, got {v!r}")
+            elif isinstance(default, str) and not isinstance(v, str):
+                raise ConfigError(f"{name} must be text, got {v!r}")
+    for (section, key), low in _LEAST.items():
+        if cfg[section][key] < low:
+            raise ConfigError(f"{section}.{key} must be at least {low}, got {cfg[section][key]!r}")
+    if cfg["poses"]["matcher"] not in ("auto", "exhaustive", "sequential"):
+        raise ConfigError(
+            f"poses.matcher must be auto, exhaustive or sequential, got {cfg['poses']['matcher']!r}"
+        )
+    for (section, key), low in _LEAST_OR_NULL.items():
+        v = cfg[section][key]
+        if (
+            v is not None
+            and (not isinstance(v, int | float) or isinstance(v, bool) or not low <= v < math.inf)
+            or v == 0
+        ):
+            least = f"at least {low}" if low else "a positive number"
+            raise ConfigError(f"{section}.{key} must be {least} or null, got {v!r}")
+
+
+#: Least values of whole-number settings that no core function checks before its stage runs.
+_LEAST = {
+    ("ingest", "min_images"): 1,
+    ("poses", "num_threads"): 1,
+    ("poses", "seed"): 0,
+    ("rowfit", "seed"): 0,
+    ("generate", "seed"): 0,
+    ("report", "n_thumbnails"): 0,
+    ("report", "thumbnail_px"): 16,
+}
+#: ... and of settings that may be null (their stage's own default).
+_LEAST_OR_NULL = {
+    ("ingest", "max_size"): 16,
+    ("poses", "sift_peak_threshold"): 0,  # 0: positive
+    ("rowfit", "scale"): 0,
+}
+
+
 def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The scene config: :data:`DEFAULTS` with ``overrides`` applied and checked.
 
@@ -186,6 +253,7 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         cfg["surfaces"].update(CROP_SURFACES.get(crop, {}))
     for k, v in (overrides or {}).items():
         _set_dotted(cfg, str(k), v)
+    _check_kinds(cfg)
     if SurfacesConfig is not None and cfg["surfaces"].get("backend") == "nerfacto":
         # the paper's settings and the far-plane margin, under the user's own; written out so
         # that the stage's key holds them (surfaces trained with nerfstudio's far plane, before

@@ -29,7 +29,13 @@ pytest.importorskip("cropcraft_core.surfaces")
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError  # noqa: E402
 from cropcraft_core.observe import Observation, coverage_warning  # noqa: E402
-from cropcraft_core.store import TMP_PREFIX, SceneKey, SceneStore, StoreError  # noqa: E402
+from cropcraft_core.store import (  # noqa: E402
+    TMP_PREFIX,
+    SceneKey,
+    SceneStore,
+    StoreError,
+    config_hash,
+)
 from tests.conftest_s3 import s3_server  # noqa: E402, F401
 
 CROP = "soybean"
@@ -552,6 +558,16 @@ def test_the_surfaces_backend_parameter_sits_beneath_the_overrides():
         resolve_config("maize", with_backend(None, "nerf"))
 
 
+def test_a_whole_number_written_as_a_float_is_stored_as_a_whole_number():
+    """``--set fit.n_seeds=1e1`` is JSON's 10.0: the config holds 10, hashed as the 10 a user
+    writes out (the same cache key)."""
+    from flows.scene import resolve_config
+
+    a = resolve_config(CROP, {"fit.n_seeds": 1e1})
+    assert a["fit"]["n_seeds"] == 10 and isinstance(a["fit"]["n_seeds"], int)
+    assert config_hash(a) == config_hash(resolve_config(CROP, {"fit.n_seeds": 10}))
+
+
 def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
     """Pooling the observation over neighbouring rows needs the planting row spacing, so the
     observe stage then hashes the layout; otherwise its key is what it was before pooling
@@ -921,6 +937,20 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"poses.camera_height": math.inf}, "poses.camera_height must be a positive"),
         ({"poses.prior_camera_height": math.nan}, "poses.prior_camera_height must be"),
         ({"poses.camera_distance": ["a.png", "b.png", math.inf]}, "camera_distance must be"),
+        # the kind of every setting: --set keeps a value that is not JSON as text
+        ({"fit.n_seeds": "abc"}, "fit.n_seeds must be a whole number, got 'abc'"),
+        ({"fit.n_seeds": 10.5}, "fit.n_seeds must be a whole number"),
+        ({"fit.n_evals": math.nan}, "fit.n_evals must be a whole number"),
+        ({"fit.n_seeds": True}, "fit.n_seeds must be a whole number"),
+        ({"poses.guided_matching": "False"}, "poses.guided_matching must be true or false"),
+        ({"fit.common_random_numbers": "no"}, "fit.common_random_numbers must be true or"),
+        ({"observe.image_scale": "abc"}, "observe.image_scale must be a number"),
+        ({"observe.image_scale": None}, "observe.image_scale must be a number"),
+        ({"poses.matcher": "foo"}, "poses.matcher must be auto, exhaustive or sequential"),
+        ({"poses.num_threads": 0}, "poses.num_threads must be at least 1"),
+        ({"ingest.max_size": 8}, "ingest.max_size must be at least 16 or null"),
+        ({"rowfit.scale": 0}, "rowfit.scale must be a positive number or null"),
+        ({"report.n_thumbnails": "six"}, "report.n_thumbnails must be a whole number"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)
