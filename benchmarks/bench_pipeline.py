@@ -221,13 +221,19 @@ def _scene_from_true(poses, truth_poses) -> np.ndarray:
 
 
 def run(a: argparse.Namespace) -> dict:
-    from PIL import Image
 
     from cropcraft_core.config import default_layout
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
     from cropcraft_core.rowfit.truth import row_fit_errors
-    from cropcraft_core.sfm import import_transforms_json, ingest_images, level_poses, run_sfm
+    from cropcraft_core.sfm import (
+        Poses,
+        import_transforms_json,
+        ingest_images,
+        level_poses,
+        pinhole_photos,
+        run_sfm,
+    )
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
     from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
     from cropcraft_core.surfaces.consistency import photo_consistency
@@ -282,10 +288,11 @@ def run(a: argparse.Namespace) -> dict:
         by_stem = {Path(im.name).stem: im.name for im in manifest.images}
 
         t = time.perf_counter()
-        images = [
-            np.asarray(Image.open(work / "images" / by_stem[Path(n).stem]).convert("RGB"))
-            for n, _ in poses
-        ]
+        ingested = Poses(  # the photos as the flow reads them: undistorted where SfM found a lens
+            tuple((by_stem[Path(n).stem], c) for n, c in poses),
+            {by_stem[Path(n).stem]: d for n, d in poses.distortion.items()},
+        )
+        images = pinhole_photos(work / "images", ingested)
         backend = make_backend(SurfacesConfig(**{**CROP_SURFACES[crop], **parse_kv(a.surfaces)}))
         backend.fit(images, poses.cameras, resolve_bbox(a.bbox, crop))
         points, colors = backend.point_cloud(100_000)

@@ -48,8 +48,12 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "guided_matching": False,  # epipolar re-matching: slower and less accurate on canopies
         "seed": 0,
         "num_threads": 2,
-        "imported_metric": True,
-        # SfM (and non-metric imported) poses are levelled: z up, plot-centred, ~metres
+        # imported poses in metres and gravity-aligned: true, false, or "auto" (a
+        # transforms.json of an AR capture is; a COLMAP model, or a transforms.json that
+        # ns-process-data made from an SfM project, with applied_transform, is not)
+        "imported_metric": "auto",
+        # all poses are levelled (z up, plot-centred); SfM and non-metric imported ones are
+        # also scaled to ~metres by:
         "camera_height": None,  # measured median camera height (m): exact scale
         "camera_distance": None,  # [photo A, photo B, metres between their cameras]: exact scale
         "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
@@ -347,6 +351,11 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         raise ConfigError(
             f"rows.snap must be null (cameras k row spacings apart) or a fraction of a row "
             f"spacing in (0, 0.5), got {snap!r}"
+        )
+    if cfg["poses"]["imported_metric"] not in (True, False, "auto"):
+        raise ConfigError(
+            f"poses.imported_metric must be true, false or auto, got "
+            f"{cfg['poses']['imported_metric']!r}"
         )
     for key in ("gap_fraction", "seed_traits"):
         if not isinstance(cfg["metrics"][key], bool):

@@ -73,8 +73,14 @@ CACHE_DIR = ".prefect"
 #: then stop matching and the stage (and everything after it) is recomputed.
 STAGE_VERSIONS: dict[str, int] = {
     **{stage: 1 for stage in STAGES},
+    # 2: imported poses are levelled too (metric ones on their gravity axis, unscaled), read
+    # as metric only where their source is an AR capture ("auto"), their intrinsics scaled to
+    # the ingested photos; every lens is recorded with its model
+    "poses": 2,
     # 2: TSDF truncation 3.5 voxels by default (3 thinned the leaves of SfM reconstructions)
-    "surfaces": 2,
+    # 3: photos are undistorted into their pinhole cameras first (SfM's SIMPLE_RADIAL k and
+    # imported lenses were dropped)
+    "surfaces": 3,
     # 2: the best row's direction from the lateral profile's period, not its raw sharpness
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
     # 3: ... and the camera clears the colour band too (soybean 0.25 m), in which the

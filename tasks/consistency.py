@@ -27,10 +27,8 @@ def consistency(
     ``plant_a_below`` (None: the crop's row-fit colour rule), ``warn`` (the |net| limit; None:
     no warning).
     """
-    from PIL import Image
-
     from cropcraft_core.rowfit import preset as rowfit_preset
-    from cropcraft_core.sfm.poses import Poses
+    from cropcraft_core.sfm.poses import Poses, pinhole_photos
     from cropcraft_core.surfaces.consistency import (
         MAX_VIEWS,
         MIN_HEIGHT_M,
@@ -52,9 +50,8 @@ def consistency(
         views = pick_views(len(poses.names), int(config.get("max_views", MAX_VIEWS)))
         images: list[np.ndarray] = [np.zeros((0, 0, 3), np.uint8)] * len(poses.names)
         with store.open_local(key_of(upstream["ingest"], "images")) as image_dir:
-            for i in views:
-                with Image.open(image_dir / poses.names[i]) as im:
-                    images[i] = np.asarray(im.convert("RGB"))
+            for i, photo in zip(views, pinhole_photos(image_dir, poses, views), strict=True):
+                images[i] = photo
         with store.open_local(key_of(upstream["surfaces"], "model")) as model_dir:
             backend = load_surfaces(model_dir)
             result = photo_consistency(

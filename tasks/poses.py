@@ -11,17 +11,40 @@ from cropcraft_core.errors import InputError
 from tasks.common import Timer, artefact, core, key_of, make_record, open_store, stage_task, workdir
 
 
-def _rename_to_ingested(poses, manifest: dict):
-    """Poses named by the source photos → named by the ingested images (same stems)."""
+def _rename_to_ingested(poses, manifest: dict, where: str):
+    """Poses named by the source photos → named by the ingested images (same stems), their
+    intrinsics scaled to the ingested size (``ingest.max_size``)."""
+    import dataclasses
+
     Poses = core("poses", "cropcraft_core.sfm", "Poses")
     by_source = {im["source"]: im["name"] for im in manifest["images"]}
     by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
+    ingested = {im["name"]: im for im in manifest["images"]}
     views, missing = [], []
     for name, cam in poses:
         new = by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
         if new is None:
             missing.append(name)
             continue
+        im = ingested[new]
+        size = (im["width"], im["height"])
+        if (cam.width, cam.height) == (im["source_width"], im["source_height"]) != size:
+            sx, sy = im["width"] / cam.width, im["height"] / cam.height
+            cam = dataclasses.replace(
+                cam,
+                width=im["width"],
+                height=im["height"],
+                fx=cam.fx * sx,
+                fy=cam.fy * sy,
+                cx=cam.cx * sx,
+                cy=cam.cy * sy,
+            )
+        elif (cam.width, cam.height) != size:
+            raise InputError(
+                f"{where} gives {name} as {cam.width}x{cam.height} pixels, but the photo "
+                f"{im['source']} is {im['source_width']}x{im['source_height']} upright: poses "
+                "of other (rotated or cropped?) photos"
+            )
         views.append((new, cam))
     if len(views) < 3:
         raise InputError(
@@ -59,27 +82,24 @@ def poses(
     """Poses of the ingested images, stored as ``{scene}/poses/poses.json`` (and, after SfM, the
     sparse points as ``points.npz``).
 
-    With ``poses_uri``: :func:`~cropcraft_core.sfm.import_transforms_json` (a ``.json`` file) or
-    :func:`~cropcraft_core.sfm.import_colmap` (a model folder); ``config["imported_metric"]``
-    says they are metric and gravity-aligned (kept as they are). Without:
+    With ``poses_uri``: :func:`~cropcraft_core.sfm.import_poses` (a ``transforms.json`` or a
+    COLMAP model folder); ``config["imported_metric"]`` says whether they are in metres and
+    gravity-aligned (``"auto"``: a ``transforms.json`` of an AR capture is, a COLMAP model or
+    a ``transforms.json`` of an SfM project is not). Without:
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``,
     ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``, ``guided_matching``).
-    SfM and non-metric imported poses are then levelled by
-    :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred, metres from
-    ``config["camera_height"]`` or ``config["camera_distance"]`` ([photo A, photo B, metres]
-    between their cameras; source names or stems) if given, else provisional from
-    ``prior_camera_height`` or the crop's typical capture height); the summary's ``frame``
-    records how, and ``metric`` is true when the scale is known (metric poses or a hint).
+    All are then levelled by :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred):
+    metric imported ones without scaling, up along their frame's gravity axis, a frame
+    levelled already kept as it is; the others in metres from ``config["camera_height"]``
+    or ``config["camera_distance"]`` ([photo A, photo B, metres] between their cameras;
+    source names or stems) if given, else provisional from ``prior_camera_height`` or the
+    crop's typical capture height. The summary's ``frame`` records how, and ``metric`` is
+    true when the scale is known (metric poses or a hint).
     """
-    import_colmap, import_transforms_json, run_sfm, level_poses = core(
-        "poses",
-        "cropcraft_core.sfm",
-        "import_colmap",
-        "import_transforms_json",
-        "run_sfm",
-        "level_poses",
+    import_poses, run_sfm, level_poses = core(
+        "poses", "cropcraft_core.sfm", "import_poses", "run_sfm", "level_poses"
     )
-    from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG, PRIOR_CAMERA_HEIGHT_M
     from cropcraft_core.sfm.poses import SIFT_PEAK_THRESHOLD
 
     crop = scene.split("/")[1]
@@ -88,15 +108,18 @@ def poses(
     distance = config.get("camera_distance")
     peak = config.get("sift_peak_threshold")
 
-    def level(found, points, summary: dict):
+    def level(found, points, summary: dict, metric: bool = False):
         """Level the poses; record how in ``summary`` (``frame``, and ``metric`` when the scale
         is known rather than provisional)."""
         out_poses, out_points, frame = level_poses(
             found,
             points,
-            camera_height_m=hint,
-            camera_distance=tuple(distance) if distance else None,
+            metric=metric,
+            camera_height_m=None if metric else hint,
+            camera_distance=tuple(distance) if distance and not metric else None,
             prior_camera_height_m=float(prior),
+            gravity_axis_deg=GRAVITY_AXIS_DEG if metric else None,
+            keep_levelled=metric,
         )
         summary["frame"] = frame.summary()
         summary["metric"] = frame.metric
@@ -109,22 +132,24 @@ def poses(
     arts: dict[str, str] = {}
     with Timer() as t, workdir("poses") as tmp:
         if poses_uri:
-            local = _fetch(poses_uri, tmp)
-            if local.is_dir():
-                sub = local / "sparse" / "0"
-                found = import_colmap(sub if sub.is_dir() else local)
-            else:
-                found = import_transforms_json(local)
-            result = _rename_to_ingested(found, manifest)
-            metric = bool(config.get("imported_metric", True))
+            imported = import_poses(_fetch(poses_uri, tmp))
+            result = _rename_to_ingested(imported.poses, manifest, poses_uri)
+            metric = config.get("imported_metric", "auto")
+            if metric == "auto":
+                metric = not imported.from_sfm
+            if metric and (hint is not None or distance is not None):
+                raise InputError(
+                    f"the imported poses at {poses_uri} are read as metric, so a camera height "
+                    "or distance cannot scale them: set poses.imported_metric=false to have "
+                    "them scaled by it"
+                )
             summary = {
                 "source": "imported",
                 "metric": metric,
                 "n_registered": len(result),
                 "n_images": len(manifest["images"]),
             }
-            if not metric:
-                result, _ = level(result, None, summary)
+            result, _ = level(result, imported.points, summary, metric=metric)
         else:
             with store.open_local(key_of(ing, "images")) as image_dir:
                 sfm = run_sfm(

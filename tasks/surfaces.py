@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from cropcraft_core.errors import CropCraftError
 from tasks.common import (
     Timer,
@@ -53,17 +51,15 @@ def surfaces(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
 ) -> dict[str, Any]:
     """Fit a surfaces backend (``config["backend"]``: tsdf or points on CPU, nerfacto on
-    CUDA) to the ingested images and their poses; store the fitted model under
-    ``{scene}/surfaces/model/`` and a coloured point cloud (``points`` (n, 3) m, ``colors``
-    (n, 3) in [0, 1]) as ``{scene}/surfaces/points.npz``.
+    CUDA) to the ingested images (undistorted into their pinhole cameras) and their poses;
+    store the fitted model under ``{scene}/surfaces/model/`` and a coloured point cloud
+    (``points`` (n, 3) m, ``colors`` (n, 3) in [0, 1]) as ``{scene}/surfaces/points.npz``.
 
     config: ``SurfacesConfig`` fields, plus ``bbox`` ([[xmin, ymin, zmin], [xmax, ymax, zmax]]
     in the poses' frame, ``"auto"`` for the crop's scene box in the levelled frame, or None)
     and ``n_points`` (point-cloud size).
     """
-    from PIL import Image
-
-    Poses = core("surfaces", "cropcraft_core.sfm", "Poses")
+    Poses, pinhole_photos = core("surfaces", "cropcraft_core.sfm", "Poses", "pinhole_photos")
     SurfacesConfig, make_backend = _surfaces_api()
     from cropcraft_core.surfaces import resolve_bbox
 
@@ -74,11 +70,8 @@ def surfaces(
     poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
     hashes: dict[str, str] = {}
     with Timer() as t, workdir("surfaces") as tmp:
-        images = []
         with store.open_local(key_of(upstream["ingest"], "images")) as image_dir:
-            for name in poses.names:
-                with Image.open(image_dir / name) as im:
-                    images.append(np.asarray(im.convert("RGB")))
+            images = pinhole_photos(image_dir, poses)  # undistorted where poses have a lens
         if cfg.get("backend") == "nerfacto" and not cfg.get("workdir"):
             cfg["workdir"] = str(tmp / "nerfacto")  # its photos and checkpoints go with tmp
         backend = make_backend(SurfacesConfig.from_dict(cfg))

@@ -983,6 +983,9 @@ def test_a_measured_distance_between_two_photos_sets_the_scale(base_run, scene_d
         _run("plotD", base_run["store"], scene_dir, {"poses.camera_distance": ["a", 2.0]})
     with pytest.raises(ConfigError, match="not both"):
         _run("plotD", base_run["store"], scene_dir, {**hint, "poses.camera_height": 1.4})
+    # synth's transforms.json reads as a metric AR capture: a hint cannot scale it
+    with pytest.raises(InputError, match="read as metric, so a camera height or distance"):
+        _run("plotM", base_run["store"], scene_dir, {**OVERRIDES, "poses.camera_height": 1.4})
 
 
 def test_a_measured_camera_height_sets_the_scale_above_the_fitted_ground(base_run, scene_dir):

@@ -77,6 +77,37 @@ def test_provisional_scale_from_the_prior_and_metric_poses_keep_theirs():
     assert s == pytest.approx(1.0, abs=1e-9) and tilt < 1.0
 
 
+@pytest.mark.parametrize(
+    "crop,trajectory,prior",
+    [("soybean", walk_trajectory, 1.4), ("maize", drone_trajectory, 13.0)],
+)
+def test_metric_imported_poses_are_levelled_on_their_gravity_axis(crop, trajectory, prior):
+    """A phone's AR poses are metres and gravity-aligned on one axis of their frame (Record3D
+    via nerfstudio: y up, the origin where tracking started): levelled on that axis exactly,
+    moved to the plot without scaling. A frame levelled already (cropcraft synth's) stays as
+    it is to the bit."""
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG
+
+    rng = np.random.default_rng(3)
+    cams = trajectory(default_layout(crop), 30, rng, 0.6 if crop == "soybean" else 2.5)
+    truth = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams)))
+    kw = dict(metric=True, prior_camera_height_m=prior, gravity_axis_deg=GRAVITY_AXIS_DEG)
+    out, _, frame = level_poses(truth, None, keep_levelled=True, **kw)
+    assert frame.up_source == "input_axis" and frame.scale_source == "metric_poses"
+    np.testing.assert_array_equal(out.centers(), truth.centers())
+
+    y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    arkit = truth.transformed(1.0, y_up, -(y_up @ cams[0].center))
+    out, _, frame = level_poses(arkit, None, keep_levelled=True, **kw)
+    assert frame.up_source == "input_axis"
+    offset = out.centers() - truth.centers()
+    np.testing.assert_allclose(offset, offset[:1].repeat(len(cams), 0), atol=1e-9)  # no tilt
+    assert np.hypot(*offset[0, :2]) < 0.25 and abs(offset[0, 2]) < 0.25
+    # the cameras' own up (a walk-around's is ~2 deg off gravity) where the axis is not used
+    out, _, frame = level_poses(arkit, None, **{**kw, "gravity_axis_deg": None})
+    assert frame.up_source == "cameras" and _truth_error(out, cams)[0] > 0.1
+
+
 def test_cameras_only_walk_and_drone_with_points():
     rng = np.random.default_rng(3)
     cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)

@@ -227,6 +227,61 @@ def test_import_errors(tmp_path):
     (tmp_path / "t.json").write_text('{"frames": [{"file_path": "a.png"}]}')
     with pytest.raises(InputError, match="frame 0"):
         import_transforms_json(tmp_path / "t.json")
+    good = {"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}
+    head = {"w": 64, "h": 48, "fl_x": 50.0}
+    for frame, match in (
+        ("a.png", "frame 1 is not a mapping"),
+        (None, "frame 1 is not a mapping"),
+        ({**good, "k1": "abc"}, "frame 1: distortion k1 must be a number"),
+        ({**good, "fl_x": "nan"}, "frame 1: intrinsics must be finite"),
+        ({**good, "w": 0}, "frame 1: camera size must be positive"),
+        ({**good, "transform_matrix": np.full((4, 4), np.nan).tolist()}, "frame 1: "),
+    ):
+        doc = {**head, "frames": [good, frame]}
+        (tmp_path / "t.json").write_text(json.dumps(doc))
+        with pytest.raises(InputError, match=f"t.json {match}"):
+            import_transforms_json(tmp_path / "t.json")
+
+
+def test_imported_poses_follow_the_photos_as_ingested():
+    """Poses name the source photos at their own size: renamed to the ingested images, their
+    intrinsics scaled where ingest downscaled (``ingest.max_size``); a camera of another size
+    than the upright photo (a rotated or cropped one) is named."""
+    from tasks.poses import _rename_to_ingested
+
+    cam = PinholeCamera(320, 240, 260.0, 250.0, 160.5, 119.5, np.eye(4))
+    poses = Poses(tuple((f"IMG_{i}.JPG", cam) for i in range(3)))
+    images = [
+        {"name": f"IMG_{i}.png", "source": f"IMG_{i}.JPG", "width": 160, "height": 120,
+         "source_width": 320, "source_height": 240}
+        for i in range(3)
+    ]  # fmt: skip
+    out = _rename_to_ingested(poses, {"images": images}, "poses.json")
+    c = out.camera("IMG_1.png")
+    assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (160, 120, 130.0, 125.0, 80.25, 59.75)
+    images[2].update(width=120, height=160, source_width=240, source_height=320)
+    with pytest.raises(InputError, match=r"poses.json gives IMG_2.JPG as 320x240 pixels, but"):
+        _rename_to_ingested(poses, {"images": images}, "poses.json")
+
+
+def test_imported_poses_say_whether_sfm_made_them(tmp_path):
+    """A COLMAP model (with its points) and a transforms.json that ns-process-data made from
+    an SfM project (``applied_transform``) are of arbitrary scale and up; one without it (a
+    phone's AR capture, cropcraft synth's) is metric and gravity-aligned."""
+    from cropcraft_core.sfm import import_poses
+
+    poses = _random_poses()
+    pts = np.random.default_rng(0).normal(size=(25, 3))
+    export_colmap_text(poses, tmp_path / "project" / "sparse" / "0", points=pts)
+    colmap = import_poses(tmp_path / "project")
+    assert colmap.from_sfm and colmap.poses.names == sorted(poses.names)
+    np.testing.assert_allclose(np.sort(colmap.points, axis=0), np.sort(pts, axis=0), atol=1e-6)
+    export_transforms_json(poses, tmp_path / "ar.json")
+    ar = import_poses(tmp_path / "ar.json")
+    assert not ar.from_sfm and ar.points is None
+    applied = {"applied_transform": np.eye(4)[:3].tolist()}
+    export_transforms_json(poses, tmp_path / "sfm.json", extra=applied)
+    assert import_poses(tmp_path / "sfm.json").from_sfm
 
 
 # --------------------------------------------------------------------------- ingest

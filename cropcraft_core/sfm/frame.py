@@ -45,6 +45,17 @@ PRIOR_CAMERA_HEIGHT_M = {"soybean": 1.4, "maize": 13.0}
 
 FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_distance", "camera_height_prior")
 
+#: Imported metric poses (a phone's AR tracking) are gravity-aligned on one axis of their frame:
+#: z as nerfstudio writes Polycam's, y as it writes Record3D's (ARKit's own). The up found from
+#: the cameras (a walk-around: ~1.7 deg off) is replaced by the nearest axis within this angle.
+GRAVITY_AXIS_DEG = 25.0
+
+#: ... and a frame levelled already (z up, the plot's centre within this many metres of its
+#: origin, as ``cropcraft synth`` writes it) keeps its origin: the one found without sparse
+#: points (under the point the cameras look at, a typical capture height below them) is an
+#: estimate, good for placing the scene box, not better than the capture's own.
+KEEP_ORIGIN_M = 0.25
+
 
 @dataclass(frozen=True)
 class GravityFrame:
@@ -57,7 +68,8 @@ class GravityFrame:
     scale_source: str
     """One of ``FRAME_SCALE_SOURCES``."""
     up_source: str
-    """'sparse_points' or 'cameras'."""
+    """'sparse_points', 'cameras' or 'input_axis' (the input frame's own, for gravity-aligned
+    imported poses)."""
     up_disagreement_deg: float
     """Angle between the points' up and the cameras' mean up (NaN without points)."""
     camera_height_m: float
@@ -178,6 +190,8 @@ def level_poses(
     seed: int = 0,
     min_points: int = 50,
     ground_percentile: float = 1.0,
+    gravity_axis_deg: float | None = None,
+    keep_levelled: bool = False,
 ) -> tuple[Poses, np.ndarray | None, GravityFrame]:
     """Move ``poses`` (and the sparse ``points`` (n, 3) of the same frame) into a levelled,
     centred, roughly metric frame; return (poses, points or None, :class:`GravityFrame`).
@@ -189,9 +203,16 @@ def level_poses(
     fitted ground plane). camera_distance:
     (photo A, photo B, metres) the measured distance between two photos' camera centres (names
     as in ``poses``, or their stems; sets the scale exactly). prior_camera_height_m: the assumed
-    height otherwise (``PRIOR_CAMERA_HEIGHT_M``). Raises ``InputError`` for fewer than 3
-    cameras, a non-positive height or distance, both hints at once, a photo the poses do not
-    have, two photos taken from one spot, or a camera-height hint without a ground estimate.
+    height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
+    lies this far below the cameras' median height. gravity_axis_deg: replace the up found by
+    the input frame's nearest axis (±x, ±y, ±z) within this angle (:data:`GRAVITY_AXIS_DEG`,
+    for gravity-aligned captures). keep_levelled: for metric poses already z up, keep the
+    input's origin where the one found lies within :data:`KEEP_ORIGIN_M` of it, and its
+    ground where, without points, the cameras' median height above it is 0.5-2 times the
+    prior (a frame levelled already, as ``cropcraft synth`` writes it). Raises ``InputError``
+    for fewer than 3 cameras, a non-positive height or distance, both hints at once, a photo
+    the poses do not have, two photos taken from one spot, or a camera-height hint without a
+    ground estimate.
     """
     if len(poses) < 3:
         raise InputError(f"levelling needs at least 3 posed cameras, got {len(poses)}")
@@ -232,6 +253,11 @@ def level_poses(
             disagree = math.degrees(math.acos(min(1.0, float(n @ up_cam))))
             if seen_from_above(n[None])[0]:
                 up, source = n, "sparse_points"
+    if gravity_axis_deg is not None:
+        axis = int(np.argmax(np.abs(up)))
+        if math.degrees(math.acos(min(1.0, abs(float(up[axis]))))) <= gravity_axis_deg:
+            up = np.eye(3)[axis] * math.copysign(1.0, float(up[axis]))
+            source = "input_axis"
     r = _rotation_to_z(up)
 
     ground_z: float | None
@@ -241,6 +267,9 @@ def level_poses(
         core_r = core @ r.T
         ground_z = float(np.percentile(core_r[:, 2], ground_percentile))
         centre_xy = np.median(core_r[:, :2], axis=0) if f is None else f[:2]
+    elif metric:  # metres already: the ground a typical capture height below the cameras
+        ground_z = float(np.median((centres @ r.T)[:, 2])) - prior_camera_height_m
+        centre_xy = (centres @ r.T)[:, :2].mean(axis=0) if f is None else f[:2]
     elif f is not None:
         ground_z, centre_xy = float(f[2]), f[:2]
     else:
@@ -264,6 +293,15 @@ def level_poses(
         scale, scale_source = prior_camera_height_m / med_h, "camera_height_prior"
 
     t = -scale * np.array([centre_xy[0], centre_xy[1], ground_z or 0.0])
+    if keep_levelled and scale == 1.0 and np.array_equal(r, np.eye(3)):
+        # a frame levelled already (cropcraft synth's, a survey's): its own origin where the
+        # estimate is near it, and its own ground where the cameras stand a plausible height
+        # above it and no points measure the ground
+        if float(np.hypot(t[0], t[1])) <= KEEP_ORIGIN_M:
+            t[:2] = 0.0
+        h = float(np.median(centres[:, 2]))
+        if not usable and 0.5 <= h / prior_camera_height_m <= 2.0:
+            t[2], med_h = 0.0, h
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = scale * r, t
     out_poses = poses.transformed(scale, r, t)

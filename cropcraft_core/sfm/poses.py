@@ -3,7 +3,8 @@
 Every pose in CropCraft is a ``PinholeCamera`` (OpenCV axes: x right, y down, z forward; pixel
 centres at +0.5, the same convention as COLMAP; ``cam_to_world`` (4, 4)). A ``Poses`` record is the
 ordered list of ``(image name, PinholeCamera)``; lens distortion, where an importer or SfM found
-any, is kept beside it in ``Poses.distortion`` (the pinhole part is in the camera).
+any, is kept beside it in ``Poses.distortion`` (the pinhole part is in the camera; the lens as
+:func:`cropcraft_core.geometry.lens.lens` records it, which later stages undistort the photos by).
 
 Conventions of the file formats handled here:
 
@@ -12,7 +13,8 @@ Conventions of the file formats handled here:
   world-to-camera translation ``TX TY TZ``; camera axes are OpenCV's.
 * nerfstudio ``transforms.json``: ``frames[].transform_matrix`` is camera-to-world with OpenGL
   camera axes (x right, y up, z back), i.e. ``c2w_gl = c2w_cv @ diag(1, -1, -1, 1)``; intrinsics
-  ``fl_x, fl_y, cx, cy, w, h`` at the top level or per frame, distortion ``k1 k2 k3 k4 p1 p2``.
+  ``fl_x, fl_y, cx, cy, w, h`` at the top level or per frame, distortion ``k1 k2 k3 k4 p1 p2``
+  of ``camera_model`` OPENCV or OPENCV_FISHEYE.
 
 ``run_sfm`` runs pycolmap on the CPU: SIFT features, exhaustive matching for up to
 ``EXHAUSTIVE_MAX_IMAGES`` images (beyond: sequential matching with a quadratic overlap first,
@@ -31,11 +33,19 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cropcraft_core.errors import CropCraftError, InputError, OutputError
 from cropcraft_core.geometry.camera import PinholeCamera
+from cropcraft_core.geometry.lens import (
+    COLMAP_MODELS,
+    FISHEYE,
+    NERFSTUDIO_MODELS,
+    RADIAL_TANGENTIAL,
+    lens,
+)
 
 #: Image extensions ``run_sfm`` reads.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
@@ -59,12 +69,12 @@ class SfmError(CropCraftError, RuntimeError):
 class Poses:
     """An ordered list of ``(image name, PinholeCamera)``, metres where the frame is metric.
 
-    ``distortion`` maps an image name to its lens distortion coefficients (e.g. ``{"k1": ...}``);
-    images without distortion are absent from it.
+    ``distortion`` maps an image name to its lens (``{"model": "radial_tangential", "k1": ...}``,
+    :func:`cropcraft_core.geometry.lens.lens`); images without distortion are absent from it.
     """
 
     views: tuple[tuple[str, PinholeCamera], ...]
-    distortion: dict[str, dict[str, float]] = field(default_factory=dict)
+    distortion: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         views = tuple((str(n), c) for n, c in self.views)
@@ -345,12 +355,18 @@ def _camera_from_colmap(cam, cam_to_world: np.ndarray) -> tuple[PinholeCamera, d
         float(cam.principal_point_y),
         cam_to_world,
     )
+    model = str(cam.model.name)
+    if model not in COLMAP_MODELS:
+        raise InputError(
+            f"COLMAP camera model {model} is not supported (its lens: one of "
+            f"{', '.join(COLMAP_MODELS)}); undistort the photos first (colmap image_undistorter)"
+        )
     params = [float(v) for v in cam.params]
     named = set(cam.focal_length_idxs()) | set(cam.principal_point_idxs())
     extra = [i for i in range(len(params)) if i not in named]
     info = cam.params_info.split(", ") if cam.params_info else []
     dist = {info[i] if i < len(info) else f"p{i}": params[i] for i in extra}
-    return pc, {k: v for k, v in dist.items() if v != 0.0}
+    return pc, lens(COLMAP_MODELS[model], dist, f"COLMAP camera {cam.camera_id} ({model})")
 
 
 def _poses_from_reconstruction(rec) -> Poses:
@@ -367,9 +383,8 @@ def _poses_from_reconstruction(rec) -> Poses:
     return Poses(tuple(views), dist)
 
 
-def import_colmap(model_dir: str | os.PathLike) -> Poses:
-    """Read a COLMAP model (text or binary: cameras, images, points3D) → ``Poses`` of its
-    registered images, sorted by name. Lens distortion goes to ``Poses.distortion``."""
+def _read_colmap(model_dir: str | os.PathLike) -> tuple[Poses, np.ndarray]:
+    """(poses of the registered images, (n, 3) points3D) of a COLMAP model folder."""
     import pycolmap
 
     d = Path(model_dir)
@@ -383,7 +398,43 @@ def import_colmap(model_dir: str | os.PathLike) -> Poses:
     poses = _poses_from_reconstruction(rec)
     if not len(poses):
         raise InputError(f"the COLMAP model in {d} has no registered images")
-    return poses
+    ids = list(rec.point3D_ids())
+    pts = np.array([rec.point3D(i).xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    return poses, pts
+
+
+def import_colmap(model_dir: str | os.PathLike) -> Poses:
+    """Read a COLMAP model (text or binary: cameras, images, points3D) → ``Poses`` of its
+    registered images, sorted by name. Lens distortion goes to ``Poses.distortion``; the
+    points are :func:`import_poses`'."""
+    return _read_colmap(model_dir)[0]
+
+
+@dataclass(frozen=True)
+class ImportedPoses:
+    """Poses another tool made, with what their source says of their frame."""
+
+    poses: Poses
+    points: np.ndarray | None
+    """(n, 3) sparse points in the poses' frame (a COLMAP model's points3D), or None."""
+    from_sfm: bool
+    """Made by structure from motion, so of arbitrary scale and orientation: a COLMAP model, or
+    a ``transforms.json`` with ``applied_transform`` (nerfstudio's ``ns-process-data`` writes
+    it for COLMAP and Metashape projects). False for a ``transforms.json`` without it: a
+    phone's AR tracking (``ns-process-data polycam`` / ``record3d``, ``cropcraft synth``),
+    metres and gravity-aligned."""
+
+
+def import_poses(path: str | os.PathLike) -> ImportedPoses:
+    """Poses from a COLMAP model folder (or a project folder with ``sparse/0``) or a nerfstudio
+    ``transforms.json`` (:func:`import_colmap`, :func:`import_transforms_json`)."""
+    p = Path(path)
+    if p.is_dir():
+        sub = p / "sparse" / "0"
+        poses, pts = _read_colmap(sub if sub.is_dir() else p)
+        return ImportedPoses(poses, pts if len(pts) else None, True)
+    doc = _transforms_doc(p)
+    return ImportedPoses(_transforms_poses(doc, p), None, "applied_transform" in doc)
 
 
 # --------------------------------------------------------------------------- nerfstudio
@@ -409,10 +460,20 @@ def export_transforms_json(
     def intr(c: PinholeCamera, name: str | None) -> dict:
         d = {"fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
         dist = poses.distortion.get(name, {}) if name else {}
-        d.update({k: float(dist.get(k, 0.0)) for k in _NS_DISTORTION})
+        d.update({k: float(dist.get(k, 0.0)) for k in _NS_DISTORTION})  # SfM's k is k1
         return d
 
-    doc: dict = {"camera_model": "OPENCV"}
+    models = {d.get("model") for d in poses.distortion.values() if d}
+    if (
+        len(models) > 1
+        or any(d.get(k) for d in poses.distortion.values() for k in ("k4", "k5", "k6") if d)
+        and models == {RADIAL_TANGENTIAL}
+    ):
+        raise OutputError(
+            "these poses' lenses (mixed models, or rational radial-tangential terms k4-k6) "
+            "cannot be written as one nerfstudio camera_model"
+        )
+    doc: dict = {"camera_model": "OPENCV_FISHEYE" if models == {FISHEYE} else "OPENCV"}
     if shared:
         doc.update(intr(poses.cameras[0], None))
     frames = []
@@ -437,16 +498,26 @@ def import_transforms_json(path: str | os.PathLike) -> Poses:
     ``camera_angle_x`` stands in for ``fl_x`` where that is missing. Non-zero distortion
     coefficients go to ``Poses.distortion``."""
     p = Path(path)
+    return _transforms_poses(_transforms_doc(p), p)
+
+
+def _transforms_doc(p: Path) -> dict:
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"cannot read {p}: {e}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list) or not doc["frames"]:
         raise InputError(f"{p} has no frames")
+    return doc
+
+
+def _transforms_poses(doc: dict, p: Path) -> Poses:
     views, dist = [], {}
     for i, f in enumerate(doc["frames"]):
-        g = {**doc, **f}
         where = f"{p} frame {i}"
+        if not isinstance(f, dict):
+            raise InputError(f"{where} is not a mapping of file_path, transform_matrix, ...")
+        g = {**doc, **f}
         try:
             w, h = int(g["w"]), int(g["h"])
             if "fl_x" in g:
@@ -459,15 +530,60 @@ def import_transforms_json(path: str | os.PathLike) -> Poses:
             name = Path(str(f["file_path"])).name
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"{where} is missing or has a malformed {e}") from None
+        if not all(math.isfinite(x) for x in (fx, fy, cx, cy)):
+            raise InputError(f"{where}: intrinsics must be finite numbers")
+        model = g.get("camera_model", "OPENCV")
+        if model not in NERFSTUDIO_MODELS:
+            raise InputError(
+                f"{where}: camera_model {model!r} is not supported (OPENCV or OPENCV_FISHEYE); "
+                "undistort the photos first"
+            )
+        coeffs = {k: g[k] for k in _NS_DISTORTION if g.get(k) is not None}
+        if model == "OPENCV" and coeffs.get("k4"):
+            raise InputError(
+                f"{where}: OPENCV distortion k4={coeffs['k4']} is read as a polynomial term by "
+                "nerfstudio's rays and as OpenCV's rational one by its undistortion; give "
+                "undistorted photos or a COLMAP model"
+            )
+        d = lens(NERFSTUDIO_MODELS[model], coeffs, where)
         if m.shape == (3, 4):
             m = np.vstack([m, [0, 0, 0, 1.0]])
         if m.shape != (4, 4):
             raise InputError(f"{where}: transform_matrix must be 4×4, got {m.shape}")
-        views.append((name, PinholeCamera(w, h, fx, fy, cx, cy, m @ _GL_FROM_CV)))
-        d = {k: float(g[k]) for k in _NS_DISTORTION if float(g.get(k, 0.0) or 0.0) != 0.0}
+        try:
+            views.append((name, PinholeCamera(w, h, fx, fy, cx, cy, m @ _GL_FROM_CV)))
+        except (CropCraftError, ValueError) as e:
+            raise InputError(f"{where}: {e}") from None
         if d:
             dist[name] = d
     return Poses(tuple(views), dist)
+
+
+# --------------------------------------------------------------------------- photos
+
+
+def pinhole_photos(
+    image_dir: str | os.PathLike, poses: Poses, indices: Sequence[int] | None = None
+) -> list[np.ndarray]:
+    """The posed photos in ``image_dir`` (all, or those at ``indices`` of ``poses``), RGB uint8,
+    each undistorted into its pinhole camera (:func:`cropcraft_core.geometry.lens.
+    undistort_image`) where ``poses.distortion`` has its lens."""
+    from PIL import Image
+
+    from cropcraft_core.geometry.lens import stored_lens, undistort_image
+
+    folder = Path(image_dir)
+    views = poses.views
+    out = []
+    for i in range(len(views)) if indices is None else indices:
+        name, cam = views[i]
+        with Image.open(folder / name) as im:
+            rgb = np.asarray(im.convert("RGB"))
+        try:
+            out.append(undistort_image(rgb, cam, stored_lens(poses.distortion.get(name), name)))
+        except InputError as e:
+            raise InputError(f"photo {name}: {e}") from None
+    return out
 
 
 # --------------------------------------------------------------------------- SfM
