@@ -67,6 +67,9 @@ def test_a_photo_is_undistorted_into_its_pinhole_camera(d):
         assert (out * uu).sum() / wsum == pytest.approx(u, abs=0.1)
         assert (out * vv).sum() / wsum == pytest.approx(v, abs=0.1)
     assert undistort_image(photo, CAM, {}) is photo
+    # a lens that moves no pixel by a twentieth is left alone (SfM's k on pinhole photos)
+    tiny = lens(RADIAL_TANGENTIAL, {"k": 6e-5}, "sfm")
+    assert undistort_image(photo, CAM, tiny) is photo
 
 
 def test_lens_records_are_checked_and_legacy_ones_read():

@@ -29,6 +29,11 @@ import numpy as np
 from cropcraft_core.errors import InputError
 from cropcraft_core.geometry.camera import PinholeCamera
 
+#: A lens that moves no pixel of the photo by this much (pixels) is left alone: resampling
+#: would blur the photo more than it corrects (SfM's SIMPLE_RADIAL on the synthetic pinhole
+#: photos: k = 6e-5, 0.02 px at the corners).
+NEGLIGIBLE_PX = 0.05
+
 RADIAL_TANGENTIAL = "radial_tangential"
 FISHEYE = "fisheye"
 
@@ -123,7 +128,8 @@ def distort(x: np.ndarray, y: np.ndarray, d: Mapping[str, Any]) -> tuple[np.ndar
 
 def undistort_image(image: np.ndarray, camera: PinholeCamera, d: Mapping[str, Any]) -> np.ndarray:
     """``image`` (taken through the lens ``d`` with ``camera``'s intrinsics) as the pinhole
-    ``camera`` sees it; ``image`` itself where ``d`` is empty."""
+    ``camera`` sees it; ``image`` itself where ``d`` is empty or moves no pixel by
+    :data:`NEGLIGIBLE_PX`."""
     if not d:
         return image
     import cv2
@@ -135,6 +141,9 @@ def undistort_image(image: np.ndarray, camera: PinholeCamera, d: Mapping[str, An
     y = (np.arange(h, dtype=np.float64) + 0.5 - camera.cy) / camera.fy
     xx, yy = np.meshgrid(x, y)
     xd, yd = distort(xx, yy, d)
+    shift = np.hypot(camera.fx * (xd - xx), camera.fy * (yd - yy))
+    if float(shift.max()) < NEGLIGIBLE_PX:
+        return image
     map_x = (camera.fx * xd + camera.cx - 0.5).astype(np.float32)
     map_y = (camera.fy * yd + camera.cy - 0.5).astype(np.float32)
     return cv2.remap(
@@ -151,6 +160,7 @@ __all__ = [
     "COLMAP_MODELS",
     "FISHEYE",
     "MODEL_COEFFICIENTS",
+    "NEGLIGIBLE_PX",
     "NERFSTUDIO_MODELS",
     "RADIAL_TANGENTIAL",
     "distort",
