@@ -951,6 +951,9 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"ingest.max_size": 8}, "ingest.max_size must be at least 16 or null"),
         ({"rowfit.scale": 0}, "rowfit.scale must be a positive number or null"),
         ({"report.n_thumbnails": "six"}, "report.n_thumbnails must be a whole number"),
+        ({"fit.canopies_per_eval": "two"}, "canopies_per_eval must be a whole number"),
+        ({"fit.local_share": "half"}, "local_share must be a number in"),
+        ({"poses.imported_metric": "yes"}, "poses.imported_metric must be true, false or auto"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)

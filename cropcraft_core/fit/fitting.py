@@ -196,6 +196,18 @@ class FitConfig:
             )
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}: choose one of {', '.join(METHODS)}")
+        for name in (
+            "n_seeds", "n_evals", "n_initial", "refit_every", "reevaluate_canopies",
+            "polish_starts", "polish_evals", "canopies_per_eval",
+        ):  # fmt: skip
+            v = getattr(self, name)
+            if v is None and name == "canopies_per_eval":
+                continue
+            if not isinstance(v, int | np.integer) or isinstance(v, bool):
+                raise ConfigError(f"{name} must be a whole number, got {v!r}")
+        share = self.local_share
+        if share is not None and (not isinstance(share, int | float) or isinstance(share, bool)):
+            raise ConfigError(f"local_share must be a number in [0, 1] or null, got {share!r}")
         if self.canopies_per_eval is not None and self.canopies_per_eval < 1:
             raise ConfigError(f"canopies_per_eval must be at least 1, got {self.canopies_per_eval}")
         if self.combine is not None and self.combine not in COMBINE_RULES:
