@@ -129,6 +129,9 @@ def test_bad_input_is_named():
         photo_consistency(truth.render, imgs, cams, (0, 0, 0), 0.0)
     with pytest.raises(InputError, match="photo 1 is"):
         check(truth.render, [imgs[0], imgs[1][:50], imgs[2]], cams)
+    for views in ([-1], [3], [0, 0]):  # -1 compared photo 2, [0, 0] counted photo 0 twice
+        with pytest.raises(InputError, match="views must be distinct photo indices in 0..2"):
+            photo_consistency(truth.render, imgs, cams, UP, GROUND, views=views)
     far = np.array([[50.0, 50.0, -0.1], [51.0, 51.0, 1.0]])
     with pytest.raises(SurfacesError, match="none of the 3 photos"):
         photo_consistency(truth.render, imgs, cams, UP, GROUND, bbox=far)

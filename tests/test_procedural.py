@@ -194,6 +194,19 @@ def test_bad_layout():
         default_layout("soybean", row_spacing=0.0)
     with pytest.raises(ConfigError, match="plot width"):
         default_layout("soybean", plot_width=0.5)
+    for bad in (float("nan"), float("inf"), "x"):  # NaN built a canopy of NaN vertices
+        with pytest.raises(ConfigError, match="row azimuth must be a number of degrees"):
+            default_layout("soybean", row_azimuth_deg=bad)
+    with pytest.raises(ConfigError, match="plot length 0.03 m holds no plant"):
+        default_layout("soybean", plot_length=0.03)  # its ground area was 0
+
+
+def test_a_canopy_seed_is_32_bits():
+    """The plants' random streams take 32 bits of the seed: a larger one (or a negative one)
+    would build another seed's canopy under its own name."""
+    for bad in (2**32, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="canopy seed must be a whole number"):
+            generate_canopy("soybean", seed=bad)
 
 
 @pytest.mark.parametrize("crop,height", [("soybean", 1.25), ("maize", 5.0)])

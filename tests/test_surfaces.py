@@ -376,6 +376,45 @@ def test_save_load_round_trip(fitted, tmp_path):
     assert len(again.fill_faces) == len(fitted.fill_faces) > 0
 
 
+def test_a_damaged_saved_surface_is_named(fitted, tmp_path):
+    """A saved surface whose surfaces.json or mesh was damaged is an InputError naming the
+    file, not a raw KeyError or an empty surface that renders nothing."""
+    import json
+
+    from cropcraft_core.errors import InputError
+
+    folder = fitted.save(tmp_path / "s")
+    meta = json.loads((folder / "surfaces.json").read_text())
+    for damaged, match in (
+        ([1, 2], "surfaces.json is damaged: a list"),
+        ({k: v for k, v in meta.items() if k != "cameras"}, "surfaces.json is damaged: KeyError"),
+        ({**meta, "payload": None, "cameras": []}, "surfaces.json is damaged: it holds no"),
+        ({**meta, "bbox": [[1, 1, 1], [0, 0, 0]]}, "surfaces.json is damaged: bbox"),
+    ):
+        (folder / "surfaces.json").write_text(json.dumps(damaged))
+        with pytest.raises(InputError, match=match):
+            load_surfaces(folder)
+    (folder / "surfaces.json").write_text(json.dumps(meta))
+    mesh = next(p for p in folder.iterdir() if p.suffix == ".ply")
+    data = bytearray(mesh.read_bytes())
+    data[-12:-8] = (10**8).to_bytes(4, "little")  # the last face's first vertex index
+    mesh.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="faces index vertices outside"):
+        load_surfaces(folder)
+
+
+def test_a_failed_fit_leaves_no_fitted_surface(scene, tmp_path):
+    """A fit that finds no surface raises and leaves the backend unfitted: nothing to save."""
+    mesh, cams, imgs, bbox = scene
+    b = make_backend(SurfacesConfig(n_depths=16, mvs_scale=0.25, weight_threshold=1e9))
+    with pytest.raises(SurfacesError, match="found no consistent surface"):
+        b.fit(imgs[:4], cams[:4], bbox)
+    assert not b.fitted
+    with pytest.raises(SurfacesError, match="not fitted"):
+        b.save(tmp_path / "s")
+    assert not (tmp_path / "s").exists()
+
+
 def test_one_view_fill_closes_holes_behind_the_two_view_surface(scene, fitted):
     """The fill mesh holds only faces the two-view mesh lacks and is rendered only where that
     mesh (alone: ``render_supported``) leaves a ray empty; save/load keeps it
@@ -668,6 +707,13 @@ def test_unknown_backend_is_config_error():
         ({"splat_density": float("nan")}, "splat_density must be a positive number or null"),
         ({"splat_density_window": 4}, "splat_density_window must be odd and ≥ 1"),
         ({"best_sources": -1}, "best_sources must be ≥ 0"),
+        # each setting of its default's kind (the scene flow's --set passes text through)
+        ({"neighbours": "abc"}, "neighbours must be a whole number, got 'abc'"),
+        ({"weight_threshold": float("nan")}, "weight_threshold must be a finite number"),
+        ({"soil_a_min": float("nan")}, "soil_a_min must be a finite number"),
+        ({"colour": "no"}, "colour must be true or false"),
+        ({"seed": -1}, "seed must be ≥ 0"),
+        ({"depth_range": [1, 2, 3]}, "depth_range must be \\[near, far\\] in metres"),
     ],
 )
 def test_bad_stereo_settings_are_named_config_errors(bad, match):

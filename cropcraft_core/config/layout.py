@@ -41,12 +41,21 @@ class CanopyLayout:
                 raise ConfigError(f"{name.replace('_', ' ')} must be a positive number, got {v!r}")
         for name in ("jitter_along", "jitter_across", "margin"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name.replace('_', ' ')} must be non-negative, got {v!r}")
+        a = self.row_azimuth_deg
+        if not (isinstance(a, int | float) and not isinstance(a, bool) and math.isfinite(a)):
+            raise ConfigError(f"row azimuth must be a number of degrees, got {a!r}")
         if self.plot_width < self.row_spacing:
             raise ConfigError(
                 f"plot width {self.plot_width:g} m holds no full row at row spacing "
                 f"{self.row_spacing:g} m"
+            )
+        if self.plot_length < self.in_row_spacing:
+            raise ConfigError(
+                f"plot length {self.plot_length:g} m holds no plant at {self.density:g} plants "
+                f"per m² and row spacing {self.row_spacing:g} m (one per "
+                f"{self.in_row_spacing:.3g} m along the row)"
             )
 
     @property

@@ -30,8 +30,20 @@ class PinholeCamera:
     cam_to_world: np.ndarray  # (4, 4) float64
 
     def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+                raise ConfigError(f"camera {name} must be a whole number of pixels, got {v!r}")
+            if not (math.isfinite(v) and v == int(v)):
+                raise ConfigError(f"camera {name} must be a whole number of pixels, got {v!r}")
+            object.__setattr__(self, name, int(v))
         if self.width <= 0 or self.height <= 0:
             raise ConfigError(f"camera size must be positive, got {self.width}×{self.height}")
+        if not all(math.isfinite(float(v)) for v in (self.fx, self.fy, self.cx, self.cy)):
+            raise ConfigError(
+                f"camera intrinsics must be finite, got fx={self.fx}, fy={self.fy}, "
+                f"cx={self.cx}, cy={self.cy}"
+            )
         if self.fx <= 0 or self.fy <= 0:
             raise ConfigError(f"camera focal lengths must be positive, got {self.fx}, {self.fy}")
         m = np.asarray(self.cam_to_world, dtype=np.float64)

@@ -98,6 +98,10 @@ def generate_canopy(
     rendering from that camera, not for measuring traits.
     """
     crop = check_crop(crop)
+    if not (isinstance(seed, int | np.integer) and not isinstance(seed, bool)) or not (
+        0 <= seed < 2**32
+    ):  # the plants' random streams take 32 bits: seed 2**32 would build seed 0's canopy
+        raise ConfigError(f"canopy seed must be a whole number in [0, 2**32), got {seed!r}")
     species = SPECIES[crop]
     params = resolve_params(crop, params)
     layout = layout or default_layout(crop)

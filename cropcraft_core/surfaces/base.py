@@ -110,9 +110,20 @@ def resolve_bbox(bbox: Any, crop: str) -> np.ndarray | None:
         if crop not in SCENE_BOX:
             raise ConfigError(f"no scene box for crop {crop!r}: one of {', '.join(SCENE_BOX)}")
         return np.array(SCENE_BOX[crop], dtype=np.float64)
-    box = np.asarray(bbox, dtype=np.float64)
-    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+    box = _box(bbox)
+    if box is None:
         raise ConfigError(f"surfaces bbox must be [min corner, max corner], got {bbox!r}")
+    return box
+
+
+def _box(bbox: Any) -> np.ndarray | None:
+    """``bbox`` as a finite (2, 3) [min corner, max corner] with min < max, else None."""
+    try:
+        box = np.asarray(bbox, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+        return None
     return box
 
 
@@ -150,7 +161,7 @@ class SurfacesConfig:
     """(near, far) z-depth searched by stereo and fused (m). None: per view, from the bounding
     box's corners (or (0.2, 8.0) without a box)."""
     neighbours: int = 4
-    """tsdf: source views matched against each reference view (2–6)."""
+    """tsdf: source views matched against each reference view (2–8)."""
     best_sources: int = 0
     """tsdf: a plane's matching score at a pixel is the mean NCC of this many best-scoring
     sources (fewer is more robust to a source that cannot see the pixel, noisier where all
@@ -285,6 +296,26 @@ class SurfacesConfig:
             raise ConfigError(
                 f"unknown surfaces backend {self.backend!r}: choose one of {', '.join(BACKENDS)}"
             )
+        for f in fields(self):  # each setting of the kind of its default (--set passes text)
+            v, default = getattr(self, f.name), f.default
+            if v is None and "None" in str(f.type):
+                continue
+            if isinstance(default, bool):
+                ok, kind = isinstance(v, bool), "true or false"
+            elif isinstance(default, int):
+                ok = isinstance(v, int | np.integer) and not isinstance(v, bool)
+                kind = "a whole number"
+            elif isinstance(default, float):
+                ok = isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v)
+                kind = "a finite number"
+            else:
+                ok, kind = True, ""
+            if not ok:
+                raise ConfigError(f"surfaces {f.name} must be {kind}, got {v!r}")
+        if self.seed < 0:
+            raise ConfigError(f"surfaces seed must be ≥ 0, got {self.seed}")
+        if self.weight_threshold < 0:
+            raise ConfigError(f"surfaces weight_threshold must be ≥ 0, got {self.weight_threshold}")
         for name in (
             "voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel", "visibility_rel",
             "splat_radius", "splat_density",
@@ -328,7 +359,12 @@ class SurfacesConfig:
         if int(self.min_consistent) < 0:
             raise ConfigError(f"surfaces min_consistent must be ≥ 0, got {self.min_consistent}")
         if self.depth_range is not None:
-            near, far = (float(x) for x in self.depth_range)
+            try:
+                near, far = (float(x) for x in self.depth_range)
+            except (TypeError, ValueError):
+                raise ConfigError(
+                    f"surfaces depth_range must be [near, far] in metres, got {self.depth_range!r}"
+                ) from None
             if not (0 < near < far and np.isfinite(far)):
                 raise ConfigError(f"surfaces depth_range must be 0 < near < far, got {near, far}")
             object.__setattr__(self, "depth_range", (near, far))
@@ -389,11 +425,9 @@ def check_inputs(
                 f"image {i} is {a.shape[1]}×{a.shape[0]} but its camera is {cam.width}×{cam.height}"
             )
         imgs[i] = a
-    box = None
-    if bbox is not None:
-        box = np.asarray(bbox, dtype=np.float64)
-        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
-            raise InputError(f"bbox must be (2, 3) [min corner, max corner], got {bbox!r}")
+    box = None if bbox is None else _box(bbox)
+    if bbox is not None and box is None:
+        raise InputError(f"bbox must be (2, 3) [min corner, max corner], got {bbox!r}")
     return imgs, cams, box
 
 
@@ -420,7 +454,10 @@ def depth_limits(
     hi = np.where(inside_axis, np.inf, hi).min(axis=1)
     ok = (hi > lo) & (hi > 0.05)
     if not ok.any():
-        raise InputError("a camera does not see the bounding box")
+        raise InputError(
+            f"the camera at {np.round(c, 3).tolist()} does not see the bounding box "
+            f"{np.round(bbox, 3).tolist()}"
+        )
     return max(0.05, float(lo[ok].min())), float(hi[ok].max())
 
 
@@ -541,22 +578,36 @@ class SurfaceBackend(ABC):
                 "use load_surfaces()"
             )
         obj = cls.__new__(cls)
-        SurfaceBackend.__init__(obj, SurfacesConfig.from_dict(meta["config"]))
-        obj.cameras = [PinholeCamera.from_dict(c) for c in meta["cameras"]]
-        obj.bbox = None if meta.get("bbox") is None else np.asarray(meta["bbox"], np.float64)
-        obj.timings = dict(meta.get("timings_s", {}))
-        obj._load_payload(folder, meta.get("payload", {}))
+        where = Path(folder) / META_FILE
+        try:
+            SurfaceBackend.__init__(obj, SurfacesConfig.from_dict(meta["config"]))
+            obj.cameras = [PinholeCamera.from_dict(c) for c in meta["cameras"]]
+            obj.timings = dict(meta.get("timings_s") or {})
+            payload = meta.get("payload") or {}
+            if not isinstance(payload, dict):
+                raise ValueError(f"payload is {type(payload).__name__}, not a mapping")
+        except (CropCraftError, KeyError, TypeError, ValueError, AttributeError) as e:
+            raise InputError(f"{where} is damaged: {type(e).__name__} {e}") from None
+        obj.bbox = None if meta.get("bbox") is None else _box(meta["bbox"])
+        if meta.get("bbox") is not None and obj.bbox is None:
+            raise InputError(f"{where} is damaged: bbox {meta['bbox']!r}")
+        if not obj.cameras:
+            raise InputError(f"{where} is damaged: it holds no cameras")
+        obj._load_payload(folder, payload)
         return obj
 
 
 def read_meta(folder: Path) -> dict:
     p = Path(folder) / META_FILE
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        meta = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(f"{folder} holds no saved surfaces ({META_FILE} is missing)") from None
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"cannot read {p}: {e}") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{p} is damaged: a {type(meta).__name__}, not a mapping")
+    return meta
 
 
 def make_backend(config: SurfacesConfig | None = None, mesh: Any = None) -> SurfaceBackend:

@@ -186,6 +186,8 @@ def photo_consistency(
     from cropcraft_core.rowfit.lab import srgb_to_lab
 
     idx = pick_views(len(images)) if views is None else tuple(int(i) for i in views)
+    if len(set(idx)) != len(idx) or any(not 0 <= i < len(images) for i in idx):
+        raise InputError(f"views must be distinct photo indices in 0..{len(images) - 1}, got {idx}")
     min_h = float(min_height_m) / float(scale)
     tot = dict.fromkeys(("px", "plant", "raised", "holes", "unrec", "extra"), 0)
     per_view = []

@@ -275,17 +275,17 @@ class PointSurfaces(SurfaceBackend):
         say("visibility", 1.0)
         self.bbox = box
         self._set_points(np.concatenate(pts), np.concatenate(cols), np.concatenate(rad))
+        if not len(self.points):  # before the cameras: a failed fit is not a fitted backend
+            raise SurfacesError(
+                "multi-view stereo found no consistent, visible surface: check the poses, the "
+                "bounding box and the image overlap (or lower surfaces min_consistent / min_ncc)"
+            )
         self.cameras = cams
         self.depth_maps = kept
         self.raw_depth_maps = st.raw
         self.timings = {**st.timings(), "visibility": time.perf_counter() - t}
         stages = ("sweep_range", "stereo", "consistency", "visibility")
         self.timings["total"] = sum(self.timings.get(k, 0.0) for k in stages)
-        if not len(self.points):
-            raise SurfacesError(
-                "multi-view stereo found no consistent, visible surface: check the poses, the "
-                "bounding box and the image overlap (or lower surfaces min_consistent / min_ncc)"
-            )
 
     def _set_points(self, points, colors, radii) -> None:
         """Store the points exactly as ``save`` writes them (float32 positions and radii)."""

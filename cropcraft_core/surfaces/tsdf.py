@@ -873,17 +873,17 @@ class TsdfSurfaces(SurfaceBackend):
         self.bbox = box
         self._fuse(imgs, st.cameras, st.filtered, st.limits)
         say("fusion", 1.0)
+        if len(self.faces) == 0:  # before the cameras: a failed fit is not a fitted backend
+            raise SurfacesError(
+                "multi-view stereo found no consistent surface: check the poses, the bounding box "
+                "and the image overlap (or lower surfaces min_consistent / min_ncc)"
+            )
         self.cameras = cams
         self.depth_maps = st.filtered
         self.raw_depth_maps = st.raw
         self.timings = {**st.timings(), "fusion": time.perf_counter() - t}
         stages = ("sweep_range", "stereo", "consistency", "fusion")
         self.timings["total"] = sum(self.timings.get(k, 0.0) for k in stages)
-        if len(self.faces) == 0:
-            raise SurfacesError(
-                "multi-view stereo found no consistent surface: check the poses, the bounding box "
-                "and the image overlap (or lower surfaces min_consistent / min_ncc)"
-            )
 
     def _fuse(self, imgs, small, depths, limits) -> None:
         cfg = self.config
@@ -1122,11 +1122,10 @@ def read_colored_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise InputError(f"{path}: size does not match its header (truncated?)")
     vd = np.frombuffer(body, vdt, nv)
     fd = np.frombuffer(body, fdt, nf, offset=nv * vdt.itemsize)
-    return (
-        vd["p"].astype(np.float64),
-        fd["i"].astype(np.int32),
-        vd["c"].astype(np.float64) / 255.0,
-    )
+    faces = fd["i"].astype(np.int32)
+    if faces.size and (faces.min() < 0 or faces.max() >= nv):
+        raise InputError(f"{path}: faces index vertices outside 0..{nv - 1} (damaged?)")
+    return vd["p"].astype(np.float64), faces, vd["c"].astype(np.float64) / 255.0
 
 
 def read_ply(path: Path) -> tuple[list[str], bytes]:
