@@ -26,6 +26,7 @@ upstream artefact bytes share a key, whatever flow run, machine or worker comput
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 import threading
@@ -379,6 +380,8 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
         root = str(path).rstrip("/")
         if fs.isfile(path):
             infos = {root.rsplit("/", 1)[-1]: fs.info(path)}
+            if what == "poses":  # a transforms.json's sparse points are part of the poses
+                infos.update(_named_ply(fs, root))
         else:
             depth = 1 if what == "images" else None
             infos = {
@@ -413,6 +416,24 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
             "poses file / COLMAP model folder)"
         )
     return dict(sorted(out.items()))
+
+
+def _named_ply(fs, path: str) -> dict[str, dict]:
+    """``{relative name: info}`` of the PLY a ``transforms.json`` at ``path`` names in
+    ``ply_file_path``, where it is there (none for any other file)."""
+    from cropcraft_core.sfm.poses import transforms_ply
+
+    if not path.lower().endswith(".json"):
+        return {}
+    try:
+        rel = transforms_ply(json.loads(fs.cat_file(path)))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return {}
+    ply = f"{path.rsplit('/', 1)[0]}/{rel}" if rel and "/" in path else rel
+    try:
+        return {rel: fs.info(ply)} if ply and fs.isfile(ply) else {}
+    except OSError:
+        return {}
 
 
 # --------------------------------------------------------------------------- progress

@@ -59,15 +59,26 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
 
 
 def _fetch(uri: str, dest: Path) -> Path:
-    """Copy a file or folder at a local path / fsspec URL to ``dest``; return the local path."""
+    """Copy a file or folder at a local path / fsspec URL to ``dest``; return the local path.
+    A ``transforms.json`` comes with the sparse-point PLY it names, where that is there."""
     from fsspec.core import url_to_fs
 
+    transforms_ply = core("poses", "cropcraft_core.sfm.poses", "transforms_ply")
     fs, path = url_to_fs(uri)
     target = dest / PurePosixPath(path.rstrip("/")).name
     if fs.isdir(path):
         fs.get(path.rstrip("/") + "/", str(target), recursive=True)
-    else:
-        fs.get(path, str(target))
+        return target
+    fs.get(path, str(target))
+    try:
+        rel = transforms_ply(json.loads(target.read_text(encoding="utf-8")))
+    except (UnicodeDecodeError, ValueError):  # not JSON: the import names the problem
+        rel = None
+    if rel is not None:
+        ply = f"{path.rsplit('/', 1)[0]}/{rel}" if "/" in path else rel
+        if fs.isfile(ply):
+            (target.parent / rel).parent.mkdir(parents=True, exist_ok=True)
+            fs.get(ply, str(target.parent / rel))
     return target
 
 

@@ -639,3 +639,28 @@ def test_poses_fingerprint_covers_a_colmap_project(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="no poses found"):
         fingerprint(str(tmp_path / "empty"), what="poses")
+
+
+def test_a_transforms_json_brings_the_sparse_points_it_names(tmp_path):
+    """ns-process-data writes sparse_pc.ply beside an SfM project's transforms.json and names
+    it in ply_file_path: the poses' fingerprint covers it (an edited cloud is not served from
+    the cache) and the poses stage fetches it with the json; a path leaving the folder is not
+    followed."""
+    from tasks.common import fingerprint
+    from tasks.poses import _fetch
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "transforms.json").write_text(json.dumps({"ply_file_path": "./sparse_pc.ply"}))
+    (src / "sparse_pc.ply").write_text("ply points")
+    first = fingerprint(str(src / "transforms.json"), what="poses")
+    assert sorted(first) == ["sparse_pc.ply", "transforms.json"]
+    (src / "sparse_pc.ply").write_text("other ply points")
+    assert fingerprint(str(src / "transforms.json"), what="poses") != first
+    dest = tmp_path / "dest"
+    dest.mkdir()
+    got = _fetch(str(src / "transforms.json"), dest)
+    assert (got.parent / "sparse_pc.ply").read_text() == "other ply points"
+    (src / "transforms.json").write_text(json.dumps({"ply_file_path": "../secret.ply"}))
+    (tmp_path / "secret.ply").write_text("outside")
+    assert sorted(fingerprint(str(src / "transforms.json"), what="poses")) == ["transforms.json"]

@@ -282,6 +282,15 @@ def test_imported_poses_say_whether_sfm_made_them(tmp_path):
     applied = {"applied_transform": np.eye(4)[:3].tolist()}
     export_transforms_json(poses, tmp_path / "sfm.json", extra=applied)
     assert import_poses(tmp_path / "sfm.json").from_sfm
+    # ns-process-data's sparse points beside it, in the poses' frame
+    lines = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in pts]
+    head = ["ply", "format ascii 1.0", f"element vertex {len(pts)}"]
+    head += [f"property float {a}" for a in "xyz"] + ["end_header"]
+    (tmp_path / "sparse_pc.ply").write_text("\n".join(head + lines) + "\n")
+    export_transforms_json(
+        poses, tmp_path / "sfm.json", extra={**applied, "ply_file_path": "sparse_pc.ply"}
+    )
+    np.testing.assert_allclose(import_poses(tmp_path / "sfm.json").points, pts, atol=1e-5)
 
 
 # --------------------------------------------------------------------------- ingest

@@ -32,7 +32,7 @@ import shutil
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -416,7 +416,8 @@ class ImportedPoses:
 
     poses: Poses
     points: np.ndarray | None
-    """(n, 3) sparse points in the poses' frame (a COLMAP model's points3D), or None."""
+    """(n, 3) sparse points in the poses' frame (a COLMAP model's points3D, a transforms.json's
+    ``ply_file_path``), or None."""
     from_sfm: bool
     """Made by structure from motion, so of arbitrary scale and orientation: a COLMAP model, or
     a ``transforms.json`` with ``applied_transform`` (nerfstudio's ``ns-process-data`` writes
@@ -427,14 +428,37 @@ class ImportedPoses:
 
 def import_poses(path: str | os.PathLike) -> ImportedPoses:
     """Poses from a COLMAP model folder (or a project folder with ``sparse/0``) or a nerfstudio
-    ``transforms.json`` (:func:`import_colmap`, :func:`import_transforms_json`)."""
+    ``transforms.json`` (:func:`import_colmap`, :func:`import_transforms_json`), with the sparse
+    points where the source has them: a COLMAP model's points3D, or the PLY a
+    ``transforms.json`` names in ``ply_file_path`` (``ns-process-data`` writes
+    ``sparse_pc.ply`` beside it), when it is there."""
     p = Path(path)
     if p.is_dir():
         sub = p / "sparse" / "0"
         poses, pts = _read_colmap(sub if sub.is_dir() else p)
         return ImportedPoses(poses, pts if len(pts) else None, True)
     doc = _transforms_doc(p)
-    return ImportedPoses(_transforms_poses(doc, p), None, "applied_transform" in doc)
+    points = None
+    rel = transforms_ply(doc)
+    if rel is not None and (p.parent / rel).is_file():
+        from cropcraft_core.export.meshio import PointCloud, read_geometry
+
+        geom = read_geometry(p.parent / rel)  # a point cloud, or a mesh's vertices
+        pts = geom.points if isinstance(geom, PointCloud) else geom.vertices
+        points = np.asarray(pts, np.float64).reshape(-1, 3) if len(pts) else None
+    return ImportedPoses(_transforms_poses(doc, p), points, "applied_transform" in doc)
+
+
+def transforms_ply(doc: dict) -> str | None:
+    """The sparse-point PLY a ``transforms.json`` names (``ply_file_path``), relative to its
+    folder; None where it names none, or a path outside that folder."""
+    rel = doc.get("ply_file_path") if isinstance(doc, dict) else None
+    if not isinstance(rel, str) or not rel.strip():
+        return None
+    parts = PurePosixPath(rel.replace("\\", "/")).parts
+    if not parts or parts[0] == "/" or ".." in parts:
+        return None
+    return "/".join(x for x in parts if x != ".")
 
 
 # --------------------------------------------------------------------------- nerfstudio
