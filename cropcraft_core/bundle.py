@@ -145,6 +145,8 @@ def write_bundle(
         for name in BUNDLE_FILES:
             os.chmod(tmp / name, mode)
         publish(tmp, out, BUNDLE_FILES)  # all files or none: never two canopies' side by side
+    except OutputError:  # names its own file
+        raise
     except OSError as e:
         raise OutputError(f"cannot write {out}: {e}") from None
     finally:

@@ -119,7 +119,7 @@ def publish(
     where a folder would replace a file or a file a folder (someone's own folder of that name).
     """
     staged, out = Path(staged), Path(out)
-    todo = [n for n in names if (staged / n).exists()]
+    todo = [n for n in dict.fromkeys(names) if (staged / n).exists()]
     for name in todo:
         dst = out / name
         if os.path.lexists(dst) and (staged / name).is_dir() != dst.is_dir():
