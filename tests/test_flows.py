@@ -991,6 +991,54 @@ def test_a_measured_distance_between_two_photos_sets_the_scale(base_run, scene_d
         _run("plotM", base_run["store"], scene_dir, {**OVERRIDES, "poses.camera_height": 1.4})
 
 
+def test_ar_poses_in_their_own_frame_read_the_scene_as_levelled_ones(base_run, scene_dir, tmp_path):
+    """The scene's poses as Record3D's ns-process-data writes a phone's ARKit poses (metres, y
+    up, the origin where tracking started): the poses stage turns them onto their y axis
+    exactly and moves them onto the plot, and the row fit finds the base run's ground and row
+    camera there (before, they were used as given and the scene box held no plot)."""
+    doc = json.loads((scene_dir / "transforms.json").read_text())
+    first = np.array(doc["frames"][0]["transform_matrix"])[:3, 3]
+    arkit = np.eye(4)
+    arkit[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # z up -> y up
+    arkit[:3, 3] = -(arkit[:3, :3] @ first)
+    for f in doc["frames"]:
+        f["transform_matrix"] = (arkit @ np.array(f["transform_matrix"])).tolist()
+    poses_file = tmp_path / "transforms.json"
+    poses_file.write_text(json.dumps(doc))
+    from flows.scene import run_scene
+
+    out = run_scene(
+        "plotR",
+        CROP,
+        DATE,
+        images=str(scene_dir / "images"),
+        poses=str(poses_file),
+        overrides={**OVERRIDES, "surfaces.bbox": "auto"},
+        store=str(base_run["store"]),
+        runner="threads",
+    )
+    assert set(out["states"].values()) == {"Completed"}
+    s = SceneStore(str(base_run["store"]))
+    poses = s.get_json(f"plotR/{CROP}/{DATE}/poses/poses.json")
+    levelled = {Path(v["name"]).stem: np.array(v["camera"]["cam_to_world"]) for v in poses["views"]}
+    truth = {Path(f["file_path"]).stem: np.array(f["transform_matrix"]) for f in json.loads(
+        (scene_dir / "transforms.json").read_text())["frames"]}  # fmt: skip
+    shift = [levelled[n][:3, 3] - truth[n][:3, 3] for n in truth]
+    np.testing.assert_allclose(shift, np.repeat(shift[:1], len(shift), 0), atol=1e-9)
+    for n in truth:  # the same rotation: gravity exactly, no tilt from the cameras' estimate
+        np.testing.assert_allclose(
+            levelled[n][:3, :3], truth[n][:3, :3] @ np.diag([1, -1, -1]), atol=1e-9
+        )
+    assert np.hypot(*shift[0][:2]) < 0.25 and abs(shift[0][2]) < 0.25
+    here = s.get_json(f"plotR/{CROP}/{DATE}/rowfit/rowfit.json")
+    base = s.get_json(f"plotA/{CROP}/{DATE}/rowfit/rowfit.json")
+    assert np.degrees(np.arccos(min(1.0, here["ground_normal"][2]))) < 1.0
+    cam = np.array(here["camera_in_scene"]["cam_to_world"])
+    ref = np.array(base["camera_in_scene"]["cam_to_world"])
+    assert abs(float(cam[:3, 0] @ ref[:3, 0])) > np.cos(np.radians(2.0))  # along the same row
+    assert abs(cam[2, 3] - shift[0][2] - ref[2, 3]) < 0.05  # the same height over the soil
+
+
 def test_a_measured_camera_height_sets_the_scale_above_the_fitted_ground(base_run, scene_dir):
     """Imported poses read as non-metric, levelled with the user's camera height: levelling
     puts the ground where the optical axes meet (on the canopy top here, not the soil), so its
