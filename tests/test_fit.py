@@ -2,13 +2,14 @@
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from cropcraft_core.config import default_layout
 from cropcraft_core.config.params import ParamBox, bounds, param_space, resolve_params
-from cropcraft_core.errors import ConfigError
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.fit import (
     FitConfig,
     ForwardModel,
@@ -393,6 +394,43 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
     assert seen == list(range(21, 30))  # only the missing evaluations were run again
     assert np.array_equal(resumed.X, clean.X) and np.array_equal(resumed.y, clean.y)
     assert np.array_equal(resumed.reported_x, clean.reported_x)
+
+
+@pytest.mark.parametrize("method", ["bo", "random"])
+def test_a_checkpoint_of_another_objective_is_refused(tmp_path, method):
+    """A seed's checkpoint records the identity of its objective (observation, fit settings,
+    box with its fixed values): resumed against another observation it mixed two fits' losses,
+    and a finished one came back for changed settings; now it is refused by name."""
+    obs, _ = observation("soybean", {"num_nodes": 6.0})
+    other, _ = observation("soybean", {"num_nodes": 9.0})
+    cfg = FitConfig(method=method, n_seeds=1, n_evals=8, n_initial=4)
+    ck = tmp_path / "seed-0.json"
+    done = fit_seed(obs, 0, cfg, checkpoint=ck)
+    assert np.array_equal(fit_seed(obs, 0, cfg, checkpoint=ck).y, done.y)  # its own: served
+    for o, c in (
+        (other, cfg),
+        (obs, replace(cfg, canopies_per_eval=3)),
+        (obs, replace(cfg, common_random_numbers=False)),
+        (obs, replace(cfg, box={"num_nodes": 9.0})),
+        (obs, replace(cfg, box={"num_nodes": 14.0})),
+    ):
+        with pytest.raises(ConfigError, match="belongs to another run"):
+            fit_seed(o, 0, c, checkpoint=ck)
+
+
+def test_seeds_of_another_box_or_with_non_finite_answers_are_not_combined():
+    """Seeds fitted in a box of the same size but other bounds were clipped into the new one
+    and misreported; a seed whose loss is NaN (a damaged stored result) was picked as the
+    trust-region's best."""
+    obs, _ = observation("maize", {"num_nodes": 9.0})
+    cfg = FitConfig(n_seeds=2, n_evals=8, n_initial=4, combine="median")
+    seeds = [fit_seed(obs, s, cfg) for s in range(2)]
+    narrow = replace(cfg, box={"leaf_length": [1.0, 1.15]})
+    with pytest.raises(ConfigError, match="fitted under another parameter box"):
+        combine("maize", seeds, narrow, 1.0)
+    seeds[0] = replace(seeds[0], best_y=float("nan"))
+    with pytest.raises(InputError, match=r"seed result\(s\) \[0\] hold a non-finite loss"):
+        combine("maize", seeds, replace(cfg, method="trust-region"), 1.0)
 
 
 @pytest.mark.parametrize("method", ["random", "trust-region"])

@@ -302,3 +302,16 @@ def test_cli_fit_bad_inputs(tmp_path, capsys):
     assert "views_along" in capsys.readouterr().err
     assert main([*args, "--preset", "view_along=3"]) == 2
     assert "view_along" in capsys.readouterr().err
+
+
+def test_a_mesh_with_a_non_finite_vertex_is_named(tmp_path):
+    """Sampling a mesh weighs its faces by area: a NaN corner made numpy's 'probabilities
+    contain NaN', not the error naming the file."""
+    text = (
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n1 0 0\n1 1 nan\n0 1 0\n3 0 1 2\n3 0 2 3\n"
+    )
+    (tmp_path / "nan.ply").write_text(text)
+    with pytest.raises(InputError, match="nan.ply: geometry has non-finite coordinates"):
+        load_geometry(tmp_path / "nan.ply")

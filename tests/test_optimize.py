@@ -170,6 +170,32 @@ def test_checkpoint_of_another_run_is_refused(tmp_path):
         run_seed(Noisy(2), b, BOConfig(n_evals=10, n_initial=5, **FAST), seed=2, checkpoint=ck)
 
 
+def test_a_damaged_checkpoint_is_named_not_resumed(tmp_path):
+    """A checkpoint that parses but holds NaN losses, points outside the box, another format
+    version, or a finished run short of its budget is refused naming the file; a truncated
+    .npz (the stored seed results) too, not a raw BadZipFile."""
+    import json
+
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    cfg = BOConfig(n_evals=10, n_initial=5, **FAST)
+    ck = tmp_path / "c.json"
+    run_seed(Noisy(1), b, cfg, seed=1, checkpoint=ck)
+    good = json.loads(ck.read_text())
+    for change, match in (
+        ({"y": [float("nan")] + good["y"][1:]}, "is damaged"),
+        ({"X": [[5.0, 0.5]] + good["X"][1:]}, "is damaged"),
+        ({"X": good["X"][:7], "y": good["y"][:7]}, "is damaged"),  # "complete" yet short
+        ({"version": 99}, "cannot read seed result .*c.json: a SeedResult of format 99"),
+    ):
+        ck.write_text(json.dumps({**good, **change}))
+        with pytest.raises(InputError, match=match):
+            run_seed(Noisy(1), b, cfg, seed=1, checkpoint=ck)
+    npz = SeedResult.from_dict(good).save(tmp_path / "r.npz")
+    npz.write_bytes(npz.read_bytes()[: npz.stat().st_size // 2])
+    with pytest.raises(InputError, match="cannot read seed result .*r.npz"):
+        SeedResult.load(npz)
+
+
 def test_result_serialisation_round_trip(tmp_path):
     b = crop_bounds("maize")
     centre = b.mean(1)

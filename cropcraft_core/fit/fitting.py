@@ -22,7 +22,7 @@ import numpy as np
 
 from cropcraft_core.config import CanopyLayout
 from cropcraft_core.config.params import ParamBox, is_range
-from cropcraft_core.errors import ConfigError
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.fit.forward import ESTIMATORS, ForwardModel
 from cropcraft_core.observe import Observation
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, run_seed
@@ -300,6 +300,43 @@ def make_objective(
     return objective
 
 
+def seed_identity(
+    observation: Observation,
+    config: FitConfig,
+    box: ParamBox,
+    layout: CanopyLayout | None = None,
+) -> str:
+    """sha256 of everything a seed's evaluations depend on besides its seed and the optimiser's
+    own settings: the observation (camera, preset, depth, mask, statistics), the fit settings
+    that shape the objective (the aggregate's only where the seed polishes its own floor), the
+    parameter box with its fixed values, and the planting layout. A checkpoint records it, so
+    one of another observation or config is refused, not resumed."""
+    import hashlib
+    import json
+
+    crop = observation.crop
+    cfg = config.resolved(crop).to_dict()
+    cfg.pop("n_seeds", None)
+    if cfg.get("combine") != "floors":
+        for k in ("combine", "reevaluate_canopies", "polish_starts", "polish_evals"):
+            cfg.pop(k, None)
+    head = {
+        "crop": crop,
+        "camera": observation.camera.to_dict(),
+        "preset": observation.preset.to_dict(),
+        "box_mask": bool(observation.box_mask),
+        "config": cfg,
+        "box": [box.low.tolist(), box.high.tolist()],
+        "layout": None if layout is None else layout.to_dict(),
+    }
+    h = hashlib.sha256(json.dumps(head, sort_keys=True, default=str).encode())
+    st = observation.stats
+    for a in (observation.depth, observation.mask, st.depth, st.lateral, st.sobel):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(np.float64(st.mask_area).tobytes())
+    return h.hexdigest()
+
+
 def fit_seed(
     observation: Observation,
     seed: int,
@@ -321,6 +358,8 @@ def fit_seed(
         forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop), box
     )
     b = box.bounds
+    # a checkpoint of another observation, config, box or layout is refused, not resumed
+    run_id = seed_identity(observation, cfg, box, layout) if checkpoint is not None else None
     if cfg.method == "bo":
         res = run_seed(
             objective,
@@ -329,10 +368,17 @@ def fit_seed(
             seed=seed,
             checkpoint=checkpoint,
             callback=callback,
+            run_id=run_id,
         )
     elif cfg.method == "random":
         res = run_random(
-            objective, b, n_evals=cfg.n_evals, seed=seed, checkpoint=checkpoint, callback=callback
+            objective,
+            b,
+            n_evals=cfg.n_evals,
+            seed=seed,
+            checkpoint=checkpoint,
+            callback=callback,
+            run_id=run_id,
         )
     else:
         res = run_trust_region(
@@ -345,6 +391,7 @@ def fit_seed(
             max_evals=cfg.n_evals,
             checkpoint=checkpoint,
             callback=callback,
+            run_id=run_id,
         )
     if cfg.method == "bo" and cfg.combine_rule(observation.crop) == "floors":
         from cropcraft_core.fit.select import seed_floor
@@ -398,17 +445,23 @@ def combine(
     if observation is not None and observation.crop != crop:
         raise ConfigError(f"observation is of {observation.crop}, the seeds of {crop}")
     box = config.param_box(crop)
-    k = len(box.names)
     for r in results:
-        if len(r.reported_x) != k:
+        if r.bounds.shape != box.bounds.shape or not np.allclose(r.bounds, box.bounds):
             raise ConfigError(
-                f"seed {r.seed} searched {len(r.reported_x)} parameters, the box "
-                f"({', '.join(box.names)}) has {k}: it was fitted under another parameter box"
+                f"seed {r.seed} searched {r.bounds.tolist()}, the box ({', '.join(box.names)}) "
+                f"is {box.bounds.tolist()}: it was fitted under another parameter box"
             )
     per_seed = [box.params(r.reported_x) for r in results]
     losses = [float(r.best_y) for r in results]
     agg = aggregate(results)
     extra: dict[str, Any] = {}
+    if not all(np.isfinite(losses)) or not all(np.isfinite(r.reported_x).all() for r in results):
+        bad = [
+            r.seed
+            for r in results
+            if not (np.isfinite(r.best_y) and np.isfinite(r.reported_x).all())
+        ]
+        raise InputError(f"seed result(s) {bad} hold a non-finite loss or answer (damaged?)")
     if config.method == "trust-region":
         best = int(np.argmin(losses))
         final = results[best].reported_x

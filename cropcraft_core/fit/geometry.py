@@ -67,7 +67,13 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
     if isinstance(g, CanopyMesh):
         if g.n_faces == 0:
             raise InputError(f"{path}: mesh has no faces")
-        mesh, pts, cols = g, sample_mesh(g, n_points, rng), None
+        if not np.all(np.isfinite(g.vertices)):  # before sampling: NaN areas are no weights
+            raise InputError(f"{path}: geometry has non-finite coordinates")
+        try:
+            pts = sample_mesh(g, n_points, rng)
+        except InputError as e:
+            raise InputError(f"{path}: {e}") from None
+        mesh, cols = g, None
         meta["kind"] = "mesh"
     else:
         mesh, pts = None, np.asarray(g.points, dtype=np.float64)

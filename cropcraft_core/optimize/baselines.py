@@ -36,6 +36,7 @@ from cropcraft_core.optimize.bo import (
     check_bounds,
     load_checkpoint,
     run_seed,
+    with_run_id,
 )
 
 METHODS = ("bo", "random", "trust-region")
@@ -66,14 +67,16 @@ def run_random(
     checkpoint: str | os.PathLike | None = None,
     callback: Callback | None = None,
     checkpoint_every: int = 50,
+    run_id: str | None = None,
 ) -> SeedResult:
     """Random search: ``low + (high - low) * default_rng(seed).random((n_evals, d))``, keep the
-    lowest loss. ``bounds`` (d, 2). Checkpointed like :func:`~cropcraft_core.optimize.run_seed`."""
+    lowest loss. ``bounds`` (d, 2). Checkpointed like :func:`~cropcraft_core.optimize.run_seed`
+    (``run_id`` as there)."""
     b = check_bounds(bounds)
     n_evals = _check_int("n_evals", n_evals, 1)
     seed = _check_int("seed", seed, 0)
     checkpoint_every = _check_int("checkpoint_every", checkpoint_every, 1)
-    cfg = {"n_evals": n_evals}
+    cfg = with_run_id({"n_evals": n_evals}, run_id)
     prev = load_checkpoint(checkpoint, "random", seed, b, cfg)
     if prev is not None and prev.complete:
         return prev
@@ -103,12 +106,14 @@ def run_trust_region(
     checkpoint: str | os.PathLike | None = None,
     callback: Callback | None = None,
     checkpoint_every: int = 50,
+    run_id: str | None = None,
 ) -> SeedResult:
     """SciPy trust-constr from ``n_starts`` uniform random starts (``default_rng(seed)``), each
     at most ``maxiter`` iterations with 2-point finite differences; keep the lowest loss seen.
 
     ``bounds`` (d, 2). ``max_evals`` optionally caps the total evaluations (the paper has no
-    cap; with a ~100 ms objective a start costs at most ~(d + 1) x maxiter calls).
+    cap; with a ~100 ms objective a start costs at most ~(d + 1) x maxiter calls). ``run_id``:
+    the objective's identity, as :func:`~cropcraft_core.optimize.run_seed`'s.
     """
     b = check_bounds(bounds)
     seed = _check_int("seed", seed, 0)
@@ -117,7 +122,7 @@ def run_trust_region(
     if max_evals is not None:
         max_evals = _check_int("max_evals", max_evals, 1)
     checkpoint_every = _check_int("checkpoint_every", checkpoint_every, 1)
-    cfg = {"n_starts": n_starts, "maxiter": maxiter, "max_evals": max_evals}
+    cfg = with_run_id({"n_starts": n_starts, "maxiter": maxiter, "max_evals": max_evals}, run_id)
     prev = load_checkpoint(checkpoint, "trust-region", seed, b, cfg)
     if prev is not None and prev.complete:
         return prev

@@ -62,6 +62,7 @@ import os
 import tempfile
 import threading
 import time
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -335,6 +336,12 @@ class SeedResult:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SeedResult:
+        if not isinstance(d, dict):
+            raise InputError(f"not a SeedResult record: a {type(d).__name__}")
+        if d.get("version", CHECKPOINT_VERSION) != CHECKPOINT_VERSION:
+            raise InputError(
+                f"a SeedResult of format {d.get('version')!r}, not {CHECKPOINT_VERSION}"
+            )
         try:
             n_d = len(d["bounds"])
             X = np.asarray(d["X"], dtype=np.float64).reshape(-1, n_d)
@@ -387,9 +394,12 @@ class SeedResult:
                         d[k] = z[k]
             else:
                 d = json.loads(path.read_text())
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
             raise InputError(f"cannot read seed result {path}: {e}") from None
-        return cls.from_dict(d)
+        try:
+            return cls.from_dict(d)
+        except InputError as e:
+            raise InputError(f"cannot read seed result {path}: {e}") from None
 
 
 def _atomic_write(path: Path, write: Callable[[Any], Any]) -> None:
@@ -584,10 +594,16 @@ class _Evaluations:
         )
 
 
+def with_run_id(config: dict, run_id: str | None) -> dict:
+    """An optimiser's result config with the objective's identity (none: as it was)."""
+    return config if run_id is None else {**config, "objective": str(run_id)}
+
+
 def load_checkpoint(
     checkpoint: str | os.PathLike | None, method: str, seed: int, bounds: np.ndarray, config: dict
 ) -> SeedResult | None:
-    """The stored run at ``checkpoint`` if it exists, after checking it is this run's."""
+    """The stored run at ``checkpoint`` if it exists, after checking it is this run's and
+    whole (finite losses, points inside the bounds, a finished run of its full budget)."""
     if checkpoint is None or not Path(checkpoint).exists():
         return None
     r = SeedResult.load(checkpoint)
@@ -602,6 +618,22 @@ def load_checkpoint(
         raise ConfigError(
             f"checkpoint {checkpoint} belongs to another run (method/seed/bounds/config differ): "
             "use another checkpoint path or delete it"
+        )
+    inside = r.X.size == 0 or (
+        r.X.shape[1] == bounds.shape[0]
+        and np.all(r.X >= bounds[:, 0] - 1e-9)
+        and np.all(r.X <= bounds[:, 1] + 1e-9)
+    )
+    budget = config.get("n_evals")
+    if (
+        len(r.X) != len(r.y)
+        or not np.all(np.isfinite(r.y))
+        or not inside
+        or (r.complete and method != "trust-region" and budget and len(r.y) != budget)
+    ):
+        raise InputError(
+            f"checkpoint {checkpoint} is damaged (non-finite losses, points outside the box, "
+            "or a finished run short of its budget): delete it to start the seed afresh"
         )
     return r
 
@@ -801,6 +833,7 @@ def run_seed(
     seed: int = 0,
     checkpoint: str | os.PathLike | None = None,
     callback: Callback | None = None,
+    run_id: str | None = None,
 ) -> SeedResult:
     """One seed of Bayesian optimisation (Matérn-5/2 ARD GP, log expected improvement).
 
@@ -813,14 +846,15 @@ def run_seed(
     evaluations and on any exit; calling again with the same arguments continues from it and
     returns exactly what an uninterrupted run returns (X, y, best points), timings aside. A
     finished checkpoint is returned as-is. ``callback(eval_index, x, y)`` after each new
-    evaluation.
+    evaluation. ``run_id``: the objective's identity (the fit's ``seed_identity``), kept in the
+    result's config, so that a checkpoint of another objective is refused.
     """
     cfg = (config or BOConfig()).validate()
     b = check_bounds(bounds)
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
     seed = int(seed)
-    cfg_d = cfg.result_fields()
+    cfg_d = with_run_id(cfg.result_fields(), run_id)
     prev = load_checkpoint(checkpoint, "bo", seed, b, cfg_d)
     if prev is not None and prev.complete:
         return prev
