@@ -182,6 +182,7 @@ def test_view_region_covers_camera_footprint():
         ("soybean", {"leaf_width": 1.0}, "unknown soybean parameter"),
         ("soybean", {"num_nodes": 15}, "outside its range"),
         ("maize", {"leaf_order_shift": float("nan")}, "outside its range"),
+        ("soybean", "num_nodes=6", "soybean parameters must map names to values"),
     ],
 )
 def test_bad_parameters(crop, params, match):

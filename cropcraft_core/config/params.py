@@ -57,6 +57,8 @@ def resolve_params(crop: str, given: Mapping[str, float] | None = None) -> dict[
     """Complete ``given`` with the middle of each range; reject unknown names, non-finite values
     and values outside the range."""
     specs = {s.name: s for s in param_space(crop)}
+    if given is not None and not isinstance(given, Mapping):
+        raise ConfigError(f"{crop} parameters must map names to values, got {given!r}")
     given = dict(given or {})
     unknown = sorted(set(given) - set(specs))
     if unknown:
