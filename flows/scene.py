@@ -203,6 +203,8 @@ def _check_kinds(cfg: dict[str, Any]) -> None:
     for (section, key), low in _LEAST.items():
         if cfg[section][key] < low:
             raise ConfigError(f"{section}.{key} must be at least {low}, got {cfg[section][key]!r}")
+    if cfg["generate"]["seed"] >= 2**32:  # the canopy's random streams take 32 bits
+        raise ConfigError(f"generate.seed must be below 2**32, got {cfg['generate']['seed']}")
     if cfg["poses"]["matcher"] not in ("auto", "exhaustive", "sequential"):
         raise ConfigError(
             f"poses.matcher must be auto, exhaustive or sequential, got {cfg['poses']['matcher']!r}"

@@ -954,6 +954,7 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"fit.canopies_per_eval": "two"}, "canopies_per_eval must be a whole number"),
         ({"fit.local_share": "half"}, "local_share must be a number in"),
         ({"poses.imported_metric": "yes"}, "poses.imported_metric must be true, false or auto"),
+        ({"generate.seed": 2**32}, "generate.seed must be below 2\\*\\*32"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)

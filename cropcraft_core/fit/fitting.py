@@ -308,18 +308,18 @@ def seed_identity(
 ) -> str:
     """sha256 of everything a seed's evaluations depend on besides its seed and the optimiser's
     own settings: the observation (camera, preset, depth, mask, statistics), the fit settings
-    that shape the objective (the aggregate's only where the seed polishes its own floor), the
-    parameter box with its fixed values, and the planting layout. A checkpoint records it, so
+    that shape the objective (not the answer rule's), the parameter box with its fixed values,
+    and the planting layout. A checkpoint records it, so
     one of another observation or config is refused, not resumed."""
     import hashlib
     import json
 
     crop = observation.crop
     cfg = config.resolved(crop).to_dict()
-    cfg.pop("n_seeds", None)
-    if cfg.get("combine") != "floors":
-        for k in ("combine", "reevaluate_canopies", "polish_starts", "polish_evals"):
-            cfg.pop(k, None)
+    # not the seed count, nor the answer rule's settings: a floors seed's polish is checked
+    # against its own record (``seed_floor``), so a new polish reuses the search
+    for k in ("n_seeds", "combine", "reevaluate_canopies", "polish_starts", "polish_evals"):
+        cfg.pop(k, None)
     head = {
         "crop": crop,
         "camera": observation.camera.to_dict(),
