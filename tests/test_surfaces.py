@@ -364,6 +364,12 @@ def test_point_cloud_coloured(fitted):
     assert (green | brown).mean() > 0.85
 
 
+def test_point_cloud_size_must_be_a_whole_number(fitted):
+    for bad in (50.0, -1, True):
+        with pytest.raises(ConfigError, match="n_max must be a whole number"):
+            fitted.point_cloud(bad)
+
+
 def test_save_load_round_trip(fitted, tmp_path):
     fitted.save(tmp_path / "s")
     again = load_surfaces(tmp_path / "s")

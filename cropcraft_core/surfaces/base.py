@@ -682,8 +682,8 @@ def subsample(
     from run to run: two fits of the same photos gave the same 487,145 vertices in different
     orders, so a subset by index (and the row fit's seeded RANSAC over it) differed between
     reruns (the rows' scale −0.75 % on one, −1.42 % on the next)."""
-    if n_max < 0:
-        raise ConfigError(f"n_max must be ≥ 0, got {n_max}")
+    if isinstance(n_max, bool) or not isinstance(n_max, int | np.integer) or n_max < 0:
+        raise ConfigError(f"n_max must be a whole number ≥ 0, got {n_max!r}")
     points, colors = np.asarray(points), np.asarray(colors)
     order = np.lexsort((*colors.T[::-1], *points.T[::-1]))  # last key first: x, y, z, colour
     if len(points) > n_max:
