@@ -380,8 +380,10 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
         root = str(path).rstrip("/")
         if fs.isfile(path):
             infos = {root.rsplit("/", 1)[-1]: fs.info(path)}
-            if what == "poses":  # a transforms.json's sparse points are part of the poses
-                infos.update(_named_ply(fs, root))
+            ply = named_ply(fs, root) if what == "poses" else None
+            if ply is not None:  # a transforms.json's sparse points are part of the poses
+                with contextlib.suppress(OSError):
+                    infos[ply[0]] = fs.info(ply[1])
         else:
             depth = 1 if what == "images" else None
             infos = {
@@ -418,22 +420,20 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
     return dict(sorted(out.items()))
 
 
-def _named_ply(fs, path: str) -> dict[str, dict]:
-    """``{relative name: info}`` of the PLY a ``transforms.json`` at ``path`` names in
-    ``ply_file_path``, where it is there (none for any other file)."""
+def named_ply(fs: Any, path: str, text: str | bytes | None = None) -> tuple[str, str] | None:
+    """``(name relative to the file, path on fs)`` of the sparse-point PLY that the
+    ``transforms.json`` at ``path`` names in ``ply_file_path``, where that file is there; None
+    for a file naming none (or no JSON). ``text``: the file's contents, where already read."""
     from cropcraft_core.sfm.poses import transforms_ply
 
-    if not path.lower().endswith(".json"):
-        return {}
     try:
-        rel = transforms_ply(json.loads(fs.cat_file(path)))
+        rel = transforms_ply(json.loads(fs.cat_file(path) if text is None else text))
+        if rel is None:
+            return None
+        ply = f"{path.rsplit('/', 1)[0]}/{rel}" if "/" in path else rel
+        return (rel, ply) if fs.isfile(ply) else None
     except (OSError, UnicodeDecodeError, ValueError):
-        return {}
-    ply = f"{path.rsplit('/', 1)[0]}/{rel}" if rel and "/" in path else rel
-    try:
-        return {rel: fs.info(ply)} if ply and fs.isfile(ply) else {}
-    except OSError:
-        return {}
+        return None
 
 
 # --------------------------------------------------------------------------- progress

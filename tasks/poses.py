@@ -8,7 +8,17 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from cropcraft_core.errors import InputError
-from tasks.common import Timer, artefact, core, key_of, make_record, open_store, stage_task, workdir
+from tasks.common import (
+    Timer,
+    artefact,
+    core,
+    key_of,
+    make_record,
+    named_ply,
+    open_store,
+    stage_task,
+    workdir,
+)
 
 
 def _rename_to_ingested(poses, manifest: dict, where: str):
@@ -63,22 +73,16 @@ def _fetch(uri: str, dest: Path) -> Path:
     A ``transforms.json`` comes with the sparse-point PLY it names, where that is there."""
     from fsspec.core import url_to_fs
 
-    transforms_ply = core("poses", "cropcraft_core.sfm.poses", "transforms_ply")
     fs, path = url_to_fs(uri)
     target = dest / PurePosixPath(path.rstrip("/")).name
     if fs.isdir(path):
         fs.get(path.rstrip("/") + "/", str(target), recursive=True)
         return target
     fs.get(path, str(target))
-    try:
-        rel = transforms_ply(json.loads(target.read_text(encoding="utf-8")))
-    except (UnicodeDecodeError, ValueError):  # not JSON: the import names the problem
-        rel = None
-    if rel is not None:
-        ply = f"{path.rsplit('/', 1)[0]}/{rel}" if "/" in path else rel
-        if fs.isfile(ply):
-            (target.parent / rel).parent.mkdir(parents=True, exist_ok=True)
-            fs.get(ply, str(target.parent / rel))
+    ply = named_ply(fs, path, target.read_bytes())  # not JSON: the import names the problem
+    if ply is not None:
+        (target.parent / ply[0]).parent.mkdir(parents=True, exist_ok=True)
+        fs.get(ply[1], str(target.parent / ply[0]))
     return target
 
 
