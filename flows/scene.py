@@ -209,15 +209,14 @@ def _check_kinds(cfg: dict[str, Any]) -> None:
         raise ConfigError(
             f"poses.matcher must be auto, exhaustive or sequential, got {cfg['poses']['matcher']!r}"
         )
-    for (section, key), low in _LEAST_OR_NULL.items():
+    for (section, key), (low, what) in _LEAST_OR_NULL.items():
         v = cfg[section][key]
         if (
             v is not None
             and (not isinstance(v, int | float) or isinstance(v, bool) or not low <= v < math.inf)
             or v == 0
         ):
-            least = f"at least {low}" if low else "a positive number"
-            raise ConfigError(f"{section}.{key} must be {least} or null, got {v!r}")
+            raise ConfigError(f"{section}.{key} must be {what} or null, got {v!r}")
 
 
 #: Least values of whole-number settings that no core function checks before its stage runs.
@@ -230,11 +229,13 @@ _LEAST = {
     ("report", "n_thumbnails"): 0,
     ("report", "thumbnail_px"): 16,
 }
-#: ... and of settings that may be null (their stage's own default).
+#: ... and of number settings that may be null (their stage's own default; 0: positive).
 _LEAST_OR_NULL = {
-    ("ingest", "max_size"): 16,
-    ("poses", "sift_peak_threshold"): 0,  # 0: positive
-    ("rowfit", "scale"): 0,
+    ("ingest", "max_size"): (16, "at least 16"),
+    ("poses", "sift_peak_threshold"): (0, "a positive number"),
+    ("poses", "camera_height"): (0, "a positive number of metres"),
+    ("poses", "prior_camera_height"): (0, "a positive number of metres"),
+    ("rowfit", "scale"): (0, "a positive number"),
 }
 
 
@@ -290,12 +291,6 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         s = {k: v for k, v in cfg["surfaces"].items() if k not in ("bbox", "n_points")}
         SurfacesConfig.from_dict(s)
         resolve_bbox(cfg["surfaces"]["bbox"], crop)
-    for key in ("camera_height", "prior_camera_height"):
-        v = cfg["poses"][key]
-        if v is not None and (
-            not isinstance(v, int | float) or isinstance(v, bool) or not 0 < v < math.inf
-        ):
-            raise ConfigError(f"poses.{key} must be a positive number of metres or null, got {v!r}")
     cd = cfg["poses"]["camera_distance"]
     if cd is not None and not (
         isinstance(cd, list | tuple)
@@ -359,17 +354,10 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             f"poses.imported_metric must be true, false or auto, got "
             f"{cfg['poses']['imported_metric']!r}"
         )
-    for key in ("gap_fraction", "seed_traits"):
-        if not isinstance(cfg["metrics"][key], bool):
-            raise ConfigError(f"metrics.{key} must be true or false, got {cfg['metrics'][key]!r}")
     seed = cfg["metrics"]["seed"]
     if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
         raise ConfigError(f"metrics.seed must be null or a whole number >= 0, got {seed!r}")
     return cfg
-
-
-#: Fit settings only the aggregate stage reads: changing them must not refit the seeds.
-_AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies", "polish_starts", "polish_evals"})
 
 
 def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:
@@ -381,7 +369,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     default re-aggregates or refits cached seeds instead of serving the old default's answer;
     likewise the surfaces' ``"auto"`` scene box is written out as the crop's box
     (``SCENE_BOX``). (nerfacto's defaults are written out by :func:`resolve_config`.)"""
-    from cropcraft_core.fit.fitting import FitConfig
+    from cropcraft_core.fit.fitting import AGGREGATE_ONLY, FitConfig
 
     layout = {"layout": dict(cfg["layout"])}
     fit = dict(cfg["fit"])
@@ -402,7 +390,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
         if resolved.papers_optimiser(crop):
             fit.pop("gp_output")
             fit.pop("local_share")
-    seed_fit = {k: v for k, v in fit.items() if k not in _AGGREGATE_ONLY}
+    # settings only the aggregate stage reads: changing them must not refit the seeds
+    seed_fit = {k: v for k, v in fit.items() if k not in AGGREGATE_ONLY}
     if agg_only.get("combine", fit.get("combine")) == "floors":
         # each seed polishes its own point in its mapped task (select.seed_floor), so its
         # record carries the floor and is keyed apart from the other rules' seeds

@@ -37,6 +37,8 @@ METHODS = ("bo", "trust-region", "random", "mlp")
 COMBINE_RULES = ("median", "mean", "reevaluate", "guarded", "floors")
 #: The rules that re-score candidates on fresh canopies (and so need the observation).
 RESCORING_RULES = ("reevaluate", "guarded", "floors")
+#: FitConfig settings only the answer rule reads (the seeds' searches do not depend on them).
+AGGREGATE_ONLY = frozenset({"combine", "reevaluate_canopies", "polish_starts", "polish_evals"})
 #: Rules only asked for by name: no crop's default, and left out of the benchmark's automatic
 #: comparison rows (``floors`` polishes every seed's point: 0.4-1.2x its search again).
 OPT_IN_RULES = ("floors",)
@@ -318,7 +320,7 @@ def seed_identity(
     cfg = config.resolved(crop).to_dict()
     # not the seed count, nor the answer rule's settings: a floors seed's polish is checked
     # against its own record (``seed_floor``), so a new polish reuses the search
-    for k in ("n_seeds", "combine", "reevaluate_canopies", "polish_starts", "polish_evals"):
+    for k in ("n_seeds", *AGGREGATE_ONLY):
         cfg.pop(k, None)
     head = {
         "crop": crop,
