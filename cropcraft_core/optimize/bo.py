@@ -619,11 +619,12 @@ def load_checkpoint(
             f"checkpoint {checkpoint} belongs to another run (method/seed/bounds/config differ): "
             "use another checkpoint path or delete it"
         )
-    inside = r.X.size == 0 or (
-        r.X.shape[1] == bounds.shape[0]
-        and np.all(r.X >= bounds[:, 0] - 1e-9)
-        and np.all(r.X <= bounds[:, 1] + 1e-9)
-    )
+    try:  # every stored point as the evaluations checked it
+        for i, x in enumerate(r.X):
+            check_in_bounds(x, bounds, what=f"evaluation {i} point")
+        inside = True
+    except ConfigError:
+        inside = False
     budget = config.get("n_evals")
     if (
         len(r.X) != len(r.y)
