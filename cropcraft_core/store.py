@@ -543,6 +543,10 @@ class DiscoveredScene:
     has_manifest: bool
     stages: dict[str, str]
     """{stage: status} from the manifest (empty when there is none)."""
+    inputs: dict[str, str] = dataclasses.field(default_factory=dict)
+    """The manifest's input fingerprints (:attr:`Manifest.inputs`; empty when there is none)."""
+    sources: dict[str, str | None] = dataclasses.field(default_factory=dict)
+    """Where its last run read them (:attr:`Manifest.sources`)."""
 
     @property
     def done(self) -> tuple[str, ...]:
@@ -1410,5 +1414,9 @@ class SceneStore:
                 found.append(DiscoveredScene(scene, n_images, False, {}))
                 continue
             stages = {name: rec.status for name, rec in sorted(manifest.stages.items())}
-            found.append(DiscoveredScene(scene, n_images, True, stages))
+            found.append(
+                DiscoveredScene(
+                    scene, n_images, True, stages, dict(manifest.inputs), dict(manifest.sources)
+                )
+            )
         return found

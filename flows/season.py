@@ -10,7 +10,7 @@ from prefect import flow, get_run_logger
 from prefect.states import Failed
 
 from cropcraft_core.errors import CropCraftError
-from cropcraft_core.store import SceneKey, SceneStore, manifest_key
+from cropcraft_core.store import DiscoveredScene, SceneKey, SceneStore, manifest_key
 from flows.runners import DEFAULT_RUNNER
 from flows.scene import SurfacesBackend
 
@@ -22,20 +22,20 @@ def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
     return [
         d.scene.date
         for d in store.discover(site, crop)
-        if d.stages.get("report") != "done" or _inbox_changed(store, d.scene)
+        if d.stages.get("report") != "done" or _inbox_changed(store, d)
     ]
 
 
-def _inbox_changed(store: SceneStore, scene: SceneKey) -> bool:
+def _inbox_changed(store: SceneStore, found: DiscoveredScene) -> bool:
     """Whether the scene's inbox (photos, ``transforms.json``) differs from the inputs its
     manifest recorded; False for a scene last run from photos kept elsewhere (``cropcraft run
     --images URI``), whose inbox that run did not read."""
     from flows.scene import default_images_uri, default_poses_uri, manifest_inputs
     from tasks.common import fingerprint
 
-    manifest = store.load_manifest(scene)
-    if manifest.sources.get("images") is not None:
+    if found.sources.get("images") is not None:
         return False
+    scene = found.scene
     try:
         now = {"images": fingerprint(default_images_uri(store, scene), what="images")}
         poses = default_poses_uri(store, scene)
@@ -43,7 +43,7 @@ def _inbox_changed(store: SceneStore, scene: SceneKey) -> bool:
             now["poses"] = fingerprint(poses, what="poses")
     except CropCraftError:  # the inbox holds no photos now: the run will say so
         return True
-    return manifest_inputs(now) != manifest.inputs
+    return manifest_inputs(now) != found.inputs
 
 
 def _no_surface(store: SceneStore, folder: str) -> float | None:
