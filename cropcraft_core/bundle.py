@@ -72,13 +72,19 @@ def measure_canopy(canopy: Canopy, gap_fraction: bool = True, rng: int | None = 
 
 
 def write_bundle_files(
-    canopy: Canopy, folder: str | os.PathLike, metrics: dict, extra: dict | None = None
-) -> dict[str, float]:
+    canopy: Canopy,
+    folder: str | os.PathLike,
+    metrics: dict,
+    extra: dict | None = None,
+    timings: dict[str, float] | None = None,
+) -> dict:
     """Write :data:`BUNDLE_FILES` of ``canopy`` into ``folder`` (a staging folder: the files
     are written in place) with ``metrics`` as ``metrics.json`` and ``extra`` joined to
     ``params.json`` (crop, params, seed, layout, plants in the plot and in all); returns the
-    seconds of the mesh files and of the preview. ``cropcraft generate`` / ``fit`` and the
-    scene flow's export stage write their bundles through this one function."""
+    metrics as written. ``timings``: seconds already spent (measuring): metrics.json then gets
+    a ``timings`` block with the mesh files' and the preview's seconds added. ``cropcraft
+    generate`` / ``fit`` and the scene flow's export stage write their bundles through this
+    one function."""
     from cropcraft_core.export import write_glb, write_helios_xml, write_obj, write_ply
     from cropcraft_core.render.preview import oblique_camera, save_png, shade_rgb
 
@@ -91,14 +97,16 @@ def write_bundle_files(
     write_obj(folder / "canopy.obj", plot)
     write_glb(folder / "canopy.glb", plot)
     write_helios_xml(folder / "canopy.helios.xml", plot)
-    timings = {"export_s": time.perf_counter() - t}
+    seconds = {"export_s": time.perf_counter() - t}
     t = time.perf_counter()
     lay = canopy.layout
     half = 0.5 * max(lay.plot_length, lay.plot_width)
     top = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.5
     cam = oblique_camera((-half, half, -half, half), height=top)
     save_png(folder / "preview.png", shade_rgb(canopy.mesh, cam))
-    timings["preview_s"] = time.perf_counter() - t
+    seconds["preview_s"] = time.perf_counter() - t
+    if timings is not None:
+        metrics = {**metrics, "timings": {**timings, **seconds}}
     params = {
         "crop": canopy.crop,
         "params": canopy.params,
@@ -111,7 +119,7 @@ def write_bundle_files(
     for name, data in (("params.json", params), ("metrics.json", metrics)):
         text = json.dumps(data, indent=2, sort_keys=True, default=float) + "\n"
         (folder / name).write_text(text)
-    return timings
+    return metrics
 
 
 def write_bundle(
@@ -136,11 +144,7 @@ def write_bundle(
 
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))
     try:
-        # the files' own seconds are known once they are written: metrics.json is rewritten
-        timings = write_bundle_files(canopy, tmp, metrics, extra)
-        metrics = {**metrics, "timings": {"metrics_s": seconds, **timings}}
-        text = json.dumps(metrics, indent=2, sort_keys=True, default=float) + "\n"
-        (tmp / "metrics.json").write_text(text)
+        metrics = write_bundle_files(canopy, tmp, metrics, extra, {"metrics_s": seconds})
         mode = 0o666 & ~_umask()
         for name in BUNDLE_FILES:
             os.chmod(tmp / name, mode)
