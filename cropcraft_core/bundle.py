@@ -30,12 +30,6 @@ BUNDLE_FILES = (
 )
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def check_output_dir(out_dir: str | os.PathLike) -> Path:
     """Fail early (before any work) unless ``out_dir`` can be created and written."""
     out = Path(out_dir)
@@ -145,9 +139,6 @@ def write_bundle(
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".bundle-"))
     try:
         metrics = write_bundle_files(canopy, tmp, metrics, extra, {"metrics_s": seconds})
-        mode = 0o666 & ~_umask()
-        for name in BUNDLE_FILES:
-            os.chmod(tmp / name, mode)
         publish(tmp, out, BUNDLE_FILES)  # all files or none: never two canopies' side by side
     except OutputError:  # names its own file
         raise

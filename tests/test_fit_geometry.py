@@ -1,6 +1,7 @@
 """`cropcraft fit --geometry`: fit a metric z-up mesh or point cloud, end to end through the CLI."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -173,6 +174,9 @@ def test_cli_fit_writes_bundle_and_compare(canopy_ply, tmp_path, capsys):
     assert rc == 0
     for name in ("canopy.ply", "canopy.helios.xml", "metrics.json", "compare.png", "fit.json"):
         assert (out / name).exists(), name
+    umask = os.umask(0)
+    os.umask(umask)  # every file the usual mode: previews were mkstemp's 0600 (owner only)
+    assert {p.stat().st_mode & 0o777 for p in out.iterdir()} == {0o666 & ~umask}
     fit = json.loads((out / "fit.json").read_text())
     assert fit["fit"]["method"] == "bo" and len(fit["fit"]["seed_losses"]) == 1
     assert fit["fit"]["params"]["num_nodes"] == 7.0  # known: not fitted

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -208,7 +209,10 @@ def test_result_serialisation_round_trip(tmp_path):
         np.testing.assert_array_equal(back.y, r.y)
         np.testing.assert_array_equal(back.best_x_posterior, r.best_x_posterior)
         assert back.config == r.config and back.hyperparameters == r.hyperparameters
-    assert not list(tmp_path.glob("*.tmp"))
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["r.json", "r.npz"]  # no temporaries
+    umask = os.umask(0)
+    os.umask(umask)
+    assert {q.stat().st_mode & 0o777 for q in tmp_path.iterdir()} == {0o666 & ~umask}
 
 
 def test_aggregate_mean_and_spread():

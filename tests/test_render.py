@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -386,6 +388,9 @@ def test_shade_rgb_top_and_oblique(tmp_path):
     p = save_png(tmp_path / "view.png", img2)
     assert np.array_equal(np.asarray(Image.open(p)), img2)
     assert [q.name for q in tmp_path.iterdir()] == ["view.png"]  # no temp file left behind
+    umask = os.umask(0)
+    os.umask(umask)
+    assert p.stat().st_mode & 0o777 == 0o666 & ~umask  # readable by the team, not mkstemp's 0600
 
 
 def test_oblique_camera_frames_the_plot():

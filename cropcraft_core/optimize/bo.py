@@ -59,7 +59,6 @@ import contextlib
 import json
 import math
 import os
-import tempfile
 import threading
 import time
 import zipfile
@@ -72,7 +71,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.stats import qmc
 
-from cropcraft_core.errors import ConfigError, InputError, OutputError
+from cropcraft_core.errors import ConfigError, InputError
 from cropcraft_core.optimize import gp as gpmod
 
 Objective = Callable[[np.ndarray, int], float]
@@ -403,22 +402,12 @@ class SeedResult:
 
 
 def _atomic_write(path: Path, write: Callable[[Any], Any]) -> None:
-    """Write via a temp file in the same folder + fsync + os.replace (no torn checkpoints)."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    except OSError as e:
-        raise OutputError(f"cannot write {path}: {e}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    """Write via a temp file in the same folder + fsync + os.replace (no torn checkpoints), with
+    the usual file mode (:func:`cropcraft_core.export.atomic_path`)."""
+    from cropcraft_core.export.atomic import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        write(f)
 
 
 class Aggregate(NamedTuple):

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from cropcraft_core.errors import ConfigError, GeometryError, InputError, OutputError
+from cropcraft_core.export.atomic import atomic_path
 from cropcraft_core.geometry.camera import ROW_CAMERA_SIZE, ROW_CAMERA_VFOV_DEG, PinholeCamera
 from cropcraft_core.geometry.mesh import CanopyMesh, Organ
 from cropcraft_core.render.raster import render_depth
@@ -243,7 +243,7 @@ def oblique_camera(
 
 def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     """Write an (H, W, 3) or (H, W, 4) uint8 image (or (H, W) grey) to ``path`` as PNG, atomically
-    (temporary file in the same folder, then ``os.replace``). Returns the path."""
+    (:func:`cropcraft_core.export.atomic_path`). Returns the path."""
     from PIL import Image
 
     a = np.asarray(rgb)
@@ -254,18 +254,6 @@ def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     p = Path(path)
     if not p.parent.is_dir():
         raise OutputError(f"cannot write {p}: folder {p.parent} does not exist")
-    try:
-        fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    except OSError as e:
-        raise OutputError(f"cannot write {p}: {e}") from None
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(np.ascontiguousarray(a)).save(fh, format="PNG")
-        os.replace(tmp, p)
-    except OSError as e:
-        Path(tmp).unlink(missing_ok=True)
-        raise OutputError(f"cannot write {p}: {e}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(p) as tmp:  # the usual file mode, not mkstemp's 0600
+        Image.fromarray(np.ascontiguousarray(a)).save(tmp, format="PNG")
     return p
