@@ -165,10 +165,23 @@ def test_checkpoint_of_another_run_is_refused(tmp_path):
     b = np.array([[0.0, 1.0], [0.0, 1.0]])
     ck = tmp_path / "c.json"
     run_seed(Noisy(1), b, BOConfig(n_evals=10, n_initial=5, **FAST), seed=1, checkpoint=ck)
-    with pytest.raises(ConfigError, match="another run"):
+    # the refusal says what differs, so that a user extending a run knows which setting it was
+    with pytest.raises(ConfigError, match=r"another run \(n_evals 10, now 12\)"):
         run_seed(Noisy(1), b, BOConfig(n_evals=12, n_initial=5, **FAST), seed=1, checkpoint=ck)
-    with pytest.raises(ConfigError, match="another run"):
+    with pytest.raises(ConfigError, match=r"another run \(seed 1, now 2\)"):
         run_seed(Noisy(2), b, BOConfig(n_evals=10, n_initial=5, **FAST), seed=2, checkpoint=ck)
+    cfg = BOConfig(n_evals=10, n_initial=5, **FAST)
+    with pytest.raises(ConfigError, match=r"the objective \(observation or fit settings\)"):
+        run_seed(Noisy(1), b, cfg, seed=1, checkpoint=ck, run_id="another observation")
+
+
+def test_numpy_integer_budgets_are_stored_as_numbers(tmp_path):
+    """A budget from a numpy sweep passes validation, so the stored config must take it too."""
+    b = np.array([[0.0, 1.0], [0.0, 1.0]])
+    n = np.arange(6, 30, 6)[1]
+    r = run_seed(Noisy(1), b, BOConfig(n_evals=n, n_initial=np.int64(5), **FAST), seed=1)
+    for name in ("r.json", "r.npz"):
+        assert SeedResult.load(r.save(tmp_path / name)).config["n_evals"] == 12
 
 
 def test_a_damaged_checkpoint_is_named_not_resumed(tmp_path):
@@ -441,6 +454,26 @@ def test_local_search_spends_the_last_evaluations_and_goes_down_the_valley():
     start = local.X[:35][int(np.argmin(local.y[:35]))]
     assert np.abs(local.X[35:] - start).max() < 0.5
     assert local.config["local_evals"] == 25 and "local_evals" not in gp_only.config
+
+
+def test_a_local_search_that_stopped_early_is_a_finished_checkpoint(tmp_path):
+    """Nelder-Mead may end before the budget (its simplex shrunk on a flat loss): the finished
+    checkpoint is returned as it is, not refused as "short of its budget"."""
+
+    def plateaus(x, i):  # flat steps, as a histogram loss under common random numbers
+        return float(np.floor(((x - 0.3) ** 2).sum() * 50) / 50)
+
+    b = np.array([[0.0, 1.0]] * 2)
+    cfg = BOConfig(n_evals=60, n_initial=10, local_evals=40, **FAST)
+    ck = tmp_path / "c.json"
+    first = run_seed(plateaus, b, cfg, seed=0, checkpoint=ck)
+    assert first.complete and first.n_evals < 60
+
+    def boom(x, i):
+        raise AssertionError("objective called for a finished run")
+
+    again = run_seed(boom, b, cfg, seed=0, checkpoint=ck)
+    np.testing.assert_array_equal(again.X, first.X)
 
 
 @pytest.mark.parametrize("kill_at", [36, 47])

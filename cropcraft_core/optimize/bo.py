@@ -194,8 +194,9 @@ class BOConfig:
         return self
 
     def result_fields(self) -> dict[str, Any]:
-        """The fields that change the evaluated points (a resumed run must match them)."""
-        d = asdict(self)
+        """The fields that change the evaluated points (a resumed run must match them), as
+        plain Python values (a numpy integer from a sweep is stored as a JSON number)."""
+        d = {k: v.item() if isinstance(v, np.generic) else v for k, v in asdict(self).items()}
         for k in ("checkpoint_every", "blas_threads"):
             d.pop(k)
         # as recorded before these settings existed, where they change nothing
@@ -588,6 +589,28 @@ def with_run_id(config: dict, run_id: str | None) -> dict:
     return config if run_id is None else {**config, "objective": str(run_id)}
 
 
+def _run_differences(
+    r: SeedResult, method: str, seed: int, bounds: np.ndarray, config: dict
+) -> list[str]:
+    """What makes stored run ``r`` another run than (method, seed, bounds, config), in words."""
+    out = []
+    if r.method != method:
+        out.append(f"method {r.method!r}, now {method!r}")
+    if r.seed != int(seed):
+        out.append(f"seed {r.seed}, now {int(seed)}")
+    if r.bounds.shape != bounds.shape or not np.array_equal(r.bounds, bounds):
+        out.append(f"box {r.bounds.tolist()}, now {bounds.tolist()}")
+    for k in sorted(set(r.config) | set(config)):
+        was, now = r.config.get(k), config.get(k)
+        if was == now:
+            continue
+        if k == "objective":  # the fit's seed_identity: the observation and fit settings
+            out.append("the objective (observation or fit settings) differs")
+        else:
+            out.append(f"{k} {was!r}, now {now!r}")
+    return out
+
+
 def load_checkpoint(
     checkpoint: str | os.PathLike | None, method: str, seed: int, bounds: np.ndarray, config: dict
 ) -> SeedResult | None:
@@ -596,16 +619,10 @@ def load_checkpoint(
     if checkpoint is None or not Path(checkpoint).exists():
         return None
     r = SeedResult.load(checkpoint)
-    same = (
-        r.method == method
-        and r.seed == int(seed)
-        and r.bounds.shape == bounds.shape
-        and np.array_equal(r.bounds, bounds)
-        and r.config == config
-    )
-    if not same:
+    differs = _run_differences(r, method, seed, bounds, config)
+    if differs:
         raise ConfigError(
-            f"checkpoint {checkpoint} belongs to another run (method/seed/bounds/config differ): "
+            f"checkpoint {checkpoint} belongs to another run ({'; '.join(differs)}): "
             "use another checkpoint path or delete it"
         )
     try:  # every stored point as the evaluations checked it
@@ -615,11 +632,14 @@ def load_checkpoint(
     except ConfigError:
         inside = False
     budget = config.get("n_evals")
+    # a finished run used its whole budget, but for BO's closing Nelder-Mead, which may stop
+    # once its simplex has shrunk (up to local_evals early), and trust-region's own stops
+    fewest = budget - int(config.get("local_evals") or 0) if budget else None
     if (
         len(r.X) != len(r.y)
         or not np.all(np.isfinite(r.y))
         or not inside
-        or (r.complete and method != "trust-region" and budget and len(r.y) != budget)
+        or (r.complete and method != "trust-region" and budget and not fewest <= len(r.y) <= budget)
     ):
         raise InputError(
             f"checkpoint {checkpoint} is damaged (non-finite losses, points outside the box, "
