@@ -510,6 +510,14 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     assert not x[20:30].any()  # 10 depth, 10 lateral, then the 10 derivative bins
     np.testing.assert_allclose(x[:20], np.r_[paper.stats.depth, paper.stats.lateral], rtol=1e-6)
     assert predict_params(paper, cfg) == p1
+    # maize's pairs are all rendered at 5 m: a camera raised over a tall canopy (5.1 m) is an
+    # input the network never saw vary, read as its training value, not as 0.1 / 1e-6 spreads
+    # that put every parameter on a bound of the box
+    _, canopy = observation("maize", {"num_nodes": 9.0})
+    raised = observe_canopy(canopy, preset("maize", **{**SMALL, "render_height": 5.1}))
+    p3 = np.array(list(predict_params(raised, cfg).values()))
+    b = bounds("maize")
+    assert np.all((p3 > b[:, 0]) & (p3 < b[:, 1])), p3
 
 
 def test_mlp_training_pairs_are_the_same_made_in_worker_processes(monkeypatch):

@@ -190,6 +190,19 @@ def train(x: np.ndarray, y: np.ndarray, cfg: MLPConfig):
     return net, mu, sd
 
 
+#: Training spread (``x.std(0) + 1e-6``) at or below which an input counts as constant.
+CONSTANT_SPREAD = 2e-6
+
+
+def standardise(x: np.ndarray, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Features ``x`` as the network was trained on them, ``(x - mu) / sd``, with 0 for the
+    inputs that never varied in training (maize's render height, all pairs at 5 m; a histogram
+    bin no pair reached): the network learnt nothing of them, and dividing a raised camera's
+    5.1 m by the 1e-6 floor put every output on a bound of the box."""
+    z = (np.asarray(x, dtype=np.float64) - mu) / sd
+    return np.where(np.asarray(sd) <= CONSTANT_SPREAD, 0.0, z)
+
+
 def cache_dir() -> Path:
     return Path(os.environ.get("CROPCRAFT_CACHE", Path.home() / ".cache" / "cropcraft")) / "mlp"
 
@@ -248,9 +261,9 @@ def predict_params(
     import torch
 
     net, mu, sd = load_or_train(observation.crop, cfg, layout, executor)
-    x = observation_features(observation)
+    z = standardise(observation_features(observation), mu, sd)
     with torch.no_grad():
-        u = net(torch.from_numpy(((x - mu) / sd)[None].astype(np.float32))).numpy()[0]
+        u = net(torch.from_numpy(z[None].astype(np.float32))).numpy()[0]
     b = param_bounds(observation.crop)
     return params_from_vector(
         observation.crop, b[:, 0] + u.astype(np.float64) * (b[:, 1] - b[:, 0])
