@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.options import at_least, output_file, positive, write_json
 from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
@@ -96,12 +97,18 @@ def budget(
 ) -> Budget:
     """The quick or default budget, with optional FitConfig overrides (n_seeds, n_evals, ...)."""
     o = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if scenes is not None and (
+        isinstance(scenes, bool) or not isinstance(scenes, int) or scenes < 1
+    ):
+        raise ConfigError(f"scenes must be a whole number >= 1, got {scenes!r}")
+    if scale is not None and not (isinstance(scale, int | float) and 0 < scale < float("inf")):
+        raise ConfigError(f"image scale must be a finite number > 0, got {scale!r}")
     if quick:
         fit = {"n_seeds": 2, "n_evals": 60, "n_initial": 25, **o}
         cfg = FitConfig(method=method, common_random_numbers=crn, **fit)
-        return Budget(scenes or 6, cfg, scale or 0.25)
+        return Budget(6 if scenes is None else scenes, cfg, 0.25 if scale is None else scale)
     cfg = FitConfig(method=method, common_random_numbers=crn, **o)
-    return Budget(scenes or 30, cfg, scale or 1.0)
+    return Budget(30 if scenes is None else scenes, cfg, 1.0 if scale is None else scale)
 
 
 def scene_truth(crop: str, index: int, seed: int = 2024):
@@ -783,6 +790,7 @@ def _run_flow(a: argparse.Namespace, methods: list[str], overrides: dict) -> dic
 
     got = run_benchmark(
         a.runner,
+        a.workers,
         crop=a.crop,
         methods=methods,
         quick=a.quick,
@@ -795,6 +803,8 @@ def _run_flow(a: argparse.Namespace, methods: list[str], overrides: dict) -> dic
         m: {"errors": e, "seconds_per_scene": got["seconds_per_scene"][m]}
         for m, e in got["errors"].items()
     }
+    for m, spread in got.get("seed_spread", {}).items():
+        rows[m]["seed_spread"] = spread  # the table's seed-coverage line, as a local run's
     n = len(next(iter(got["predictions"].values())))
     return {**got, "crop": a.crop, "quick": a.quick, "scenes": n, "methods": rows}
 
@@ -824,10 +834,10 @@ def _scene_list(text: str) -> tuple[int, ...]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
-    ap.add_argument("--scenes", type=int)
+    ap.add_argument("--scenes", type=at_least(1), help="scenes (default 30; --quick 6)")
     ap.add_argument(
         "--first",
-        type=int,
+        type=at_least(0),
         default=0,
         help="fit only scenes FIRST.. of --scenes (to split a run over machines or sessions)",
     )
@@ -838,14 +848,19 @@ def main(argv: list[str] | None = None) -> int:
         metavar="I,J,...",
         help="fit only these scene numbers of --scenes (e.g. the scenes a change is about)",
     )
-    ap.add_argument("--methods", default="bo,trust-region,random,mlp")
+    ap.add_argument(
+        "--methods",
+        help="comma-separated (default bo,trust-region,random,mlp; with --runner no mlp)",
+    )
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--crn-ablation", action="store_true")
-    ap.add_argument("--json")
-    ap.add_argument("--seeds", type=int, help="override optimiser seeds per scene")
-    ap.add_argument("--evals", type=int, help="override evaluations per seed")
-    ap.add_argument("--initial", type=int, help="override random initial evaluations")
-    ap.add_argument("--canopies", type=int, help="override canopies averaged per evaluation")
+    ap.add_argument("--json", type=output_file, help="write the whole result here")
+    ap.add_argument("--seeds", type=at_least(1), help="override optimiser seeds per scene")
+    ap.add_argument("--evals", type=at_least(2), help="override evaluations per seed")
+    ap.add_argument("--initial", type=at_least(2), help="override random initial evaluations")
+    ap.add_argument(
+        "--canopies", type=at_least(1), help="override canopies averaged per evaluation"
+    )
     ap.add_argument(
         "--gp-output", choices=["none", "log"], help="override what BO's GP models (FitConfig)"
     )
@@ -865,9 +880,14 @@ def main(argv: list[str] | None = None) -> int:
         help="BO's answer rule (the first row; default: the crop's); the other rules but the "
         "opt-in floors are compared on the same seeds as further rows",
     )
-    ap.add_argument("--image-scale", type=float, help="row camera resolution / 994x738")
     ap.add_argument(
-        "--workers", type=int, default=os.cpu_count() or 1, help="single-threaded fit processes"
+        "--image-scale", type=positive, help="row camera resolution / 994x738 (1; --quick 0.25)"
+    )
+    ap.add_argument(
+        "--workers",
+        type=at_least(1),
+        help="single-threaded fit processes (default: one per core); with --runner processes "
+        "or dask, the pool's or the local cluster's size",
     )
     ap.add_argument(
         "--checkpoint-dir",
@@ -887,7 +907,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--store", help="scene store for the flow's result (default ./cropcraft-data)")
     ap.add_argument(
         "--diagnose",
-        type=int,
+        type=at_least(0),
         default=0,
         metavar="K",
         help="score each scene whose LAI misses by more than 15 %% (and the misses that carry "
@@ -916,7 +936,12 @@ def main(argv: list[str] | None = None) -> int:
     for n in a.known:
         if n not in names:
             raise SystemExit(f"bench accuracy: --known {n}: not a {a.crop} parameter")
-    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    default_methods = "bo,trust-region,random,mlp"
+    if a.runner:  # Prefect only then: the flow maps seeds, so no mlp (it predicts directly)
+        from flows.benchmark import SEED_METHODS
+
+        default_methods = ",".join(SEED_METHODS)
+    methods = [m.strip() for m in (a.methods or default_methods).split(",") if m.strip()]
     overrides = {
         "n_seeds": a.seeds,
         "n_evals": a.evals,
@@ -932,14 +957,24 @@ def main(argv: list[str] | None = None) -> int:
     if a.runner:
         if a.finished_only:
             raise SystemExit("bench accuracy: --finished-only is not available with --runner")
-        if preset_overrides or a.known or a.first or a.only or a.diagnose:
+        if (
+            preset_overrides
+            or a.known
+            or a.first
+            or a.only
+            or a.diagnose
+            or a.checkpoint_dir
+            or a.crn_ablation
+        ):
             raise SystemExit(
-                "bench accuracy: --preset, --known, --first, --only and --diagnose are not "
-                "available with --runner"
+                "bench accuracy: --preset, --known, --first, --only, --diagnose, "
+                "--checkpoint-dir and --crn-ablation are not available with --runner"
             )
         res = _run_flow(a, methods, overrides)
         print_table(res)
         print(f"stored: {res['url']}")
+        if a.json:
+            write_json(a.json, res)
         return 0
     res = run(
         a.crop,
@@ -949,7 +984,7 @@ def main(argv: list[str] | None = None) -> int:
         a.crn_ablation,
         overrides=overrides,
         scale=a.image_scale,
-        workers=a.workers,
+        workers=a.workers or os.cpu_count() or 1,
         checkpoint_dir=a.checkpoint_dir,
         preset_overrides=preset_overrides,
         known=tuple(a.known),
@@ -960,8 +995,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print_table(res)
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(res, f, indent=2, default=float)
+        write_json(a.json, res)
     return 0
 
 

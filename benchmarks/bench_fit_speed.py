@@ -15,17 +15,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from benchmarks.options import at_least, output_file, write_json
 from cropcraft_core.config import default_layout
-from cropcraft_core.config.params import bounds as param_bounds
-from cropcraft_core.fit import FitConfig, ForwardModel, fit_seed, observe_canopy
-from cropcraft_core.fit.fitting import make_objective
+from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
+from cropcraft_core.fit.fitting import seed_objective
 from cropcraft_core.observe import preset
 from cropcraft_core.parallel import one_thread, processes, run_jobs
 from cropcraft_core.procedural import generate_canopy
@@ -78,12 +77,13 @@ def _compare_one(args) -> tuple[str, dict]:
     from cropcraft_core.optimize.skopt_reference import run_skopt
 
     obs = _observation()
+    cfg = FitConfig(n_evals=n_evals, n_initial=n_initial)
     t = time.perf_counter()
     if method == "ours":
-        r = fit_seed(obs, s, FitConfig(n_evals=n_evals, n_initial=n_initial))
-    else:
-        obj = make_objective(ForwardModel(obs), s, True)
-        r = run_skopt(obj, param_bounds("soybean"), n_evals=n_evals, n_initial=n_initial, seed=s)
+        r = fit_seed(obs, s, cfg)
+    else:  # the objective fit_seed optimises (soybean: two canopies an evaluation), its box
+        obj, box, _ = seed_objective(obs, s, cfg)
+        r = run_skopt(obj, box.bounds, n_evals=n_evals, n_initial=n_initial, seed=s)
     return method, {
         "seed": s,
         "wall_s": time.perf_counter() - t,
@@ -106,16 +106,21 @@ def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json")
-    ap.add_argument("--evals", type=int, default=500)
-    ap.add_argument("--initial", type=int, default=200)
-    ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--skopt-seeds", type=int, default=5)
+    ap.add_argument("--json", type=output_file)
+    ap.add_argument("--evals", type=at_least(2), default=500)
+    ap.add_argument("--initial", type=at_least(2), default=200)
+    ap.add_argument("--seeds", type=at_least(1), default=10)
+    ap.add_argument("--skopt-seeds", type=at_least(0), default=5)
     ap.add_argument("--skip-full", action="store_true")
     ap.add_argument(
-        "--workers", type=int, default=os.cpu_count() or 2, help="processes for (a) and (b)"
+        "--workers",
+        type=at_least(1),
+        default=os.cpu_count() or 2,
+        help="processes for (a) and (b)",
     )
     a = ap.parse_args(argv)
+    if a.initial > a.evals:
+        ap.error(f"--initial {a.initial} exceeds --evals {a.evals}")
     out: dict = {}
     if not a.skip_full:
         out["full"] = full_fit(a.seeds, a.evals, a.initial, workers=a.workers)
@@ -163,8 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"    optimiser time ratio skopt/ours: {ratio:.1f}× (target ≥ 10×)")
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=2, default=float)
+        write_json(a.json, out)
     return 0
 
 

@@ -13,12 +13,12 @@ the two agree.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import numpy as np
 
+from benchmarks.options import at_least, output_file, write_json
 from cropcraft_core.config import default_layout, param_space
 from cropcraft_core.geometry import PinholeCamera
 from cropcraft_core.procedural import generate_canopy, plot_region
@@ -102,14 +102,13 @@ def print_table(rows: list[dict]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json")
-    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--json", type=output_file)
+    ap.add_argument("--repeats", type=at_least(1), default=15)
     a = ap.parse_args(argv)
     rows = run(a.repeats)
     print_table(rows)
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(rows, f, indent=2)
+        write_json(a.json, rows)
     return 0
 
 

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.options import at_least, output_file, seeds_by_evals, write_json
+
 #: how many of the photos' own views ``train`` renders and scores against their true depth
 VIEWS_SCORED = 8
 #: a rendered depth within this much of the true one (m) counts as right (the scores' "within")
@@ -360,12 +362,15 @@ def print_compare(out: dict) -> None:
                 else ""
             )
         )
-    v, pts = out["views_mean"], out.get("points", {})
-    print(
-        f"  the photos' own views: median depth ratio {v['median_ratio']:.3f}, error "
-        f"{100 * v['median_abs_err_m']:.1f} cm, {100 * v['within']:.0f} % within "
-        f"{100 * WITHIN_M:.0f} cm, {100 * v['holes']:.1f} % empty"
-    )
+    v, pts = out.get("views_mean"), out.get("points", {})
+    if v:  # none when the scene had no true depth maps to score the views against
+        print(
+            f"  the photos' own views: median depth ratio {v['median_ratio']:.3f}, error "
+            f"{100 * v['median_abs_err_m']:.1f} cm, {100 * v['within']:.0f} % within "
+            f"{100 * WITHIN_M:.0f} cm, {100 * v['holes']:.1f} % empty"
+        )
+    else:
+        print("  the photos' own views: not scored (the scene has no true depth maps)")
     if pts:
         print(
             f"  point cloud: {100 * pts['within']:.1f} % of {pts['n']} points within "
@@ -412,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = ap.add_subparsers(dest="half", required=True)
     tr = sub.add_parser("train", help="the CUDA half: nerfacto → rows → observation")
     tr.add_argument("--scene-dir", required=True, help="a cropcraft synth scene")
-    tr.add_argument("--iterations", type=int, default=20_000, help="the paper's 20K")
+    tr.add_argument("--iterations", type=at_least(1), default=20_000, help="the paper's 20K")
     tr.add_argument(
         "--max-seconds", type=float, default=None, help="training deadline (nerf_max_seconds)"
     )
@@ -437,8 +442,10 @@ def main(argv: list[str] | None = None) -> int:
     co = sub.add_parser("compare", help="the CPU half: against the truth, optionally fit")
     co.add_argument("--scene-dir", required=True)
     co.add_argument("--kept", required=True, help="the train half's --out")
-    co.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
-    co.add_argument("--json", default=None)
+    co.add_argument(
+        "--fit", type=seeds_by_evals, default=None, metavar="SEEDSxEVALS", help="also fit"
+    )
+    co.add_argument("--json", type=output_file, default=None)
     a = ap.parse_args(argv)
     out = train(a) if a.half == "train" else compare(a)
     if a.half == "train":  # the device's log: every figure, the CPU half reads row.json
@@ -446,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print_compare(out)
     if getattr(a, "json", None):
-        Path(a.json).write_text(json.dumps(out, indent=1, default=float))
+        write_json(a.json, out)
     return 0
 
 

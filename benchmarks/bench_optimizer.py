@@ -44,9 +44,12 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from benchmarks.options import at_least, output_file, write_json  # noqa: E402
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, evaluation_rng, run_seed  # noqa: E402
 from cropcraft_core.optimize.baselines import run_random, run_trust_region  # noqa: E402
 
+#: The methods compared (``--methods``).
+METHODS = ("bo", "bo-iid", "skopt", "random", "trust-region")
 OPTIMUM = -3.32237
 X6 = 0.6573
 _A = np.array(
@@ -152,8 +155,11 @@ def run_method(
         )
     if method == "random":
         return run_random(NoisyHartmann(seed, False, noise_sd), BOUNDS, n_evals=n, seed=seed)
-    if method == "trust-region":
-        return run_trust_region(NoisyHartmann(seed, False, noise_sd), BOUNDS, seed=seed)
+    if method == "trust-region":  # at the others' budget, as the fit runs it (fit_seed)
+        return run_trust_region(
+            NoisyHartmann(seed, False, noise_sd), BOUNDS, seed=seed, n_starts=1, maxiter=n,
+            max_evals=n,
+        )  # fmt: skip
     raise SystemExit(f"unknown method {method!r}")
 
 
@@ -207,29 +213,41 @@ def print_table(rows: list[dict], checkpoints: tuple[int, ...]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--quick", action="store_true", help="n=120/40 initial, 2 seeds, skopt n=120")
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--first-seed", type=int, default=0)
-    p.add_argument("--n", type=int, default=500, help="evaluations per seed (ours, baselines)")
-    p.add_argument("--n-initial", type=int, default=200)
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="defaults n=120/40 initial, 2 seeds, skopt n=120 (flags given still win)",
+    )
+    p.add_argument("--seeds", type=at_least(1), help="seeds per method (5)")
+    p.add_argument("--first-seed", type=at_least(0), default=0)
+    p.add_argument("--n", type=at_least(2), help="evaluations per seed (ours, baselines; 500)")
+    p.add_argument("--n-initial", type=at_least(2), help="random initial evaluations (200)")
     p.add_argument("--noise-sd", type=float, default=0.1)
-    p.add_argument("--skopt-seeds", type=int, default=1)
-    p.add_argument("--skopt-n", type=int, default=500)
-    p.add_argument("--methods", default="bo,bo-iid,skopt,random,trust-region")
-    p.add_argument("--json", help="write the summaries (and seed results) here")
+    p.add_argument("--skopt-seeds", type=at_least(0), help="skopt's seeds (1)")
+    p.add_argument("--skopt-n", type=at_least(2), help="skopt's evaluations (500)")
+    p.add_argument("--methods", default=",".join(METHODS))
+    p.add_argument("--json", type=output_file, help="write the summaries (and seed results) here")
     p.add_argument("--progress", help="skopt: append 'seed eval cpu wall' lines here as it runs")
     p.add_argument("--load", nargs="*", default=[], help="add summaries from earlier --json runs")
     a = p.parse_args(argv)
-    n, n_init, seeds, skopt_n, skopt_seeds = a.n, a.n_initial, a.seeds, a.skopt_n, a.skopt_seeds
-    if a.quick:
-        n, n_init, seeds, skopt_n, skopt_seeds = 120, 40, 2, 120, 1
+    base = (120, 40, 2, 120, 1) if a.quick else (500, 200, 5, 500, 1)
+    given = (a.n, a.n_initial, a.seeds, a.skopt_n, a.skopt_seeds)
+    n, n_init, seeds, skopt_n, skopt_seeds = (
+        d if v is None else v for v, d in zip(given, base, strict=True)
+    )
+    if n_init > n:
+        p.error(f"--n-initial {n_init} exceeds --n {n}")
+    methods = [m for m in a.methods.split(",") if m]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        p.error(f"unknown method(s) {', '.join(bad)}: choose from {', '.join(METHODS)}")
     checkpoints = (250, 300, 400, 500) if not a.quick else (60, 100, 120)
     warnings.filterwarnings("ignore")
     rows: list[dict] = []
     for path in a.load:
         rows.extend(json.loads(open(path).read())["rows"])
     dump: dict = {"rows": [], "results": {}}
-    for method in [m for m in a.methods.split(",") if m]:
+    for method in methods:
         k = skopt_seeds if method == "skopt" else seeds
         results = []
         for s in range(a.first_seed, a.first_seed + k):
@@ -248,9 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         dump["rows"].append(row)
         dump["results"][method] = [r.to_dict() for r in results]
-        if a.json:
-            with open(a.json, "w") as f:
-                json.dump(dump, f)
+        if a.json:  # after each method: a long run's finished methods are kept
+            write_json(a.json, dump)
     print_table(rows, checkpoints)
     return 0
 

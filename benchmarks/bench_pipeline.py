@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments, parse_kv
+from benchmarks.options import output_file, positive, seeds_by_evals, write_json
 from cropcraft_core.fit.select import reevaluation_seeds
 
 TARGETS = {
@@ -995,7 +996,7 @@ def main(argv: list[str] | None = None) -> int:
         "--sfm-dir", default=None, help="keep SfM's work here; reuse its model if there (timing!)"
     )
     ap.add_argument("--surfaces", action="append", default=[], help="SurfacesConfig KEY=VALUE")
-    ap.add_argument("--image-scale", type=float, default=1.0, help="row-camera resolution")
+    ap.add_argument("--image-scale", type=positive, default=1.0, help="row-camera resolution")
     ap.add_argument(
         "--prediction-blur",
         default=0.0,
@@ -1009,14 +1010,20 @@ def main(argv: list[str] | None = None) -> int:
         default="auto",
         help='scene box: "auto" (default) or JSON [[x, y, z], [x, y, z]]',
     )
-    ap.add_argument("--fit", default=None, metavar="SEEDSxEVALS", help="also fit, e.g. 10x300")
+    ap.add_argument(
+        "--fit",
+        type=seeds_by_evals,
+        default=None,
+        metavar="SEEDSxEVALS",
+        help="also fit, e.g. 10x300",
+    )
     ap.add_argument(
         "--fit-true-mesh",
         action="store_true",
         help="with --fit: also fit the true mesh seen from the same row camera (a perfect "
         "reconstruction), to split the LAI error into the reconstruction's and the method's",
     )
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", type=output_file, default=None)
     ap.add_argument(
         "--keep",
         default=None,
@@ -1029,7 +1036,7 @@ def main(argv: list[str] | None = None) -> int:
     out.pop("_observation")
     _print(out)
     if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1, default=float))
+        write_json(a.json, out)
     return 0
 
 

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from benchmarks.options import at_least
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.render.raster import render_depth
 from cropcraft_core.render.raycast import build_scene, cast_rays
@@ -76,9 +77,9 @@ def _median_time(fn, runs: int) -> tuple[float, object]:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--triangles", type=int, default=150_000)
-    ap.add_argument("--runs", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--triangles", type=at_least(1), default=150_000)
+    ap.add_argument("--runs", type=at_least(1), default=10)
+    ap.add_argument("--seed", type=at_least(0), default=0)
     args = ap.parse_args(argv)
 
     vertices, faces = canopy_soup(args.triangles, seed=args.seed)

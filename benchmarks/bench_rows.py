@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.options import at_least, output_file, positive, seeds_by_evals, write_json
 from cropcraft_core.config import default_layout
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
@@ -61,6 +62,7 @@ def _job(args) -> tuple[int, int, dict]:
     from benchmarks.bench_pipeline import fit_rules
 
     crop, index, row, scale, budget, options, ckpt = args
+    # the folder is the crop's, scale's and row's (_where); the name the fit's settings
     name = f"answers-{budget}" + (f"-{config_hash(options)[:12]}" if options else "")
     kept = None if ckpt is None else Path(ckpt) / f"{name}.json"
     if kept is not None and kept.is_file():
@@ -73,8 +75,12 @@ def _job(args) -> tuple[int, int, dict]:
     return index, row, answers
 
 
-def _where(root: Path | None, index: int, row: int) -> str | None:
-    return None if root is None else str(root / f"scene{index}-row{row:+d}")
+def _where(root: Path | None, crop: str, scale: float, index: int, row: int) -> str | None:
+    """The checkpoint folder of one row of one scene: its seeds and kept answers. Crop and image
+    scale name it too (another scale is another observation; its answers are not these)."""
+    if root is None:
+        return None
+    return str(root / f"{crop}-scale{scale:g}" / f"scene{index}-row{row:+d}")
 
 
 def _errors(preds: list[dict], truths: list[dict]) -> dict:
@@ -112,7 +118,7 @@ def run(
     indices = list(range(first, first + scenes))
     root = None if checkpoint_dir is None else Path(checkpoint_dir)
     jobs = [
-        (crop, i, k, scale, budget, dict(fit_options or {}), _where(root, i, k))
+        (crop, i, k, scale, budget, dict(fit_options or {}), _where(root, crop, scale, i, k))
         for i in indices
         for k in rows
     ]
@@ -170,34 +176,40 @@ def print_table(res: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
-    ap.add_argument("--first", type=int, default=0, help="first scene number")
-    ap.add_argument("--scenes", type=int, help="how many scenes (default 12; --quick 1)")
-    ap.add_argument("--neighbours", type=int, default=1, help="rows on each side of the centre")
-    ap.add_argument("--image-scale", type=float, help="row camera / 994x738 (default 0.5)")
-    ap.add_argument("--budget", help="SEEDSxEVALS per row (default 10x500; --quick 2x20)")
+    ap.add_argument("--first", type=at_least(0), default=0, help="first scene number")
+    ap.add_argument("--scenes", type=at_least(1), help="how many scenes (default 12; --quick 1)")
+    ap.add_argument(
+        "--neighbours", type=at_least(1), default=1, help="rows on each side of the centre"
+    )
+    ap.add_argument("--image-scale", type=positive, help="row camera / 994x738 (default 0.5)")
+    ap.add_argument(
+        "--budget",
+        type=seeds_by_evals,
+        help="SEEDSxEVALS per row (default 10x500; --quick 2x20)",
+    )
     ap.add_argument(
         "--quick",
         action="store_true",
         help="1 scene, 2x20, quarter resolution, re-scoring on 2 canopies with a 4-step polish",
     )
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--workers", type=at_least(1), default=os.cpu_count() or 1)
     ap.add_argument("--checkpoint-dir", help="seed checkpoints and each row's answers")
-    ap.add_argument("--json")
+    ap.add_argument("--json", type=output_file)
     a = ap.parse_args(argv)
     res = run(
         a.crop,
         a.first,
-        a.scenes or (1 if a.quick else 12),
+        a.scenes if a.scenes is not None else (1 if a.quick else 12),
         a.neighbours,
-        a.image_scale or (0.25 if a.quick else 0.5),
-        a.budget or ("2x20" if a.quick else "10x500"),
+        a.image_scale if a.image_scale is not None else (0.25 if a.quick else 0.5),
+        a.budget if a.budget is not None else ("2x20" if a.quick else "10x500"),
         a.workers,
         a.checkpoint_dir,
         fit_options={"reevaluate_canopies": 2, "polish_evals": 4} if a.quick else None,
     )
     print_table(res)
     if a.json:
-        atomic_write_text(Path(a.json), json.dumps(res, indent=1, default=float) + "\n")
+        write_json(a.json, res)
     return 0
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.options import at_least
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.surfaces import SurfacesConfig, make_backend
 
@@ -121,6 +122,8 @@ def run(
     cams = [c for _, c in poses]
     imgs = [np.asarray(Image.open(root / "images" / n).convert("RGB")) for n, _ in poses]
     sec["load"] = time.perf_counter() - t
+    # a reused --scene-dir has its own views and size, not the flags'
+    out.update(views=len(cams), resolution=[cams[0].width, cams[0].height])
 
     bbox = np.array([[-1.2, -1.2, -0.1], [1.2, 1.2, 1.0]])
     config = SurfacesConfig(**(overrides or {}))
@@ -174,9 +177,9 @@ def run(
 
 def add_scene_arguments(ap: argparse.ArgumentParser) -> None:
     """The synthetic scene's options, shared by the photo benchmarks."""
-    ap.add_argument("--views", type=int, default=50)
+    ap.add_argument("--views", type=at_least(2), default=50)
     ap.add_argument("--resolution", default=(640, 480), type=size, help="WIDTHxHEIGHT")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=at_least(0), default=0)
     ap.add_argument("--scene-dir", default=None, help="reuse (or create) the scene here")
 
 

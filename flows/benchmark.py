@@ -20,6 +20,7 @@ from prefect.cache_policies import NO_CACHE
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, fit_seed
 from cropcraft_core.store import SceneStore
+from flows.runners import make_task_runner
 
 #: Methods the flow maps seed by seed (the mlp baseline predicts directly: use the bench CLI).
 SEED_METHODS = ("bo", "trust-region", "random")
@@ -57,7 +58,7 @@ def bench_combine(
     return combine_scene(crop, configs, results, seconds, obs)
 
 
-@flow(name="benchmark", persist_result=False)
+@flow(name="benchmark", persist_result=False, task_runner=make_task_runner())
 def benchmark(
     crop: str = "soybean",
     methods: list[str] | None = None,
@@ -137,13 +138,16 @@ def benchmark(
         "errors": {m: r["errors"] for m, r in rows.items()},
         "seconds_per_scene": {m: r["seconds_per_scene"] for m, r in rows.items()},
         "predictions": {m: [p["params"] for p in r["predictions"]] for m, r in rows.items()},
+        "seed_spread": {m: r["seed_spread"] for m, r in rows.items() if "seed_spread" in r},
         "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
     }
 
 
-def run_benchmark(runner: str | None = None, **kwargs: Any) -> dict[str, Any]:
+def run_benchmark(
+    runner: str | None = None, workers: int | None = None, **kwargs: Any
+) -> dict[str, Any]:
     """:func:`benchmark` on ``runner`` (processes, threads, dask, dask://HOST:PORT; default
-    the scene flows' ``processes``, ``flows.runners.DEFAULT_RUNNER``)."""
-    from flows.runners import make_task_runner
-
-    return benchmark.with_options(task_runner=make_task_runner(runner))(**kwargs)
+    the scene flows' ``processes``, ``flows.runners.DEFAULT_RUNNER``) of ``workers`` processes
+    or threads (a local pool's or cluster's; default :func:`~flows.runners.make_task_runner`'s)."""
+    runner_ = make_task_runner(runner, workers=workers)
+    return benchmark.with_options(task_runner=runner_)(**kwargs)

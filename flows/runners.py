@@ -50,13 +50,14 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
     threads: ``ThreadPoolTaskRunner`` with ``workers`` threads (default: CPU count, at most 8).
     processes: :class:`LocalProcessPool` of ``workers`` spawned processes (default as threads).
     dask: ``DaskTaskRunner`` over a temporary :func:`local_cluster` of ``workers``
-    single-threaded worker processes (default 2). dask://host:port: ``DaskTaskRunner(address=...)``.
+    single-threaded worker processes (default as threads). dask://host:port:
+    ``DaskTaskRunner(address=...)``.
     """
     kind, address = parse_runner(spec)
+    n = workers or min(8, os.cpu_count() or 2)
     if kind in ("threads", "processes"):
         from prefect.task_runners import ThreadPoolTaskRunner
 
-        n = workers or min(8, os.cpu_count() or 2)
         if kind == "processes":
             return LocalProcessPool(max_workers=n)
         return ThreadPoolTaskRunner(max_workers=n)
@@ -69,7 +70,7 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
     return DaskTaskRunner(
         cluster_class=local_cluster,
         cluster_kwargs={
-            "n_workers": workers or 2,
+            "n_workers": n,
             "threads_per_worker": 1,
             "processes": True,
             "dashboard_address": None,

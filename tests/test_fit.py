@@ -963,7 +963,9 @@ def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_p
     assert not np.array_equal(np.nan_to_num(side.depth), np.nan_to_num(centre.depth))
     answers = {
         k: json.loads(
-            next((tmp_path / f"scene3-row{k:+d}").glob("answers-2x8-*.json")).read_text()
+            next(
+                (tmp_path / "soybean-scale0.25" / f"scene3-row{k:+d}").glob("answers-2x8-*.json")
+            ).read_text()
         )["bo"]
         for k in (-1, 0, 1)
     }
@@ -985,6 +987,9 @@ def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_p
     monkeypatch.setattr(bp, "fit_rules", refit)
     again = run("soybean", first=3, checkpoint_dir=str(tmp_path), **kw)
     assert again["table"] == res["table"]
+    # another image scale is another observation: fitted, not served the kept answers
+    with pytest.raises(AssertionError, match="fitted again"):
+        run("soybean", first=3, checkpoint_dir=str(tmp_path), **{**kw, "scale": 0.3})
 
 
 def test_pipeline_bench_measures_which_blur_of_the_truth_matches_the_observation():

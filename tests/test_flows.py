@@ -1179,6 +1179,7 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
     # the seeds' own answers around the truth, the same both ways
     spread = ref["methods"]["bo"]["seed_spread"]
     assert stored["methods"]["bo"]["seed_spread"] == spread
+    assert got["seed_spread"]["bo"] == spread  # returned too: the CLI prints its line
     assert [s["scene"] for s in spread["scenes"]] == [0, 1]
     inside = [s["lai_min"] <= s["true_lai"] <= s["lai_max"] for s in spread["scenes"]]
     assert spread["truth_in_lai_range"] == np.mean(inside)
@@ -1189,10 +1190,16 @@ def test_benchmark_flow_maps_seeds_and_matches_the_in_process_benchmark(prefect_
 
 
 def test_benchmark_flow_names_a_method_it_cannot_map(prefect_harness, tmp_path):
-    from flows.benchmark import run_benchmark
+    from flows.benchmark import benchmark, run_benchmark
+    from flows.runners import LocalProcessPool
 
     with pytest.raises(ConfigError, match="mlp"):
         run_benchmark("threads", crop="maize", methods=["bo", "mlp"], store=str(tmp_path))
+    with pytest.raises(ConfigError, match="scenes must be a whole number >= 1, got 0"):
+        run_benchmark("threads", crop="maize", methods=["bo"], scenes=0, store=str(tmp_path))
+    # a deployment's run (no run_benchmark) maps its seeds over a bounded pool of processes,
+    # not Prefect's default thread pool that starts every seed at once
+    assert isinstance(benchmark.task_runner, LocalProcessPool)
 
 
 def test_pooled_row_cameras_outside_the_reconstruction_are_left_out(base_run, scene_dir):

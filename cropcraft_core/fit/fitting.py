@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -302,6 +302,31 @@ def make_objective(
     return objective
 
 
+class SeedObjective(NamedTuple):
+    """What one seed optimises: ``objective(x, eval_index)``, the ``box`` it searches and the
+    ``forward`` model behind it (its timings)."""
+
+    objective: Callable[[np.ndarray, int], float]
+    box: ParamBox
+    forward: ForwardModel
+
+
+def seed_objective(
+    observation: Observation,
+    seed: int,
+    config: FitConfig,
+    layout: CanopyLayout | None = None,
+) -> SeedObjective:
+    """Seed ``seed``'s objective under ``config`` (its loss estimator, canopies per evaluation,
+    common random numbers): what :func:`fit_seed` optimises, and what a benchmark gives another
+    optimiser to compare on the same objective."""
+    forward = ForwardModel(observation, layout, config.loss_estimator)
+    box = config.param_box(observation.crop)
+    canopies = config.canopies(observation.crop)
+    objective = make_objective(forward, seed, config.common_random_numbers, canopies, box)
+    return SeedObjective(objective, box, forward)
+
+
 def seed_identity(
     observation: Observation,
     config: FitConfig,
@@ -354,11 +379,7 @@ def fit_seed(
     cfg = (config or FitConfig()).validate()
     if cfg.method == "mlp":
         raise ConfigError("the mlp method predicts directly: use cropcraft_core.fit.mlp")
-    forward = ForwardModel(observation, layout, cfg.loss_estimator)
-    box = cfg.param_box(observation.crop)
-    objective = make_objective(
-        forward, seed, cfg.common_random_numbers, cfg.canopies(observation.crop), box
-    )
+    objective, box, forward = seed_objective(observation, seed, cfg, layout)
     b = box.bounds
     # a checkpoint of another observation, config, box or layout is refused, not resumed
     run_id = seed_identity(observation, cfg, box, layout) if checkpoint is not None else None

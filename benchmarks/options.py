@@ -1,0 +1,90 @@
+"""Command-line values the benchmarks share, checked when the command line is read: a bad
+``--scenes``, ``--budget`` or ``--json`` stops the run before any work with argparse's one-line
+message (exit status 2), not after an hour of fitting with a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+def at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: a whole number >= ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"{v} is below {low}")
+        return v
+
+    parse.__name__ = f"whole number >= {low}"
+    return parse
+
+
+def positive(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number > 0")
+    return v
+
+
+def seeds_by_evals(text: str) -> str:
+    """An argparse type: ``SEEDSxEVALS`` (e.g. ``10x500``), at least 1 seed of 5 evaluations
+    (a fit's random start takes 2/5 of them, at least 5); returned as written, lower case."""
+    parts = text.lower().split("x")
+    try:
+        seeds, evals = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not SEEDSxEVALS, e.g. 10x500") from None
+    if seeds < 1 or evals < 5:
+        raise argparse.ArgumentTypeError(f"{text!r}: need at least 1 seed of 5 evaluations")
+    return text.lower()
+
+
+def output_file(text: str) -> str:
+    """An argparse type: a file that can be written once the run ends (its folder exists and
+    is writable, and it is no folder itself)."""
+    p = Path(text)
+    folder = p.parent
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder")
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: folder {folder} is not writable")
+    return text
+
+
+def _json_safe(x: Any) -> Any:
+    """``x`` with every non-finite number as None (JSON has no NaN) and numpy values as
+    Python's."""
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    if hasattr(x, "tolist") and not isinstance(x, str):  # numpy arrays and scalars
+        return _json_safe(x.tolist())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """``data`` as strict JSON (NaN and infinities written as null) to ``path``, atomically."""
+    from cropcraft_core.export.atomic import atomic_write_text
+
+    text = json.dumps(_json_safe(data), indent=2, default=float, allow_nan=False) + "\n"
+    return atomic_write_text(path, text)

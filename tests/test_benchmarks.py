@@ -1,0 +1,97 @@
+"""The benchmarks' command lines: bad values stop a run before any work, results are strict
+JSON, and comparisons run every arm on the same objective."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks.options import at_least, output_file, positive, seeds_by_evals, write_json
+from flows.cli import main
+
+
+def test_option_types_name_the_bad_value(tmp_path):
+    import argparse
+
+    assert at_least(1)("3") == 3
+    assert seeds_by_evals("10X500") == "10x500"
+    assert positive("0.25") == 0.25
+    assert output_file(str(tmp_path / "x.json")) == str(tmp_path / "x.json")
+    for parse, text, match in (
+        (at_least(1), "0", "0 is below 1"),
+        (at_least(0), "abc", "not a whole number"),
+        (positive, "0", "not a finite number > 0"),
+        (positive, "nan", "not a finite number > 0"),
+        (seeds_by_evals, "10", "not SEEDSxEVALS"),
+        (seeds_by_evals, "0x500", "at least 1 seed of 5 evaluations"),
+        (output_file, str(tmp_path / "missing" / "x.json"), "does not exist"),
+        (output_file, str(tmp_path), "is a folder"),
+    ):
+        with pytest.raises(argparse.ArgumentTypeError, match=match):
+            parse(text)
+
+
+def test_json_results_are_strict_json(tmp_path):
+    """NaN (a per-iteration time a short run has not reached, an empty view's score) is
+    written as null: Python's json.dump would write NaN, which strict parsers refuse."""
+    p = write_json(tmp_path / "r.json", {"a": math.nan, "b": [np.float64(1.5), np.inf], "c": 2})
+
+    def refuse(c):
+        raise ValueError(c)
+
+    assert json.loads(p.read_text(), parse_constant=refuse) == {"a": None, "b": [1.5, None], "c": 2}
+    assert [q.name for q in tmp_path.iterdir()] == ["r.json"]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["accuracy", "--crop", "soybean", "--scenes", "0"], "argument --scenes: 0 is below 1"),
+        (["accuracy", "--crop", "soybean", "--image-scale", "0"], "argument --image-scale"),
+        (["accuracy", "--crop", "soybean", "--json", "/nonexistent/x.json"], "does not exist"),
+        (["accuracy", "--crop", "soybean", "--seeds", "0"], "argument --seeds: 0 is below 1"),
+        (["rows", "--crop", "soybean", "--budget", "10"], "not SEEDSxEVALS"),
+        (["rows", "--crop", "soybean", "--scenes", "-1"], "argument --scenes"),
+        (["optimizer", "--methods", "random,foo"], "unknown method(s) foo"),
+        (["optimizer", "--n", "10", "--n-initial", "20"], "--n-initial 20 exceeds --n 10"),
+        (["pipeline", "--fit", "10"], "not SEEDSxEVALS"),
+        (["fit-speed", "--initial", "30", "--evals", "20"], "--initial 30 exceeds --evals 20"),
+    ],
+)
+def test_bad_benchmark_options_stop_before_any_work(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["bench", *argv])
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_accuracy_with_a_runner_refuses_the_options_it_cannot_honour(capsys):
+    for extra in (["--checkpoint-dir", "x"], ["--crn-ablation"]):
+        with pytest.raises(SystemExit, match="not available with --runner"):
+            main(["bench", "accuracy", "--crop", "soybean", "--runner", "threads", *extra])
+
+
+def test_fit_speed_compares_skopt_on_the_objective_fit_seed_optimises(monkeypatch):
+    """(b)'s scikit-optimize arm gets fit_seed's own objective (soybean: two canopies an
+    evaluation, the same box), so the best losses compare like for like."""
+    import benchmarks.bench_fit_speed as fs
+    import cropcraft_core.optimize.skopt_reference as ref
+    from cropcraft_core.fit import FitConfig
+    from cropcraft_core.fit.fitting import seed_objective
+
+    got = {}
+    keep = ref.run_skopt
+
+    def spy(objective, bounds, **kw):
+        got["r"], got["bounds"] = keep(objective, bounds, **kw), np.asarray(bounds)
+        return got["r"]
+
+    monkeypatch.setattr(ref, "run_skopt", spy)
+    method, row = fs._compare_one(("skopt", 1, 7, 6))
+    assert method == "skopt" and math.isfinite(row["best"])
+    obj, box, _ = seed_objective(fs._observation(), 1, FitConfig(n_evals=7, n_initial=6))
+    np.testing.assert_array_equal(got["bounds"], box.bounds)
+    assert [obj(x, i) for i, x in enumerate(got["r"].X)] == got["r"].y.tolist()
