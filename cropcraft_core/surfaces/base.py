@@ -172,6 +172,11 @@ class SurfacesConfig:
     observation's depth-histogram L1 against the true mesh fell from 0.15 and 0.20 (0.5, with a
     4-voxel truncation) to 0.09 and 0.12 (0.75 with 3 voxels), for ~1.4× the stereo time; the
     matching window covers less of the leaf edges, so leaves fatten less."""
+    mvs_max_side: int | None = 1024
+    """tsdf: the longest side a photo is matched at, in pixels (its scale then below
+    ``mvs_scale``). Stereo's cost volumes are ~3 x 4 bytes x ``n_depths`` a pixel: a phone's
+    4000 x 3000 photo at 0.75 would take ~10 GiB a view; at 1024 x 768, 1.2 GiB. 640 x 480 photos
+    (480 x 360 at 0.75) are not affected. None: no limit."""
     n_depths: int = 128
     """tsdf: depth hypotheses per view, uniform in inverse depth."""
     window: int = 5
@@ -327,6 +332,10 @@ class SurfacesConfig:
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
                 null = " or null" if optional else ""
                 raise ConfigError(f"surfaces {name} must be a positive number{null}, got {v!r}")
+        if self.mvs_max_side is not None and self.mvs_max_side < 32:
+            raise ConfigError(
+                f"surfaces mvs_max_side must be at least 32 pixels or null, got {self.mvs_max_side}"
+            )
         if not 2 <= int(self.neighbours) <= 8:
             raise ConfigError(f"surfaces neighbours must be in [2, 8], got {self.neighbours}")
         if int(self.n_depths) < 8:
