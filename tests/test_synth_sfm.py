@@ -521,3 +521,34 @@ def test_sfm_errors(tmp_path):
         with pytest.raises(InputError, match="sift_peak_threshold must be positive"):
             run_sfm(d, kept, sift_peak_threshold=bad)
     assert (kept / "database.db").read_bytes() == b"an earlier run's"  # checked before any work
+
+
+def test_a_scene_made_again_in_its_folder_replaces_the_earlier_one(tmp_path):
+    """Three views after five in the same folder: the folder holds the second scene alone
+    (the first one's view_003/004 stayed beside it, and without metrics its truth)."""
+    kw = dict(resolution=(64, 48), shadows=False, walk_arc_deg=40, supersample=1)
+    make_scene("soybean", tmp_path, seed=1, views=5, metrics=True, **kw)
+    (tmp_path / "notes.txt").write_text("mine")
+    make_scene("soybean", tmp_path, seed=2, views=3, metrics=False, **kw)
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [
+        f"view_{i:03d}.jpg" for i in range(3)
+    ]
+    assert len(list((tmp_path / "depth").iterdir())) == 3
+    assert not (tmp_path / "truth" / "metrics.json").exists()  # seed 1's truth is gone
+    assert json.loads((tmp_path / "truth" / "params.json").read_text())["seed"] == 2
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # not a scene's file: left alone
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"supersample": 1.5}, "supersample must be a whole number"),
+        ({"resolution": (float("nan"), 48)}, "resolution must be two whole numbers"),
+        ({"views": 2.7}, "whole number of views"),
+        ({"vfov_deg": 120.0}, "vfov_deg 120.0 at 64x48 sees above the horizon"),
+    ],
+)
+def test_make_scene_names_a_bad_setting(tmp_path, bad, match):
+    kw = dict(resolution=(64, 48), shadows=False, walk_arc_deg=40, supersample=1, views=2)
+    with pytest.raises(CropCraftError, match=match):
+        make_scene("soybean", tmp_path, metrics=False, **{**kw, **bad})

@@ -596,6 +596,33 @@ def _write_json(path: Path, obj: object) -> None:
     os.replace(tmp, path)
 
 
+def _whole(v: object) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+#: What a scene of ``make_scene`` consists of in its folder (each removed before a new one).
+SCENE_FILES = (
+    "images/view_*.jpg",
+    "images/view_*.png",
+    "depth/view_*.npy",
+    "colmap/sparse/0/*.txt",
+    "truth/params.json",
+    "truth/metrics.json",
+    "truth/canopy.ply",
+    "transforms.json",
+    "scene.json",
+)
+
+
+def _clear_scene(out: Path) -> None:
+    """Remove an earlier scene's files (``SCENE_FILES``) from ``out``: a scene of fewer views
+    kept the earlier one's last photos beside its own, and one without metrics its truth;
+    files of other names are left alone."""
+    for pattern in SCENE_FILES:
+        for p in out.glob(pattern):
+            p.unlink()
+
+
 def make_scene(
     crop: str,
     out_dir: str | os.PathLike,
@@ -635,25 +662,31 @@ def make_scene(
       truth/canopy.ply             mesh of the plot's plants (labelled faces)
       scene.json                   crop, seed, layout, trajectory, resolution, sun, world frame
     The canopy rendered covers every plant any view sees (the plot plus a border); the truth files
-    describe the plot (the same plants, by the canopy's per-plant random streams).
+    describe the plot (the same plants, by the canopy's per-plant random streams). A scene
+    already in ``out_dir`` is replaced: its files (``SCENE_FILES``) are removed first.
     """
     t_start = time.perf_counter()
     crop = check_crop(crop)
     if trajectory not in TRAJECTORIES:
         raise ConfigError(f"unknown trajectory {trajectory!r}: choose {' or '.join(TRAJECTORIES)}")
-    if int(views) < 2:
-        raise ConfigError(f"a scene needs at least 2 views, got {views}")
+    if not _whole(views) or views < 2:
+        raise ConfigError(f"a scene needs a whole number of views, at least 2, got {views!r}")
+    if len(resolution) != 2 or not all(_whole(v) for v in resolution):
+        raise ConfigError(f"resolution must be two whole numbers (width, height), got {resolution}")
     w, h = (int(v) for v in resolution)
     if w < 16 or h < 16:
         raise ConfigError(f"resolution {w}×{h} is too small")
     if image_format not in ("jpg", "png"):
         raise ConfigError(f"image format must be jpg or png, got {image_format!r}")
-    if supersample < 1:
-        raise ConfigError(f"supersample must be ≥ 1, got {supersample}")
+    if not _whole(supersample) or supersample < 1:
+        raise ConfigError(f"supersample must be a whole number ≥ 1, got {supersample!r}")
+    if not (isinstance(vfov_deg, int | float) and 1.0 <= vfov_deg <= 120.0):
+        raise ConfigError(f"vfov_deg must be a number of degrees in [1, 120], got {vfov_deg!r}")
     params = resolve_params(crop, params)
     layout = layout or default_layout(crop)
     out = Path(out_dir)
     try:
+        _clear_scene(out)
         for sub in ("images", "depth", "colmap/sparse/0", "truth"):
             (out / sub).mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -673,7 +706,13 @@ def make_scene(
         cams = walk_trajectory(layout, int(views), rng_traj, top, (w, h), vfov_deg, walk_arc_deg)
     else:
         cams = drone_trajectory(layout, int(views), rng_traj, top, (w, h), vfov_deg)
-    region = views_region(cams, layout, max_reach(crop, params))
+    try:
+        region = views_region(cams, layout, max_reach(crop, params))
+    except ConfigError as e:  # a view with sky in a corner: the scene renders the ground only
+        raise ConfigError(
+            f"{e}: a {trajectory} view with vfov_deg {vfov_deg} at {w}x{h} sees above the horizon "
+            "(narrow the field of view)"
+        ) from None
     canopy = generate_canopy(crop, params, layout, seed=seed, region=region)
     mesh = canopy.mesh
     t_gen = time.perf_counter() - t_start
