@@ -81,7 +81,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: TSDF truncation 3.5 voxels by default (3 thinned the leaves of SfM reconstructions)
     # 3: photos are undistorted into their pinhole cameras first (SfM's SIMPLE_RADIAL k and
     # imported lenses were dropped)
-    "surfaces": 3,
+    # 4: TSDF fusion without the half-pixel shift, its blocks from every depth (not every
+    # fourth pixel); stereo at most 1024 px a side (mvs_max_side)
+    "surfaces": 4,
     # 2: the best row's direction from the lateral profile's period, not its raw sharpness
     # (which the TSDF's voxel lattice pulled to the scene axes, 6.2° off on one reconstruction)
     # 3: ... and the camera clears the colour band too (soybean 0.25 m), in which the
