@@ -181,6 +181,15 @@ def process_season(
         )
     dates = pending_dates(st, site, crop)
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
+    if not dates and not misnamed and not st.list_dates(site, crop):
+        # a worker without CROPCRAFT_STORE reads its own ./cropcraft-data: nothing, every night
+        log.warning(
+            "%s/%s has no dated scene in the store %s: is it the store the photos are uploaded "
+            "to (CROPCRAFT_STORE on the worker, or the flow's store parameter)?",
+            site,
+            crop,
+            st.url(""),
+        )
     scenes: dict[str, str] = {}
     failed = []
     sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
