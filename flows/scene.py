@@ -32,7 +32,7 @@ from typing import Any, Literal
 from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
-from cropcraft_core.store import SceneKey, SceneStore, config_hash
+from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
 from tasks.common import fingerprint, get_task, stage_key
 
@@ -360,6 +360,18 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     return cfg
 
 
+def _layout_given(layout: Mapping[str, Any], crop: str | None) -> dict[str, Any]:
+    """The layout settings that differ from the crop's default layout: one written out at its
+    default value (``layout.row_spacing=0.76`` for soybean) is the same layout, keyed as if
+    not given, not a refit of every stage that builds canopies."""
+    if crop is None:
+        return dict(layout)
+    from cropcraft_core.config import default_layout
+
+    default = default_layout(crop)
+    return {k: v for k, v in layout.items() if getattr(default, k, object()) != v}
+
+
 def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, dict[str, Any]]:
     """The config each task sees (and its cache key hashes): its own section, plus the planting
     layout for the stages that build canopies. With ``crop``, the fit settings left to the
@@ -371,7 +383,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     (``SCENE_BOX``). (nerfacto's defaults are written out by :func:`resolve_config`.)"""
     from cropcraft_core.fit.fitting import AGGREGATE_ONLY, FitConfig
 
-    layout = {"layout": dict(cfg["layout"])}
+    layout = {"layout": _layout_given(cfg["layout"], crop)}
     fit = dict(cfg["fit"])
     if not fit.get("box"):  # the whole box hashes as before the setting existed
         fit.pop("box", None)
@@ -518,6 +530,28 @@ def read_known(images_uri: str, crop: str) -> dict[str, Any]:
     return known
 
 
+def known_input(known: Mapping[str, Any]) -> dict[str, str]:
+    """The field notes (:data:`KNOWN_FILE`) as a request's input fingerprint: the manifest
+    keeps it, so that the season sees notes added or changed after a date's run."""
+    return {KNOWN_FILE: config_hash(dict(known))}
+
+
+def note_sources(req: SceneRequest, images: str | None, poses: str | None) -> None:
+    """Record where a run answered wholly from the cache read its inputs (the manifest's
+    ``sources``), as a flow run does: the season judges a date's inbox by them. Only where
+    the manifest holds this request's inputs and settings (then its stage records stand)."""
+    st = SceneStore(req.store_root)
+    try:
+        m = st.load_manifest(req.scene)
+    except InputError:
+        return
+    inputs = manifest_inputs(req.inputs)
+    sources = {"images": _located(images), "poses": _located(poses)}
+    if m.sources == sources or m.inputs != inputs or m.config_hash != config_hash(req.config):
+        return
+    st.init_manifest(req.scene, inputs, req.config, sources=sources)
+
+
 def prepare(
     site: str,
     crop: str,
@@ -546,6 +580,7 @@ def prepare(
     if known:
         notes = {f"fit.box.{k}": v for k, v in known.items()}
         cfg = resolve_config(crop, {**notes, **dict(overrides or {})})
+        inputs["known"] = known_input(known)
     poses_uri = poses if poses is not None else (None if images else default_poses_uri(st, scene))
     if poses_uri:
         inputs["poses"] = fingerprint(str(poses_uri), what="poses")
@@ -593,6 +628,33 @@ def result_storage(store_root: str) -> Any:
 
 class _Miss(Exception):
     """A stage has no cached result (cache walk only)."""
+
+
+def _frame(poses: Mapping[str, Any]) -> dict[str, str]:
+    """The poses' frame as the row fit reads it from their record's summary (``metric``, the
+    scale's source, the camera height), as an input of its key: poses.json's bytes do not show
+    it (a camera height equal to the prior levels the poses alike, yet makes the scale the
+    hint's instead of the rows'), so the row fit of the earlier frame was served."""
+    s = poses.get("summary") or {}
+    return {"frame": _digest({"metric": s.get("metric"), "frame": s.get("frame")})}
+
+
+def _digest(record: Any) -> str:
+    """sha256 of a stage record's part (a summary may hold NaN, e.g. no up disagreement)."""
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"), default=str)
+    return sha256_bytes(text.encode())
+
+
+def _summaries(upstream: Mapping[str, Any]) -> dict[str, str]:
+    """The upstream records' summaries, as an input of the report's key: the report prints
+    them (registered photos, scale source, the consistency warning), and a summary can change
+    while its stage's artefacts keep their bytes (``consistency.warn``: the page kept the old
+    warning)."""
+    return {
+        "summaries": _digest(
+            {k: rec.get("summary") for k, rec in upstream.items() if isinstance(rec, Mapping)}
+        )
+    }
 
 
 def _flatten(upstream: Mapping[str, Any]) -> dict[str, str]:
@@ -926,7 +988,9 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
         up["inputs"] = req.inputs["poses"]
     r["poses"] = ex.run("poses", up, poses_uri=req.poses)
     r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
-    r["rowfit"] = ex.run("rowfit", {"surfaces": r["surfaces"], "poses": r["poses"]})
+    r["rowfit"] = ex.run(
+        "rowfit", {"surfaces": r["surfaces"], "poses": r["poses"], "frame": _frame(r["poses"])}
+    )
     r["consistency"] = ex.run(
         "consistency",
         {k: r[k] for k in ("ingest", "poses", "surfaces", "rowfit")},
@@ -960,7 +1024,7 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
         "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": answer}
     )
     up = {k: r[k] for k in r if k != "fit_seed"} | {"aggregate": answer} | dict(seed_recs)
-    r["report"] = ex.run("report", up)
+    r["report"] = ex.run("report", up | {"summaries": _summaries(up)})
     r["fit_seeds"] = seed_recs
     return r
 

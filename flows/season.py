@@ -27,21 +27,31 @@ def pending_dates(store: SceneStore, site: str, crop: str) -> list[str]:
 
 
 def _inbox_changed(store: SceneStore, found: DiscoveredScene) -> bool:
-    """Whether the scene's inbox (photos, ``transforms.json``) differs from the inputs its
-    manifest recorded; False for a scene last run from photos kept elsewhere (``cropcraft run
-    --images URI``), whose inbox that run did not read."""
-    from flows.scene import default_images_uri, default_poses_uri, manifest_inputs
+    """Whether the scene's inbox (photos, ``transforms.json``, ``known.json``) differs from the
+    inputs its manifest recorded; False for a scene last run from photos kept elsewhere
+    (``cropcraft run --images URI``), whose inbox that run did not read."""
+    from flows.scene import (
+        default_images_uri,
+        default_poses_uri,
+        known_input,
+        manifest_inputs,
+        read_known,
+    )
     from tasks.common import fingerprint
 
     if found.sources.get("images") is not None:
         return False
     scene = found.scene
     try:
-        now = {"images": fingerprint(default_images_uri(store, scene), what="images")}
+        inbox = default_images_uri(store, scene)
+        now = {"images": fingerprint(inbox, what="images")}
         poses = default_poses_uri(store, scene)
         if poses:
             now["poses"] = fingerprint(poses, what="poses")
-    except CropCraftError:  # the inbox holds no photos now: the run will say so
+        known = read_known(inbox, scene.crop)  # field notes added or changed since
+        if known:
+            now["known"] = known_input(known)
+    except CropCraftError:  # no photos now, or bad notes: the run will say so
         return True
     return manifest_inputs(now) != found.inputs
 

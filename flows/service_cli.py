@@ -418,7 +418,7 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """``cropcraft run SITE/CROP/DATE [--images URI] [--poses URI]``."""
-    from flows.scene import cached_result, prepare, run_scene
+    from flows.scene import cached_result, note_sources, prepare, run_scene
 
     scene = _parse_scene(args.scene)
     overrides = overrides_of(args)
@@ -427,6 +427,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     hit = None if args.force else cached_result(req)
     if hit is not None:
+        note_sources(req, args.images, args.poses)
         _print_summary(hit)
         return 0
     _quiet_prefect()
@@ -615,7 +616,7 @@ def _seed_range(trait: Mapping[str, Any] | None) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     """``cropcraft demo``: the built-in synthetic soybean scene through the whole scene flow."""
     from cropcraft_core.store import SceneStore
-    from flows.scene import cached_result, prepare, run_scene
+    from flows.scene import cached_result, note_sources, prepare, run_scene
 
     t0 = time.perf_counter()
     site, crop, date = DEMO_SCENE
@@ -624,7 +625,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ensure_demo_inputs(store)
     req = prepare(site, crop, date, None, None, overrides, args.store)
     out = cached_result(req)
-    if out is None:
+    if out is not None:
+        note_sources(req, None, None)
+    else:
         _quiet_prefect()
         with run_progress(not args.no_progress):
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)

@@ -148,6 +148,12 @@ def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, s
     return out
 
 
+#: Settings a stage's task reads that do not change its result, keyed at one value: a fit
+#: seed's count of fellow seeds only sizes its threads (seed 3 of 12 is seed 3 of 10), so a fit
+#: raised from 10 to 12 seeds fits two more, not twelve (10: keys as before this existed).
+KEYED_AS: dict[str, dict[str, Any]] = {"fit_seed": {"n_seeds": 10}}
+
+
 def stage_key(
     stage: str,
     scene: str,
@@ -163,6 +169,8 @@ def stage_key(
     if stage not in STAGE_VERSIONS:
         raise ConfigError(f"unknown stage {stage!r}: one of {', '.join(STAGES)}")
     SceneKey.parse(scene)  # validates
+    if isinstance(config, Mapping) and stage in KEYED_AS:
+        config = {**config, **{k: v for k, v in KEYED_AS[stage].items() if k in config}}
     identity = {
         "stage": stage,
         "version": STAGE_VERSIONS[stage],

@@ -293,6 +293,12 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     assert store.isfile(f"plotS/{CROP}/season/summary.png")
     assert store.isfile(f"plotS/{CROP}/{good}/export/bundle/canopy.helios.xml")
     assert pending_dates(store, "plotS", CROP) == [bad]
+    # field notes added after the night (known.json): the date is refitted with them
+    notes = f"plotS/{CROP}/{good}/images/known.json"
+    store.put_bytes(notes, b'{"num_nodes": 9}')
+    assert pending_dates(store, "plotS", CROP) == [good, bad]
+    store.delete(notes)
+    assert pending_dates(store, "plotS", CROP) == [bad]
     # a photo uploaded after the night that finished the date: the date is pending again
     late = photos[0].with_name("late_" + photos[0].name)
     store.put_bytes(f"plotS/{CROP}/{good}/images/{late.name}", photos[0].read_bytes())
@@ -346,6 +352,24 @@ def test_unchanged_scene_answered_without_prefect(base_run, scene_dir):
     assert hit is not None and time.perf_counter() - t < 10
     assert hit["params"] == base_run["first"]["params"]
     assert _cached(base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 99}) is None
+
+
+def test_a_cached_answer_records_where_its_inputs_were_read(base_run, scene_dir, tmp_path):
+    """A run answered wholly from the cache updates the manifest's sources as a flow run does
+    (the season judges a date's inbox by them), keeping its stage records."""
+    from flows.scene import note_sources, prepare
+
+    store = tmp_path / "store"
+    shutil.copytree(base_run["store"], store)
+    images, poses = str(scene_dir / "images"), str(scene_dir / "transforms.json")
+    req = prepare("plotA", CROP, DATE, images, poses, OVERRIDES, str(store))
+    st = SceneStore(str(store))
+    before = st.load_manifest(req.scene)
+    st.init_manifest(req.scene, before.inputs, req.config, sources={"images": "/elsewhere"})
+    note_sources(req, images, poses)
+    after = st.load_manifest(req.scene)
+    assert after.sources == {"images": os.path.abspath(images), "poses": os.path.abspath(poses)}
+    assert after.stages == before.stages and after.stages
 
 
 def test_late_config_change_recomputes_from_that_stage_on(base_run, scene_dir):
@@ -521,6 +545,73 @@ def test_only_the_floors_rule_keys_the_seeds_by_their_polish():
     assert (
         configs({"fit.combine": "floors", "fit.polish_evals": 30})["fit_seed"] != floors["fit_seed"]
     )
+
+
+def test_settings_that_change_no_result_keep_the_stages_cached():
+    """A layout setting written out at the crop's default is the same layout (it refitted every
+    canopy stage); a fit's seed count does not change seed k (10 -> 12 seeds fitted all twelve
+    again), while the aggregate, which combines them, is keyed by it."""
+    from flows.scene import resolve_config, stage_configs
+    from tasks.common import stage_key
+
+    def configs(overrides):
+        return stage_configs(resolve_config(CROP, overrides), CROP)
+
+    default = configs({})
+    assert configs({"layout.row_spacing": 0.76}) == default
+    assert configs({"layout.row_spacing": 0.5})["fit_seed"] != default["fit_seed"]
+    scene = f"plotA/{CROP}/{DATE}"
+    up = {"observe": {"hashes": {"a": "1"}}}
+
+    def key(stage, overrides, **extra):
+        return stage_key(stage, scene, configs(overrides)[stage], up, extra)
+
+    assert key("fit_seed", {"fit.n_seeds": 12}, seed=3) == key("fit_seed", {}, seed=3)
+    assert key("fit_seed", {"fit.n_evals": 400}, seed=3) != key("fit_seed", {}, seed=3)
+    assert key("aggregate", {"fit.n_seeds": 12}) != key("aggregate", {})
+
+
+def test_the_row_fit_and_the_report_are_keyed_by_the_summaries_they_read(scene_dir, tmp_path):
+    """The row fit reads the poses' frame (metric? the scale's source, the camera height) from
+    their record's summary, and the report prints the stages' summaries: a camera height equal
+    to the prior levels the poses to the same bytes, and consistency.warn changes only the
+    consistency summary, so both were served from the earlier run."""
+    from flows.scene import _wire, prepare
+    from tasks.common import upstream_hashes
+
+    class Recorder:
+        """Every stage's upstream, with records whose summaries a test sets."""
+
+        def __init__(self, summaries):
+            self.up, self.summaries = {}, summaries
+
+        def _rec(self, stage):
+            return {"hashes": {stage: "h"}, "summary": self.summaries.get(stage, {})}
+
+        def run(self, stage, upstream, row=None, **_):
+            self.up[stage] = upstream
+            return self._rec(stage)
+
+        def run_rows(self, stage, jobs):
+            return {row: self.run(stage, up, row) for row, up in jobs.items()}
+
+        def map_seeds(self, jobs, seeds):
+            return {row: {f"seed-{s}": self._rec("fit_seed") for s in seeds} for row in jobs}
+
+    req = prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, OVERRIDES, str(tmp_path))
+    hinted = {"metric": True, "frame": {"scale_source": "camera_height", "camera_height_m": 1.4}}
+    prior = {"metric": False, "frame": {"scale_source": "prior", "camera_height_m": 1.4}}
+    a, b = Recorder({"poses": prior}), Recorder({"poses": hinted})
+    _wire(a, req), _wire(b, req)
+
+    def keyed(rec, stage):  # what of its upstream a stage's cache key holds
+        return upstream_hashes(rec.up[stage])
+
+    assert keyed(a, "rowfit") != keyed(b, "rowfit")
+    assert keyed(a, "surfaces") == keyed(b, "surfaces")  # the same poses.json: the same surfaces
+    c = Recorder({"poses": prior, "consistency": {"warning": "no surface under 39 %"}})
+    _wire(c, req)
+    assert keyed(c, "rowfit") == keyed(a, "rowfit") and keyed(c, "report") != keyed(a, "report")
 
 
 def test_the_flows_embedded_defaults_are_the_core_configs_own():
