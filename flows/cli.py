@@ -214,6 +214,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
             preset_overrides=preset_overrides,
         )
     _print_summary(args.out, metrics)
+    if args.method != "poisson":
+        from cropcraft_core.fit.geometry import geometry_warnings
+
+        record = json.loads((Path(args.out) / "fit.json").read_text())
+        for warning in geometry_warnings(record["observation"]):
+            print(f"WARNING  {warning}", file=sys.stderr)
     if n:
         table = json.loads((Path(args.out) / "rows.json").read_text())
         cells = "  ".join(f"{r['index']:+d}: {r['traits']['lai']:.3g}" for r in table["rows"])

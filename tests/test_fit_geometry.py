@@ -41,8 +41,8 @@ def test_young_bare_canopy_gets_a_ground(tmp_path):
     write_ply(tmp_path / "young.ply", c.mesh)
     geo = load_geometry(tmp_path / "young.ply", n_points=20_000)
     assert "ground" in geo.meta and geo.meta["colours"] == "by height"
-    # a grid of 30 % as many points at the mesh's lowest z, spanning its footprint
-    z0 = geo.points[:20_000, 2].min()
+    # a grid of 30 % as many points at the mesh's lowest points' z, spanning its footprint
+    z0 = np.percentile(geo.points[:20_000, 2], 0.1)
     grid = geo.points[20_000:]
     assert len(grid) == 6_000 and np.all(grid[:, 2] == z0)
     footprint = np.ptp(c.mesh.vertices[:, :2], axis=0)
@@ -101,14 +101,84 @@ def test_bad_geometry_is_named(tmp_path):
     pts = np.random.default_rng(0).uniform(0, 1, (500, 3))
     with pytest.raises(InputError, match="few.ply: only 50 points; a point cloud needs at least"):
         load_geometry(_write_points(tmp_path / "few.ply", pts[:50]))
+    # a cloud's non-finite points (an organised scan's empty returns) are dropped, counted
     nan = pts.copy()
     nan[7, 2] = np.nan
-    with pytest.raises(InputError, match="nan.ply: geometry has non-finite coordinates"):
-        load_geometry(_write_points(tmp_path / "nan.ply", nan))
-    # a surface file with a face element but no faces (the surfaces stage's own writer)
+    geo = load_geometry(_write_points(tmp_path / "nan.ply", nan))
+    assert geo.meta["dropped_non_finite"] == 1 and np.isfinite(geo.points).all()
+    # a face element of no faces (MeshLab's point clouds, the surfaces stage's own writer):
+    # its vertices are a point cloud, in their own colours
     empty = write_colored_ply(tmp_path / "empty.ply", pts, np.zeros((0, 3), np.int32), pts)
-    with pytest.raises(InputError, match="empty.ply: mesh has no faces"):
-        load_geometry(empty)
+    geo = load_geometry(empty)
+    assert geo.meta["kind"] == "points" and "colours" not in geo.meta
+
+
+def test_a_point_cloud_in_grey_is_coloured_by_height_and_its_ground_is_robust(tmp_path):
+    """Grey or black colours (a scanner's intensity, zeros for none) are no colours; an
+    uncoloured cloud's ground grid lies at its lowest points, not at one stray return."""
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(0, 1, (5000, 2)), rng.uniform(0.0, 0.5, 5000)])
+    pts[0, 2] = -0.4  # one return under the soil
+    head = (
+        f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\nproperty double x\n"
+        "property double y\nproperty double z\nproperty uchar red\nproperty uchar green\n"
+        "property uchar blue\nend_header\n"
+    )
+    body = "".join(f"{x} {y} {z} 128 128 128\n" for x, y, z in pts)
+    (tmp_path / "grey.ply").write_text(head + body)
+    geo = load_geometry(tmp_path / "grey.ply")
+    assert geo.meta["colours"] == "by height" and "grey" in geo.meta["colours_ignored"]
+    ground = geo.points[len(pts) :, 2]
+    assert np.all(ground == ground[0]) and -0.01 < ground[0] < 0.01
+
+
+def test_georeferenced_coordinates_in_single_precision_are_refused(tmp_path):
+    """float32 resolves 0.25 m at 4,000 km: such a plot has lost its leaves (doubles are fine)."""
+    pts = np.random.default_rng(2).uniform(0, 1, (500, 3)) + [500_000.0, 4_000_000.0, 0.0]
+    head = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty float x\n"
+        "property float y\nproperty float z\nend_header\n"
+    )
+    (tmp_path / "utm.ply").write_bytes(head.encode() + pts.astype("<f4").tobytes())
+    with pytest.raises(InputError, match="utm.ply: coordinates stored as 32-bit floats reach"):
+        load_geometry(tmp_path / "utm.ply")
+    # as text (ASCII PLY), the digits are all there: read in double precision
+    assert len(load_geometry(_write_points(tmp_path / "utm.txt.ply", pts)).points) >= 500
+
+
+def test_a_cloud_in_feet_is_named_by_its_row_spacing(canopy_ply):
+    """The rows 3.28 times the layout's spacing apart: the fit says so (it fitted silently)."""
+    from cropcraft_core.fit.geometry import Geometry, geometry_warnings
+
+    geo = load_geometry(canopy_ply, n_points=100_000)
+    feet = Geometry(None, geo.points * 3.28084, geo.colors, dict(geo.meta, kind="points"))
+    obs, _ = observe_geometry(feet, "soybean")
+    said = geometry_warnings(obs.meta)
+    assert any("is the geometry in metres" in w for w in said), said
+    obs, _ = observe_geometry(geo, "soybean")
+    assert not any("metres" in w for w in geometry_warnings(obs.meta))
+    assert obs.meta["row_spacing_measured_m"] == pytest.approx(0.76, rel=0.15)
+
+
+def test_a_point_cloud_is_splatted_as_wide_as_its_points_lie_apart(canopy_ply):
+    """The same canopy as a sparse and a dense cloud covers about as much of the row view as
+    its mesh (a fixed 2 px splat: 6 % against 65 % for a 52k-point cloud)."""
+    from cropcraft_core.fit.geometry import Geometry
+
+    mesh_geo = load_geometry(canopy_ply, n_points=100_000)
+    obs_mesh, rowfit = observe_geometry(mesh_geo, "soybean")
+    canopy = read_ply(canopy_ply)
+    rng = np.random.default_rng(3)
+    covers = {}
+    for n in (30_000, 400_000):
+        pts = np.concatenate([sample_mesh(canopy, n, rng), mesh_geo.points[100_000:]])
+        cloud = Geometry(None, pts, None, {"kind": "points"})
+        cloud.colors = np.where((pts[:, 2] < 0.03)[:, None], SOIL_RGB, LEAF_RGB)
+        obs, _ = observe_geometry(cloud, "soybean")
+        covers[n] = float(obs.mask.mean())
+        assert ("warning" in obs.meta["splat"]) == (n == 30_000)
+    for cover in covers.values():
+        assert abs(cover - float(obs_mesh.mask.mean())) < 0.12, (covers, obs_mesh.mask.mean())
 
 
 def test_canopy_rows_and_camera(canopy_ply):
@@ -264,6 +334,26 @@ def test_cli_poisson_baseline(canopy_ply, tmp_path):
     )
     m = json.loads((out / "metrics.json").read_text())
     assert m["method"] == "poisson" and m["lai"] > 0
+
+
+def test_poisson_is_the_same_wherever_the_points_lie(canopy_ply, tmp_path):
+    """Open3D's Poisson about the points' centre: at UTM coordinates (in doubles) it kept
+    55k of 409k faces; an earlier fit's files in the folder are not left beside its own."""
+    from cropcraft_core.fit.geometry import poisson_baseline
+
+    geo = load_geometry(canopy_ply, n_points=60_000)
+    here = poisson_baseline(geo.points, "soybean", depth=7)
+    there = poisson_baseline(geo.points + [500_000.0, 4_000_000.0, 0.0], "soybean", depth=7)
+    assert abs(there.n_faces / here.n_faces - 1) < 0.02
+    assert abs(there.face_areas().sum() / here.face_areas().sum() - 1) < 0.02
+    out = tmp_path / "fit"
+    out.mkdir()
+    for name in ("params.json", "compare.png", "rows.json", "canopy.glb"):
+        (out / name).write_text("an earlier fit's")
+    (out / "notes.txt").write_text("mine")
+    argv = ["fit", "soybean", "--geometry", str(canopy_ply), "--out", str(out)]
+    assert main([*argv, "--method", "poisson"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["canopy.ply", "metrics.json", "notes.txt"]
 
 
 def test_splat_depth_of_a_plane():

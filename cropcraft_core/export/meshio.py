@@ -495,6 +495,11 @@ def _colors(vertex: dict, path: Path) -> np.ndarray | None:
     return None
 
 
+#: Largest coordinate a PLY may store as 32-bit floats (float32 resolves 8 mm at 100 km,
+#: 0.5 m at 4,000 km: a georeferenced plot in float32 has lost its leaves).
+FLOAT32_REACH_M = 100_000.0
+
+
 def read_geometry(path: PathLike) -> CanopyMesh | PointCloud:
     """Read a PLY file: a ``CanopyMesh`` if it has a face element, else a ``PointCloud``.
 
@@ -509,8 +514,22 @@ def read_geometry(path: PathLike) -> CanopyMesh | PointCloud:
         raise InputError(f"{p}: PLY file has no vertex element with x, y, z")
     if any(isinstance(vertex[k], list) for k in ("x", "y", "z")):
         raise InputError(f"{p}: PLY vertex coordinates must be scalar properties")
+    single = [k for k in ("x", "y", "z") if np.asarray(vertex[k]).dtype == np.float32]
     xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
+    if single:
+        reach = float(
+            np.nanmax(np.abs(xyz[:, [("x", "y", "z").index(k) for k in single]]), initial=0)
+        )
+        if reach > FLOAT32_REACH_M:
+            step = float(np.spacing(np.float32(reach)))
+            raise InputError(
+                f"{p}: coordinates stored as 32-bit floats reach {reach:,.0f}, where they "
+                f"resolve only {step:.3g} (a georeferenced survey?): write them as doubles, "
+                "or subtract an offset near the plot first"
+            )
     face = elements.get("face")
+    if face is not None and len(face.get("vertex_indices", face.get("vertex_index", [1]))) == 0:
+        face = None  # an empty face element (some scanners write one): a point cloud
     if face is None:
         normals = None
         if all(k in vertex for k in ("nx", "ny", "nz")):

@@ -24,6 +24,7 @@ from cropcraft_core.geometry import CanopyMesh, Organ, PinholeCamera
 from cropcraft_core.observe import (
     NO_SURFACE_WARN,
     Observation,
+    coverage_warning,
     observation_mask,
     observe_views,
     preset,
@@ -33,6 +34,10 @@ from cropcraft_core.render.raster import depth_map
 SOIL_RGB = np.array([0.45, 0.33, 0.22])
 LEAF_RGB = np.array([0.22, 0.50, 0.16])
 GROUND_BAND_M = 0.03
+#: Height percentile an uncoloured geometry's ground grid is laid at (its lowest points).
+GROUND_PERCENTILE = 0.1
+#: Colours whose channels differ by less than this everywhere (0-1) are grey: no colour.
+GREY_CHROMA = 0.02
 
 
 @dataclass
@@ -79,15 +84,26 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         mesh, pts = None, np.asarray(g.points, dtype=np.float64)
         cols = None if g.colors is None else np.asarray(g.colors, dtype=np.float64)
         meta["kind"] = "points"
+        finite = np.isfinite(pts).all(1)
+        if not finite.all():  # an organised scan's empty returns: not points of the canopy
+            meta["dropped_non_finite"] = int((~finite).sum())
+            pts = pts[finite]
+            cols = None if cols is None else cols[finite]
         if len(pts) < 100:
             raise InputError(f"{path}: only {len(pts)} points; a point cloud needs at least 100")
+        if cols is not None and float(np.ptp(cols, axis=1).max(initial=0.0)) < GREY_CHROMA:
+            # grey or black everywhere: a scanner's intensity, or zeros for no colour
+            meta["colours_ignored"] = "grey (no hue): read as no colours"
+            cols = None
     if not np.all(np.isfinite(pts)):
         raise InputError(f"{path}: geometry has non-finite coordinates")
     if cols is None:
         # No colours (a bare mesh, an uncoloured scan): colour by height, and since a metric
-        # z-up geometry stands on its lowest point, add a ground grid there for the plane fit
-        # (harmless where a scanned ground exists: it lies in the same plane).
-        ground_z = float(pts[:, 2].min())
+        # z-up geometry stands on its lowest points, add a ground grid there for the plane fit
+        # (harmless where a scanned ground exists: it lies in the same plane). Its level is
+        # the 0.1th percentile, not the minimum: one stray return below the soil moved the
+        # whole ground (0.4 m under: the canopy read 0.96 m tall for 0.58).
+        ground_z = float(np.percentile(pts[:, 2], GROUND_PERCENTILE))
         lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
         n_g = max(int(0.3 * len(pts)), 1000)
         grid = np.column_stack(
@@ -96,8 +112,43 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         pts = np.concatenate([pts, grid])
         cols = np.where((pts[:, 2] < ground_z + GROUND_BAND_M)[:, None], SOIL_RGB, LEAF_RGB)
         meta["colours"] = "by height"
-        meta["ground"] = f"ground grid added at the lowest point z = {ground_z:.3f} m"
+        meta["ground"] = f"ground grid added at the lowest points, z = {ground_z:.3f} m"
     return Geometry(mesh, pts, cols, meta)
+
+
+#: A splatted point's radius, in multiples of the distance to its nearest neighbour in pixels
+#: at its depth (:func:`splat_radius`). One soybean canopy's clouds of 52k, 520k and 5.2M
+#: points (6.6, 1.9 and 0.6 px apart) then cover 62 %, 61 % and 69 % of the row view, its mesh
+#: 65 %; a fixed 2 px radius covered 6 %, 37 % and 69 %, and the sparse cloud fitted a canopy
+#: of two nodes.
+SPLAT_SPACINGS = 1.8
+#: Points further apart than this in the row view (pixels) are a sparse cloud: it is splatted
+#: wide to close the gaps, which blurs the leaves, and the observation's meta says so.
+SPARSE_SPACING_PX = 3.0
+
+
+def splat_radius(points: np.ndarray, camera: PinholeCamera, seed: int = 0) -> tuple[int, float]:
+    """``(radius in pixels, median nearest-neighbour spacing in pixels)`` for splatting
+    ``points`` (world frame) into ``camera``: :data:`SPLAT_SPACINGS` times the points'
+    spacing where the camera sees them (a sample of 20,000 asked of every point in view)."""
+    from scipy.spatial import cKDTree
+
+    uv, z = camera.project(points)
+    ok = (
+        np.isfinite(uv).all(1)
+        & (z > 0)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 0] < camera.width)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] < camera.height)
+    )
+    seen, depth = points[ok], z[ok]
+    if len(seen) < 2:
+        return 2, float("nan")
+    pick = np.random.default_rng(seed).choice(len(seen), min(len(seen), 20_000), replace=False)
+    dist, _ = cKDTree(seen).query(seen[pick], k=2)
+    spacing = float(np.median(dist[:, 1] * camera.fx / depth[pick]))
+    return max(1, int(np.ceil(SPLAT_SPACINGS * spacing))), spacing
 
 
 def splat_depth(points: np.ndarray, camera: PinholeCamera, radius_px: int = 2) -> np.ndarray:
@@ -139,17 +190,58 @@ def observe_geometry(
     # the paper's scene boxes are in NeRF units; a metric geometry is used whole
     rp = rowfit_preset(crop, box_center=None, box_size=None, row_spacing=row_spacing)
     rowfit = fit_ground_and_rows(geo.points, geo.colors, crop, preset=rp, rng=seed)
-    return _observe(geo, rowfit, crop, rowfit.camera, preset_overrides, row_spacing), rowfit
+    from cropcraft_core.config import default_layout
+
+    spacing = _spacing_check(rowfit, row_spacing or default_layout(crop).row_spacing)
+    obs = _observe(geo, rowfit, crop, rowfit.camera, preset_overrides, row_spacing, **spacing)
+    return obs, rowfit
 
 
-def _depth(geo: Geometry, rowfit, cam: PinholeCamera) -> np.ndarray:
+#: A geometry's measured row spacing this far (relative) from the layout's is named: its units
+#: or the layout are off (a cloud in feet fitted silently to LAI 0.44 for 1.26).
+SPACING_TOLERANCE = 0.15
+
+
+def _spacing_check(rowfit, expected: float) -> dict:
+    """``{"row_spacing_measured_m": ..., "spacing_warning": ...}``: the rows' period near
+    ``expected`` (the row fit's own window, 0.6-1.6 times it); where none lies within
+    :data:`SPACING_TOLERANCE` of it, the period over a wide window (0.3-4 times), named when
+    that is off too. (The wide window alone picks a multiple of the true period on a small
+    plot: 2.29 m for rows 0.76 m apart.) {} where the rows show no period (one row)."""
+    from cropcraft_core.rowfit.fit import estimate_scale_from_rows
+
+    def measured(search=(0.6, 1.6)) -> float | None:
+        est = estimate_scale_from_rows(rowfit, expected, search=search)
+        ok = est.spacing is not None and est.method != "fallback_unchanged"
+        return float(est.spacing) if ok else None
+
+    def off(spacing: float | None) -> bool:
+        return spacing is not None and abs(spacing / expected - 1) > SPACING_TOLERANCE
+
+    near = measured()
+    if near is not None and not off(near):
+        return {"row_spacing_measured_m": round(near, 4)}
+    wide = measured((0.3, 4.0))
+    if wide is None:
+        return {}
+    out = {"row_spacing_measured_m": round(wide, 4)}
+    if off(wide):
+        out["spacing_warning"] = (
+            f"the rows are {wide:.3g} m apart, the layout's row spacing is {expected:.3g} "
+            f"m: is the geometry in metres (a scale of {expected / wide:.3g} would make "
+            "it so)? If the rows really are that far apart, give --row-spacing"
+        )
+    return out
+
+
+def _depth(geo: Geometry, rowfit, cam: PinholeCamera, radius_px: int = 2) -> np.ndarray:
     """(H, W) depth of ``geo`` (in ``rowfit``'s scene frame) from the world camera ``cam``, NaN
-    where it sees nothing."""
+    where it sees nothing (a point cloud splatted ``radius_px`` wide)."""
     m = rowfit.world_from_scene
     if geo.mesh is not None:
         v = geo.mesh.vertices @ m[:3, :3].T + m[:3, 3]
         return depth_map(v, geo.mesh.faces, cam)
-    return splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam)
+    return splat_depth(geo.points @ m[:3, :3].T + m[:3, 3], cam, radius_px)
 
 
 def _observe(
@@ -168,10 +260,32 @@ def _observe(
     row camera's own (:func:`outside_fraction`) is left out of the pool
     (:func:`~cropcraft_core.observe.observe_views`)."""
     p = preset(crop, **{"render_height": float(rowfit.render_height), **(preset_overrides or {})})
+    radius = 2
+    if geo.mesh is None:  # a point cloud: splatted as wide as its points lie apart
+        m = rowfit.world_from_scene
+        radius, spacing = splat_radius(geo.points @ m[:3, :3].T + m[:3, 3], cam)
+        meta["splat"] = {"radius_px": radius, "point_spacing_px": round(spacing, 2)}
+        if spacing > SPARSE_SPACING_PX:
+            meta["splat"]["warning"] = (
+                f"sparse point cloud: its points lie {spacing:.1f} px apart in the row view, "
+                f"splatted {radius} px wide, which blurs the leaves; a denser cloud or a mesh "
+                "fits better"
+            )
+
+    # the geometry's ground may end inside the row view (an edge row, a small plot): the fit
+    # reads the empty ground beyond it as gaps, as the scene flow's coverage check warns
+    outside = outside_fraction(geo, rowfit, cam)
+    meta["outside_fraction"] = round(outside, 4)
+    if coverage_warning(outside):
+        meta["coverage_warning"] = (
+            f"{100 * outside:.0f} % of the row camera's view lies beyond the geometry "
+            f"(over {100 * NO_SURFACE_WARN:.0f} %): the fit reads it as gaps, so LAI is "
+            "likely underestimated; a geometry reaching further around the fitted row helps"
+        )
 
     def view(dx: float, dy: float):
         c = cam.shifted(dx, dy)
-        depth = _depth(geo, rowfit, c)
+        depth = _depth(geo, rowfit, c, radius)
         return c, depth, observation_mask(depth, None, c, p), None
 
     if p.n_views > 1:
@@ -196,6 +310,18 @@ def _observe(
         meta=meta,
         coverage=lambda dx, dy: outside_fraction(geo, rowfit, cam.shifted(dx, dy)),
     )
+
+
+def geometry_warnings(meta: dict) -> list[str]:
+    """The warnings an observation of a geometry carries in its ``meta`` (rows not the layout's
+    spacing apart, a sparse point cloud, a row view reaching beyond the geometry), for
+    ``cropcraft fit`` to print."""
+    said = (
+        meta.get("spacing_warning"),
+        (meta.get("splat") or {}).get("warning"),
+        meta.get("coverage_warning"),
+    )
+    return [w for w in said if w]
 
 
 def outside_fraction(geo: Geometry, rowfit, cam: PinholeCamera, cell_m: float = 0.1) -> float:
@@ -260,11 +386,14 @@ def poisson_baseline(points: np.ndarray, crop: str, depth: int = 8) -> CanopyMes
     than the 1st height percentile + 0.2 m (soybean) / 0.1 m (maize) removed, the rest leaves."""
     import open3d as o3d
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    # about the points' centre: Open3D's octree and normals in float32-like precision lost
+    # the leaves of georeferenced points (409k faces at the origin, 55k at UTM coordinates)
+    centre = points.mean(0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - centre))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=30))
     pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
     mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
-    v = np.asarray(mesh.vertices)
+    v = np.asarray(mesh.vertices) + centre
     f = np.asarray(mesh.triangles, dtype=np.int32)
     cut = np.percentile(points[:, 2], 1.0) + (0.2 if crop == "soybean" else 0.1)
     lo, hi = points[:, :2].min(0), points[:, :2].max(0)
@@ -385,6 +514,11 @@ def fit_geometry(
     atomic_write_text(out / "fit.json", json.dumps(record, indent=2, default=float) + "\n")
     if neighbours:
         atomic_write_text(out / "rows.json", json.dumps(table, indent=2, default=float) + "\n")
+    from cropcraft_core.bundle import BUNDLE_FILES
+
+    _drop_stale(
+        out, (*BUNDLE_FILES, "compare.png", "fit.json", *(("rows.json",) * bool(neighbours)))
+    )
     return metrics
 
 
@@ -422,4 +556,29 @@ def _poisson_to_files(path, crop: str, out: Path, seed: int) -> dict:
     }
     write_ply(out / "canopy.ply", mesh)
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    _drop_stale(out, ("canopy.ply", "metrics.json"))
     return metrics
+
+
+#: Every file ``cropcraft fit`` may write into its output folder.
+FIT_FILES = (
+    "canopy.ply",
+    "canopy.obj",
+    "canopy.mtl",
+    "canopy.glb",
+    "canopy.helios.xml",
+    "params.json",
+    "metrics.json",
+    "preview.png",
+    "compare.png",
+    "fit.json",
+    "rows.json",
+)
+
+
+def _drop_stale(out: Path, written: tuple[str, ...]) -> None:
+    """Remove the fit files an earlier run left in ``out`` that this one did not write (a
+    Poisson run after a model fit kept its params.json and compare.png; a run without
+    neighbour rows an earlier rows.json), so the folder holds one fit's files."""
+    for name in set(FIT_FILES) - set(written):
+        (out / name).unlink(missing_ok=True)
