@@ -191,15 +191,15 @@ def process_season(
         )
     dates = pending_dates(st, site, crop)
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
+    warnings = []
     if not dates and not misnamed and not st.list_dates(site, crop):
         # a worker without CROPCRAFT_STORE reads its own ./cropcraft-data: nothing, every night
-        log.warning(
-            "%s/%s has no dated scene in the store %s: is it the store the photos are uploaded "
-            "to (CROPCRAFT_STORE on the worker, or the flow's store parameter)?",
-            site,
-            crop,
-            st.url(""),
+        warnings.append(
+            f"{site}/{crop} has no dated scene in the store {st.url('')}: is it the store the "
+            "photos are uploaded to (CROPCRAFT_STORE on the worker, or the flow's store "
+            "parameter)?"
         )
+        log.warning("%s", warnings[-1])
     scenes: dict[str, str] = {}
     failed = []
     sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
@@ -224,7 +224,12 @@ def process_season(
         if not state.is_completed():
             failed.append(date)
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
-    out: dict[str, Any] = {"scenes": scenes, "failed": failed, "misnamed": misnamed}
+    out: dict[str, Any] = {
+        "scenes": scenes,
+        "failed": failed,
+        "misnamed": misnamed,
+        "warnings": warnings,
+    }
     try:
         summary = write_summary(st, site, crop)
         out.update(csv=summary["csv"], png=summary["png"])

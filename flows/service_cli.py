@@ -462,6 +462,8 @@ def cmd_season(args: argparse.Namespace) -> int:
         print(f"{date}  {state}")
     for name in out.get("misnamed", []):
         print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
+    for warning in out.get("warnings", []):
+        print(f"WARNING  {warning}")
     print(f"summary  {out.get('csv') or 'not written: ' + out.get('summary_error', '?')}")
     print(f"plot     {out.get('png')}")
     return 0 if out.get("state", "Completed") == "Completed" else 1
