@@ -516,9 +516,8 @@ def fit_geometry(
         atomic_write_text(out / "rows.json", json.dumps(table, indent=2, default=float) + "\n")
     from cropcraft_core.bundle import BUNDLE_FILES
 
-    _drop_stale(
-        out, (*BUNDLE_FILES, "compare.png", "fit.json", *(("rows.json",) * bool(neighbours)))
-    )
+    written = (*BUNDLE_FILES, "compare.png", "fit.json", *(["rows.json"] if neighbours else []))
+    _drop_stale(out, written)
     return metrics
 
 
@@ -560,25 +559,15 @@ def _poisson_to_files(path, crop: str, out: Path, seed: int) -> dict:
     return metrics
 
 
-#: Every file ``cropcraft fit`` may write into its output folder.
-FIT_FILES = (
-    "canopy.ply",
-    "canopy.obj",
-    "canopy.mtl",
-    "canopy.glb",
-    "canopy.helios.xml",
-    "params.json",
-    "metrics.json",
-    "preview.png",
-    "compare.png",
-    "fit.json",
-    "rows.json",
-)
+#: The files ``cropcraft fit`` writes beside the bundle's (``bundle.BUNDLE_FILES``).
+FIT_FILES = ("compare.png", "fit.json", "rows.json")
 
 
 def _drop_stale(out: Path, written: tuple[str, ...]) -> None:
     """Remove the fit files an earlier run left in ``out`` that this one did not write (a
     Poisson run after a model fit kept its params.json and compare.png; a run without
     neighbour rows an earlier rows.json), so the folder holds one fit's files."""
-    for name in set(FIT_FILES) - set(written):
+    from cropcraft_core.bundle import BUNDLE_FILES
+
+    for name in {*BUNDLE_FILES, *FIT_FILES} - set(written):
         (out / name).unlink(missing_ok=True)
