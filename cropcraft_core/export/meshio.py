@@ -500,8 +500,10 @@ def _colors(vertex: dict, path: Path) -> np.ndarray | None:
 FLOAT32_REACH_M = 100_000.0
 
 
-def read_geometry(path: PathLike) -> CanopyMesh | PointCloud:
-    """Read a PLY file: a ``CanopyMesh`` if it has a face element, else a ``PointCloud``.
+def read_geometry(path: PathLike, empty_faces_as_points: bool = True) -> CanopyMesh | PointCloud:
+    """Read a PLY file: a ``CanopyMesh`` if it has a face element, else a ``PointCloud``; with
+    ``empty_faces_as_points`` a face element of no faces (MeshLab's and scanners' point clouds)
+    is read as a point cloud too.
 
     Face labels come from the face properties ``organ``/``plant``/``node`` when present (our
     files); otherwise every face is LEAF, plant 0, node 0. Raises ``InputError`` naming the file
@@ -528,7 +530,10 @@ def read_geometry(path: PathLike) -> CanopyMesh | PointCloud:
                 "or subtract an offset near the plot first"
             )
     face = elements.get("face")
-    if face is not None and len(face.get("vertex_indices", face.get("vertex_index", [1]))) == 0:
+    no_faces = face is not None and not len(
+        face.get("vertex_indices", face.get("vertex_index", [1]))
+    )
+    if empty_faces_as_points and no_faces:
         face = None  # an empty face element (some scanners write one): a point cloud
     if face is None:
         normals = None
@@ -563,8 +568,9 @@ def read_geometry(path: PathLike) -> CanopyMesh | PointCloud:
 
 
 def read_ply(path: PathLike) -> CanopyMesh:
-    """Read a PLY mesh as a ``CanopyMesh`` (see ``read_geometry``); a point cloud is an error."""
-    geom = read_geometry(path)
+    """Read a PLY mesh as a ``CanopyMesh`` (see ``read_geometry``; an empty face element is a
+    mesh of no faces); a point cloud is an error."""
+    geom = read_geometry(path, empty_faces_as_points=False)
     if isinstance(geom, PointCloud):
         raise InputError(
             f"{path} is a point cloud ({len(geom)} points, no faces); read it with read_geometry"
