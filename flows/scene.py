@@ -574,17 +574,29 @@ def prepare(
     scene = SceneKey(site, crop, str(date))
     cfg = resolve_config(crop, overrides)
     st = SceneStore.connect(store, timeout_s=timeout_s)
-    uri = images or default_images_uri(st, scene)
-    inputs = {"images": fingerprint(str(uri), what="images")}
-    known = read_known(str(uri), crop)
+    uri, poses_uri, inputs, known = scene_inputs(st, scene, images, poses)
     if known:
         notes = {f"fit.box.{k}": v for k, v in known.items()}
         cfg = resolve_config(crop, {**notes, **dict(overrides or {})})
+    return SceneRequest(scene, st.root, uri, poses_uri, cfg, inputs)
+
+
+def scene_inputs(
+    st: SceneStore, scene: SceneKey, images: str | None = None, poses: str | None = None
+) -> tuple[str, str | None, dict[str, dict[str, str]], dict[str, Any]]:
+    """``(photos' URI, poses' URI or None, input fingerprints, field notes)`` of a run over
+    ``images`` and ``poses`` (default: the scene's inbox, its ``transforms.json`` where there
+    is one): the photos, the poses and the :data:`KNOWN_FILE` notes, as the manifest keeps
+    them and the season compares an inbox against them."""
+    uri = str(images or default_images_uri(st, scene))
+    inputs = {"images": fingerprint(uri, what="images")}
+    known = read_known(uri, scene.crop)
+    if known:
         inputs["known"] = known_input(known)
     poses_uri = poses if poses is not None else (None if images else default_poses_uri(st, scene))
     if poses_uri:
         inputs["poses"] = fingerprint(str(poses_uri), what="poses")
-    return SceneRequest(scene, st.root, str(uri), poses_uri and str(poses_uri), cfg, inputs)
+    return uri, poses_uri and str(poses_uri), inputs, known
 
 
 def manifest_inputs(inputs: Mapping[str, Mapping[str, str]]) -> dict[str, str]:

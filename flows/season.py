@@ -30,27 +30,12 @@ def _inbox_changed(store: SceneStore, found: DiscoveredScene) -> bool:
     """Whether the scene's inbox (photos, ``transforms.json``, ``known.json``) differs from the
     inputs its manifest recorded; False for a scene last run from photos kept elsewhere
     (``cropcraft run --images URI``), whose inbox that run did not read."""
-    from flows.scene import (
-        default_images_uri,
-        default_poses_uri,
-        known_input,
-        manifest_inputs,
-        read_known,
-    )
-    from tasks.common import fingerprint
+    from flows.scene import manifest_inputs, scene_inputs
 
     if found.sources.get("images") is not None:
         return False
-    scene = found.scene
     try:
-        inbox = default_images_uri(store, scene)
-        now = {"images": fingerprint(inbox, what="images")}
-        poses = default_poses_uri(store, scene)
-        if poses:
-            now["poses"] = fingerprint(poses, what="poses")
-        known = read_known(inbox, scene.crop)  # field notes added or changed since
-        if known:
-            now["known"] = known_input(known)
+        _, _, now, _ = scene_inputs(store, found.scene)
     except CropCraftError:  # no photos now, or bad notes: the run will say so
         return True
     return manifest_inputs(now) != found.inputs

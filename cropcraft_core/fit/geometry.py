@@ -95,8 +95,6 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
             # grey or black everywhere: a scanner's intensity, or zeros for no colour
             meta["colours_ignored"] = "grey (no hue): read as no colours"
             cols = None
-    if not np.all(np.isfinite(pts)):
-        raise InputError(f"{path}: geometry has non-finite coordinates")
     if cols is None:
         # No colours (a bare mesh, an uncoloured scan): colour by height, and since a metric
         # z-up geometry stands on its lowest points, add a ground grid there for the plane fit
@@ -133,15 +131,7 @@ def splat_radius(points: np.ndarray, camera: PinholeCamera, seed: int = 0) -> tu
     spacing where the camera sees them (a sample of 20,000 asked of every point in view)."""
     from scipy.spatial import cKDTree
 
-    uv, z = camera.project(points)
-    ok = (
-        np.isfinite(uv).all(1)
-        & (z > 0)
-        & (uv[:, 0] >= 0)
-        & (uv[:, 0] < camera.width)
-        & (uv[:, 1] >= 0)
-        & (uv[:, 1] < camera.height)
-    )
+    ok, _, z = _seen(points, camera)
     seen, depth = points[ok], z[ok]
     if len(seen) < 2:
         return 2, float("nan")
@@ -151,19 +141,32 @@ def splat_radius(points: np.ndarray, camera: PinholeCamera, seed: int = 0) -> tu
     return max(1, int(np.ceil(SPLAT_SPACINGS * spacing))), spacing
 
 
+def _seen(points: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(mask, uv, z)``: which ``points`` project into ``camera``'s image in front of it, and
+    every point's pixel coordinates and z-depth."""
+    uv, z = camera.project(points)
+    with np.errstate(invalid="ignore"):
+        ok = (
+            np.isfinite(uv).all(1)
+            & (z > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < camera.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < camera.height)
+        )
+    return ok, uv, z
+
+
 def splat_depth(points: np.ndarray, camera: PinholeCamera, radius_px: int = 2) -> np.ndarray:
     """(H, W) float32 z-depth of a point cloud: nearest point per pixel, holes closed by a
     ``radius_px`` minimum filter (points are surfels about that many pixels wide)."""
     import cv2
 
-    uv, z = camera.project(points)
-    ok = np.isfinite(uv).all(1) & (z > 0)
+    ok, uv, z = _seen(points, camera)
     u = np.floor(uv[ok, 0]).astype(np.int64)
     v = np.floor(uv[ok, 1]).astype(np.int64)
-    z = z[ok]
-    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     flat = np.full(camera.width * camera.height, np.inf, np.float32)
-    np.minimum.at(flat, v[inside] * camera.width + u[inside], z[inside].astype(np.float32))
+    np.minimum.at(flat, v * camera.width + u, z[ok].astype(np.float32))
     img = flat.reshape(camera.height, camera.width)
     if radius_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
