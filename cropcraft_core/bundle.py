@@ -7,12 +7,14 @@ older bundle's files back), so ``out_dir`` never holds a half-written bundle or 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from cropcraft_core.errors import OutputError
@@ -40,6 +42,25 @@ def check_output_dir(out_dir: str | os.PathLike) -> Path:
     except OSError as e:
         raise OutputError(f"cannot write output directory {out}: {e.strerror or e}") from None
     return out
+
+
+@contextlib.contextmanager
+def output_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
+    """:func:`check_output_dir` for a command's whole run: where the run fails, the folders it
+    created are removed again if they are still empty, so a mistyped option or a bad input
+    leaves no empty ``--out`` behind (a folder that held anything before is never touched)."""
+    out = Path(out_dir)
+    made = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
+    checked = check_output_dir(out)
+    try:
+        yield checked
+    except BaseException:
+        for p in made:
+            try:
+                p.rmdir()  # only an empty folder
+            except OSError:
+                break
+        raise
 
 
 def gap_fraction_canopy(canopy: Canopy) -> Canopy:

@@ -57,15 +57,15 @@ def _layout(crop: str, args: argparse.Namespace):
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from cropcraft_core.bundle import check_output_dir, write_bundle
+    from cropcraft_core.bundle import output_dir, write_bundle
     from cropcraft_core.config import resolve_params
     from cropcraft_core.procedural import generate_canopy
 
     params = resolve_params(args.crop, _param_pairs(args.param))
     layout = _layout(args.crop, args)
-    check_output_dir(args.out)
-    canopy = generate_canopy(args.crop, params, layout, seed=args.seed)
-    metrics = write_bundle(canopy, args.out)
+    with output_dir(args.out):
+        canopy = generate_canopy(args.crop, params, layout, seed=args.seed)
+        metrics = write_bundle(canopy, args.out)
     _print_summary(args.out, metrics)
     return 0
 
@@ -90,7 +90,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
 
-    from cropcraft_core.bundle import check_output_dir
+    from cropcraft_core.bundle import output_dir
     from cropcraft_core.config import resolve_params
     from cropcraft_core.export import publish
     from cropcraft_core.synth import make_scene
@@ -101,23 +101,23 @@ def cmd_synth(args: argparse.Namespace) -> int:
     if args.views < 2:
         raise ConfigError(f"a scene needs at least 2 views, got --views {args.views}")
     trajectory = args.trajectory or ("drone" if args.crop == "maize" else "walk")
-    out = check_output_dir(args.out)
-    tmp = Path(tempfile.mkdtemp(dir=out, prefix=".synth-"))
-    try:
-        summary = make_scene(
-            args.crop,
-            tmp,
-            params,
-            seed=args.seed,
-            views=args.views,
-            resolution=size,
-            trajectory=trajectory,
-            layout=layout,
-            image_format=args.format,
-        )
-        publish(tmp, out, SYNTH_ENTRIES)  # every entry replaced whole, all or none
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with output_dir(args.out) as out:
+        tmp = Path(tempfile.mkdtemp(dir=out, prefix=".synth-"))
+        try:
+            summary = make_scene(
+                args.crop,
+                tmp,
+                params,
+                seed=args.seed,
+                views=args.views,
+                resolution=size,
+                trajectory=trajectory,
+                layout=layout,
+                image_format=args.format,
+            )
+            publish(tmp, out, SYNTH_ENTRIES)  # every entry replaced whole, all or none
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
     lo, hi = summary["camera_height_range_m"]
     print(
         f"{summary['views']} {trajectory} views at {size[0]}x{size[1]}, cameras "
@@ -169,7 +169,7 @@ def _fit_config(args: argparse.Namespace):
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from cropcraft_core.bundle import check_output_dir
+    from cropcraft_core.bundle import output_dir
     from cropcraft_core.config.params import check_crop
     from cropcraft_core.errors import InputError
     from cropcraft_core.fit.geometry import fit_geometry
@@ -182,7 +182,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     preset_overrides = parse_preset(args.crop, args.preset)
     layout = _layout(args.crop, args)
-    check_output_dir(args.out)
     from cropcraft_core.rowfit.neighbours import MAX_NEIGHBOURS
 
     n = args.neighbour_rows
@@ -200,7 +199,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     jobs = {"poisson": 1, "mlp": MLPConfig().n_pairs // PAIRS_PER_JOB}.get(
         args.method, cfg.n_seeds * rows
     )
-    with processes(args.workers or default_workers(jobs)) as ex:
+    with output_dir(args.out), processes(args.workers or default_workers(jobs)) as ex:
         metrics = fit_geometry(
             args.geometry,
             args.crop,

@@ -97,6 +97,24 @@ def test_generate_unwritable_output(tmp_path, capsys):
     assert blocker.read_text() == "not a directory"
 
 
+def test_a_failed_command_removes_only_the_empty_folders_it_made(tmp_path):
+    from cropcraft_core.bundle import output_dir
+
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    with pytest.raises(RuntimeError), output_dir(kept / "a" / "b") as out:
+        assert out.is_dir()
+        raise RuntimeError("the run failed")
+    assert kept.is_dir() and not (kept / "a").exists()
+    with pytest.raises(RuntimeError), output_dir(kept / "a" / "b") as out:
+        (out.parent / "note.txt").write_text("written during the run")
+        raise RuntimeError("the run failed")
+    assert not (kept / "a" / "b").exists() and (kept / "a" / "note.txt").is_file()
+    with output_dir(kept / "c") as out:
+        pass
+    assert out.is_dir()
+
+
 def test_generate_keeps_old_bundle_when_writing_fails(tmp_path, monkeypatch):
     out = tmp_path / "out"
     assert main(["generate", "soybean", "--plot", "1.6,0.5", "--out", str(out)]) == 0
