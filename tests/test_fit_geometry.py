@@ -160,6 +160,30 @@ def test_a_cloud_in_feet_is_named_by_its_row_spacing(canopy_ply):
     assert obs.meta["row_spacing_measured_m"] == pytest.approx(0.76, rel=0.15)
 
 
+def test_an_uncoloured_scan_upside_down_is_named(canopy_ply, tmp_path):
+    """A scan with its soil (uncoloured) read z up is fitted quietly; the same scan z down (its
+    flat soil on top) warns, as it would lay the ground on the canopy's tops. A bare canopy
+    mesh has no such layer either way up."""
+    from cropcraft_core.fit.geometry import geometry_warnings
+
+    rng = np.random.default_rng(0)
+    canopy = read_ply(canopy_ply)
+    pts = sample_mesh(canopy, 60_000, rng)
+    lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
+    soil = np.column_stack(
+        [rng.uniform(lo[0], hi[0], 30_000), rng.uniform(lo[1], hi[1], 30_000), np.zeros(30_000)]
+    )
+    scan = np.concatenate([pts, soil + rng.normal(0, 0.004, soil.shape)])
+    up = load_geometry(_write_points(tmp_path / "up.ply", scan))
+    down = load_geometry(_write_points(tmp_path / "down.ply", scan * [1, -1, -1]))
+    assert "orientation_warning" not in up.meta
+    assert "Is the geometry z down?" in down.meta["orientation_warning"]
+    assert "Is the geometry z down?" in geometry_warnings(down.meta)[0]
+    for flip in ([1, 1, 1], [1, -1, -1]):  # bare
+        bare = load_geometry(_write_points(tmp_path / "bare.ply", pts * flip))
+        assert "orientation_warning" not in bare.meta
+
+
 def test_a_point_cloud_is_splatted_as_wide_as_its_points_lie_apart(canopy_ply):
     """The same canopy as a sparse and a dense cloud covers about as much of the row view as
     its mesh (a fixed 2 px splat: 6 % against 65 % for a 52k-point cloud)."""

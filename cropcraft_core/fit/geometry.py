@@ -38,6 +38,11 @@ GROUND_BAND_M = 0.03
 GROUND_PERCENTILE = 0.1
 #: Colours whose channels differ by less than this everywhere (0-1) are grey: no colour.
 GREY_CHROMA = 0.02
+#: An uncoloured geometry with at least this share of its points within ``GROUND_BAND_M`` of
+#: its highest points (the 99.9th height percentile), and ``FLIPPED_RATIO`` times the share
+#: within it of its lowest, reads as z down: a flat soil on top (``orientation_warning``).
+FLIPPED_SHARE = 0.2
+FLIPPED_RATIO = 3.0
 
 
 @dataclass
@@ -102,6 +107,9 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         # the 0.1th percentile, not the minimum: one stray return below the soil moved the
         # whole ground (0.4 m under: the canopy read 0.96 m tall for 0.58).
         ground_z = float(np.percentile(pts[:, 2], GROUND_PERCENTILE))
+        warning = _flipped(pts[:, 2], ground_z)
+        if warning:
+            meta["orientation_warning"] = warning
         lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
         n_g = max(int(0.3 * len(pts)), 1000)
         grid = np.column_stack(
@@ -112,6 +120,23 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         meta["colours"] = "by height"
         meta["ground"] = f"ground grid added at the lowest points, z = {ground_z:.3f} m"
     return Geometry(mesh, pts, cols, meta)
+
+
+def _flipped(z: np.ndarray, ground_z: float) -> str | None:
+    """A warning where heights ``z`` look upside down: their densest flat layer (a scanned
+    soil) at the top rather than at the bottom, where ``ground_z`` lays the ground grid. The
+    grid would then lie on the canopy's tops and the soil read as a leaf layer below them."""
+    top_z = float(np.percentile(z, 100.0 - GROUND_PERCENTILE))
+    top = float(np.mean(z > top_z - GROUND_BAND_M))
+    bottom = float(np.mean(z < ground_z + GROUND_BAND_M))
+    if top < FLIPPED_SHARE or top < FLIPPED_RATIO * bottom:
+        return None
+    return (
+        f"{100 * top:.0f} % of the points lie within {100 * GROUND_BAND_M:.0f} cm of the "
+        f"highest ones, {100 * bottom:.0f} % of the lowest: a flat layer on top, as of a soil "
+        "seen from below. Is the geometry z down? It is read as z up, standing on its lowest "
+        "points (negate z, e.g. rotate it 180 degrees about x, if so)"
+    )
 
 
 #: A splatted point's radius, in multiples of the distance to its nearest neighbour in pixels
@@ -316,10 +341,12 @@ def _observe(
 
 
 def geometry_warnings(meta: dict) -> list[str]:
-    """The warnings an observation of a geometry carries in its ``meta`` (rows not the layout's
-    spacing apart, a sparse point cloud, a row view reaching beyond the geometry), for
+    """The warnings an observation of a geometry carries in its ``meta`` (an uncoloured
+    geometry that looks z down, rows not the layout's spacing apart, a sparse point cloud, a row
+    view reaching beyond the geometry), for
     ``cropcraft fit`` to print."""
     said = (
+        meta.get("orientation_warning"),
         meta.get("spacing_warning"),
         (meta.get("splat") or {}).get("warning"),
         meta.get("coverage_warning"),
