@@ -606,3 +606,16 @@ def test_neighbour_row_cameras_move_across_the_rows_and_sit_over_a_fitted_row_ne
     for bad in (0.0, 0.5, -0.1):
         with pytest.raises(ConfigError, match="snap_fraction"):
             neighbour_row_views(cam, rows, 0.76, snap_fraction=bad)
+
+
+def test_the_profile_autocorrelation_is_numpys_at_the_lags_asked():
+    """Only the lags the direction search and the scale estimate read, each the number
+    ``np.correlate`` gives (a wide field's full correlation was quadratic in its width)."""
+    from cropcraft_core.rowfit.fit import _autocorrelation
+
+    rng = np.random.default_rng(0)
+    for n in (5, 80, 3000):
+        h = rng.normal(size=n)
+        full = np.correlate(h, h, "full")[n - 1 :]
+        for lo, hi in ((0, n - 1), (1, min(n - 1, 40)), (n // 2, n // 2)):
+            assert np.array_equal(_autocorrelation(h, lo, hi), full[lo : hi + 1])

@@ -609,6 +609,14 @@ def _lateral_profile(u: np.ndarray, period_bins: int, sigma_bins: float = 2.0) -
     return gaussian_filter1d(h - uniform_filter1d(h, period_bins, mode="nearest"), sigma_bins)
 
 
+def _autocorrelation(h: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """``sum_b h[b] h[b + L]`` for the lags L = ``lo`` … ``hi``, each one dot product: the same
+    numbers as ``np.correlate(h, h, "full")`` at those lags (bit for bit: numpy's correlate
+    takes the same dot per lag), without its every other lag. A 120 m wide field's 12,000-bin
+    profile took 0.27 s an angle in full."""
+    return np.array([h[: len(h) - lag] @ h[lag:] for lag in range(lo, hi + 1)])
+
+
 def _direction_scores(
     rel: np.ndarray, angles: np.ndarray, period_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -644,7 +652,7 @@ def _direction_scores(
         top = min(hi, len(h) - period_bins)  # at least a period of overlap: not one row's tails
         if top < lo or energy[i] <= 0:
             continue
-        ac = np.correlate(h, h, "full")[len(h) - 1 + lo : len(h) + top]
+        ac = _autocorrelation(h, lo, top)
         j = int(np.argmax(ac))
         periodic[i] = float(ac[j])
         normalised[i] = (ac[j] / (len(h) - lo - j)) / (energy[i] / len(h))
@@ -869,7 +877,8 @@ def estimate_scale_from_rows(
             return None
         h = _lateral_profile(xy @ rowfit.best_row.normal, period_bins)
         h -= h.mean()
-        ac = np.correlate(h, h, "full")[len(h) - 1 :]
+        # the lags up to just past the search window (a peak there needs its right neighbour)
+        ac = _autocorrelation(h, 0, min(len(h) - 1, int(search[1] * known_row_spacing / 0.01) + 2))
         # per overlapping bin: the plain sum falls with the lag (fewer overlapping bins), which
         # pulled peaks to shorter lags (0.7 % on an exact canopy cloud)
         ac = ac / np.maximum(len(h) - np.arange(len(ac)), 1)
