@@ -36,15 +36,19 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)  # reparented: the parent is gone, and nobody will read what this computes
 
 
-def one_thread(shared: dict[str, Any] | None = None) -> None:
+def one_thread(shared: dict[str, Any] | None = None, parent: int | None = None) -> None:
     """Worker process initialiser: one BLAS and one numba thread per process (two numba threads
     per process on 2 cores measurably oversubscribe), and the run's shared inputs; Ctrl-C is
-    the parent's to handle, and the worker exits when its parent dies."""
+    the parent's to handle, and the worker exits when its parent dies. ``parent``: the pid of
+    the process that made the pool (:func:`pool` passes it; None: this process's parent now).
+    Given, a worker still starting when its parent was killed (spawning takes seconds on busy
+    cores) exits at once: read here, the pid would be its new parent's, and it never would."""
     import numba
     from threadpoolctl import threadpool_limits
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    threading.Thread(target=_exit_when_orphaned, args=(os.getppid(),), daemon=True).start()
+    parent = os.getppid() if parent is None else parent
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
     threadpool_limits(1)
     numba.set_num_threads(1)
     SHARED.update(shared or {})
@@ -128,7 +132,9 @@ def pool(workers: int, shared: dict[str, Any] | None = None) -> Executor | None:
         SHARED.update(shared or {})
         return None
     ctx = multiprocessing.get_context("spawn")
-    return ProcessPoolExecutor(workers, mp_context=ctx, initializer=one_thread, initargs=(shared,))
+    return ProcessPoolExecutor(
+        workers, mp_context=ctx, initializer=one_thread, initargs=(shared, os.getpid())
+    )
 
 
 def stop(ex: Executor | None, *, now: bool = False) -> None:

@@ -188,3 +188,21 @@ def test_a_jobs_numba_share_is_its_threads_own_and_restored(monkeypatch):
     with numba_threads_per_job(1) as n:
         assert n == 1
     assert numba.get_num_threads() == before
+
+
+def test_a_worker_whose_parent_died_while_it_started_exits():
+    """Spawning takes seconds on busy cores: a worker whose pool's process was killed before
+    its initialiser ran has been reparented by then, and exits at once rather than wait for
+    a parent it no longer has (it read the new parent as its own, and lived on)."""
+    script = (
+        "import os, time\n"
+        "from cropcraft_core.parallel import one_thread\n"
+        "one_thread(None, parent=os.getppid() + 1_000_000)\n"  # not this process's parent
+        "time.sleep(60)\n"
+    )
+    t = time.monotonic()
+    run = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, timeout=50, capture_output=True, text=True
+    )
+    assert run.returncode == 1 and not run.stderr  # the watcher's exit, not an error
+    assert time.monotonic() - t < 40
