@@ -135,7 +135,7 @@ def _flipped(z: np.ndarray, ground_z: float) -> str | None:
         f"{100 * top:.0f} % of the points lie within {100 * GROUND_BAND_M:.0f} cm of the "
         f"highest ones, {100 * bottom:.0f} % of the lowest: a flat layer on top, as of a soil "
         "seen from below. Is the geometry z down? It is read as z up, standing on its lowest "
-        "points (negate z, e.g. rotate it 180 degrees about x, if so)"
+        "points (if so, turn it 180 degrees about the x axis: y and z negated)"
     )
 
 
