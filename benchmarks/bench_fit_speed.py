@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
@@ -26,7 +25,7 @@ from cropcraft_core.config import default_layout
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import seed_objective
 from cropcraft_core.observe import preset
-from cropcraft_core.parallel import one_thread, processes, run_jobs
+from cropcraft_core.parallel import processes, run_jobs
 from cropcraft_core.procedural import generate_canopy
 
 TRUTH = {
@@ -66,8 +65,8 @@ def _one_seed(args):
 
 def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
     t = time.perf_counter()
-    with ProcessPoolExecutor(workers, initializer=one_thread) as ex:
-        seeds = list(ex.map(_one_seed, [(s, n_evals, n_initial) for s in range(n_seeds)]))
+    with processes(workers) as ex:  # spawned, one thread each, gone with this process (as (b))
+        seeds = list(run_jobs(ex, _one_seed, [(s, n_evals, n_initial) for s in range(n_seeds)]))
     return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
 
 
