@@ -36,18 +36,17 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)  # reparented: the parent is gone, and nobody will read what this computes
 
 
-def one_thread(shared: dict[str, Any] | None = None, parent: int | None = None) -> None:
+def one_thread(shared: dict[str, Any] | None, parent: int) -> None:
     """Worker process initialiser: one BLAS and one numba thread per process (two numba threads
     per process on 2 cores measurably oversubscribe), and the run's shared inputs; Ctrl-C is
     the parent's to handle, and the worker exits when its parent dies. ``parent``: the pid of
-    the process that made the pool (:func:`pool` passes it; None: this process's parent now).
-    Given, a worker still starting when its parent was killed (spawning takes seconds on busy
-    cores) exits at once: read here, the pid would be its new parent's, and it never would."""
+    the process that made the pool (:func:`pool` passes it), so that a worker still starting
+    when its parent was killed (spawning takes seconds on busy cores) exits at once: read here
+    (``os.getppid``), the pid would be its new parent's, and it never would."""
     import numba
     from threadpoolctl import threadpool_limits
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent = os.getppid() if parent is None else parent
     threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
     threadpool_limits(1)
     numba.set_num_threads(1)
