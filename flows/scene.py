@@ -59,9 +59,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
     },
     # bbox "auto": the crop's scene box around the levelled frame's origin; the crop's own
-    # settings (cropcraft_core.surfaces.CROP_SURFACES: both splat the stereo's points, maize's
-    # discs capped) go over these; "tsdf" fuses them instead
-    "surfaces": {"backend": "points", "bbox": "auto", "n_points": 100_000},
+    # settings (cropcraft_core.surfaces.CROP_SURFACES: maize splats points) go over these
+    "surfaces": {"backend": "tsdf", "bbox": "auto", "n_points": 100_000},
     # the paper's row-fit scene box is in nerfstudio's normalised frame; ours is the surfaces'
     "rowfit": {"seed": 0, "scale": None, "preset": {"box_center": None, "box_size": None}},
     # the surfaces against the photos at the photos' own cameras (a diagnostic; nothing the fit
@@ -70,11 +69,10 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     # NET_WARN: soybean 0.15, maize none)
     "consistency": {"max_views": 12, "min_height": 0.02, "warn": None},
     # prediction_blur: metres by which the fit blurs its predictions (0: none, the paper's);
-    # "auto": the surfaces' own softening of the leaves near their edges (points: none; tsdf:
-    # 0.8 voxel; cropcraft_core.surfaces.prediction_blur_m). Not the default: on tsdf's
-    # surfaces better on three of six canopies, worse on three; only one of the six
-    # observations matches its true mesh better blurred (benchmarks/RESULTS.md, #blur,
-    # #blur-match)
+    # "auto": the surfaces' own softening of the leaves near their edges (tsdf: 0.8 voxel;
+    # cropcraft_core.surfaces.prediction_blur_m). Not the default: better on three of six
+    # canopies, worse on three; only one of the six observations matches its true mesh
+    # better blurred (benchmarks/RESULTS.md, #blur, #blur-match)
     "observe": {"image_scale": 1.0, "prediction_blur": 0.0, "preset": {}},
     "fit": {
         "method": "bo",

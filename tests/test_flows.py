@@ -165,13 +165,11 @@ def test_scene_flow_produces_everything(base_run):
     for needle in ("data:image/png;base64,", "observed", "predicted", "Stage timings", "m2"):
         assert needle in html
     # the share of the row view without a fully supported surface, kept with the observation;
-    # the points (soybean's default) render what they support, with no fill (tsdf's one-view
-    # surface closes some of it: tests/test_surfaces.py)
+    # a fill (tsdf's one-view surface) can only have closed some of it in the rendered depth
     obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
     seen = out["observation"]["no_surface_fraction"]
     assert seen == obs.meta["no_surface_fraction"]
-    assert store.get_json(f"{scene}/surfaces/model/surfaces.json")["backend"] == "points"
-    assert 0 < seen == pytest.approx(float(np.mean(~np.isfinite(obs.depth))))
+    assert seen > float(np.mean(~np.isfinite(obs.depth)))
     assert out["observation"]["warning"] == coverage_warning(seen)
     assert f"{100 * seen:.1f} %" in html and "row view without surface" in html
     # the paper's sharp predictions unless asked (observe.prediction_blur)
@@ -420,29 +418,27 @@ def test_a_new_default_answer_rule_reaggregates_cached_seeds(base_run, scene_dir
 
 
 def test_blurred_predictions_reobserve_and_refit_only(base_run, scene_dir):
-    """``observe.prediction_blur`` ``auto`` is the surfaces' own softening: none for the points
-    (soybean's default; tsdf's 0.8 voxel: tests/test_surfaces.py), so the observe stage runs
-    and the seeds are served. In metres the observation's preset carries it (in pixels at the
-    canopy's median depth too); the observe stage and every seed run again, nothing upstream
-    does."""
-    store = SceneStore(str(base_run["store"]))
-    scene = f"plotA/{CROP}/{DATE}"
-
-    def observed(overrides):
-        out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, **overrides})
-        executed = set(_executed(out["states"]))
-        assert "observe" in executed
-        assert not executed & {"ingest", "poses", "surfaces", "rowfit", "consistency"}
-        obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
-        return obs, sum(k.startswith("fit_seed") for k in executed)
+    """``observe.prediction_blur=auto``: the observation's preset carries the fused surfaces'
+    own softening (tsdf: 0.8 voxel, in metres by the row fit's scale), in the observe record's
+    summary too; the observe stage and every seed run again, nothing upstream does."""
+    from cropcraft_core.surfaces import SurfacesConfig
+    from cropcraft_core.surfaces.tsdf import EDGE_BLUR_VOXELS
 
     _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
-    obs, refitted = observed({"observe.prediction_blur": "auto"})
-    assert obs.preset.prediction_blur_m == 0 and obs.prediction_blur_px == 0 and refitted == 0
-    obs, refitted = observed({"observe.prediction_blur": 0.004})
-    assert obs.preset.prediction_blur_m == 0.004 and refitted == N_SEEDS
+    out = _run(
+        "plotA", base_run["store"], scene_dir, {**OVERRIDES, "observe.prediction_blur": "auto"}
+    )
+    executed = set(_executed(out["states"]))
+    assert "observe" in executed and sum(k.startswith("fit_seed") for k in executed) == N_SEEDS
+    assert not executed & {"ingest", "poses", "surfaces", "rowfit", "consistency"}
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))
+    scale = store.get_json(f"{scene}/rowfit/rowfit.json")["scale"]
+    blur = EDGE_BLUR_VOXELS * SurfacesConfig().voxel_size * scale
+    assert obs.preset.prediction_blur_m == pytest.approx(blur) and blur > 0
     z = float(np.median(obs.depth[obs.mask]))
-    assert obs.prediction_blur_px == pytest.approx(0.004 * obs.camera.fy / z)
+    assert obs.prediction_blur_px == pytest.approx(blur * obs.camera.fy / z)
     _run("plotA", base_run["store"], scene_dir)  # back to the default for the tests after
 
 
@@ -696,19 +692,16 @@ def test_an_observation_pooled_over_rows_is_keyed_with_their_spacing():
 
 
 def test_each_crop_gets_its_measured_surfaces_under_the_users_settings():
-    """Both crops splat points, maize's (drone photos) capped at their spacing and soybean's
-    (walk-round photos) not; a user's setting wins over the crop's, and the crops' surfaces
-    stages hash apart."""
+    """Maize (drone photos) splats points capped at their spacing; soybean keeps the fused
+    surface; a user's setting wins over the crop's, and the crops' surfaces stages hash apart."""
     from flows.scene import resolve_config, stage_configs
 
     maize = resolve_config("maize")["surfaces"]
     assert maize["backend"] == "points" and maize["splat_density"] == 1.0
     assert maize["visibility_ratio"] == 0.1
     soy = resolve_config("soybean")["surfaces"]
-    assert soy["backend"] == "points"
-    assert "splat_density" not in soy and "visibility_ratio" not in soy  # the library's own
+    assert soy["backend"] == "tsdf" and "splat_density" not in soy
     assert resolve_config("maize", {"surfaces.backend": "tsdf"})["surfaces"]["backend"] == "tsdf"
-    assert resolve_config("soybean", {"surfaces.backend": "tsdf"})["surfaces"]["backend"] == "tsdf"
     assert (
         resolve_config("maize", {"surfaces.splat_density": None})["surfaces"]["splat_density"]
         is None

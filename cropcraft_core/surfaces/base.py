@@ -10,10 +10,10 @@ A surface backend is fitted to posed photos (``fit``) and then answers two quest
 
 Backends (``SurfacesConfig.backend``):
 
-* ``tsdf`` (``SurfacesConfig``'s default, CPU): plane-sweep multi-view stereo per view over
-  its best neighbours, cross-view depth consistency filtering, Open3D TSDF fusion with colour,
-  mesh extraction, ray casting for new views (``cropcraft_core.surfaces.tsdf``).
-* ``points`` (CPU; both crops' default in the scene flow, :data:`CROP_SURFACES`): the same stereo,
+* ``tsdf`` (default, CPU): plane-sweep multi-view stereo per view over its best neighbours,
+  cross-view depth consistency filtering, Open3D TSDF fusion with colour, mesh extraction,
+  ray casting for new views (``cropcraft_core.surfaces.tsdf``).
+* ``points`` (CPU; maize's default in the scene flow, :data:`CROP_SURFACES`): the same stereo,
   its points filtered by visibility and splatted (``cropcraft_core.surfaces.points``).
 * ``nerfacto``: nerfstudio's Nerfacto as in the paper; needs nerfstudio and a CUDA GPU
   (``cropcraft_core.surfaces.nerfacto``).
@@ -66,25 +66,27 @@ SCENE_BOX = {
 
 
 #: Surfaces settings per crop over ``SurfacesConfig``'s defaults (the scene flow and ``bench
-#: pipeline`` apply them under the user's own). Both crops splat the stereo's points (no fusion).
-#: Maize is photographed from a drone (~13 m), where a stereo point's source footprint is 1.5 cm
-#: wide: the fused surface and footprint-sized splats both close the soil gaps between the
-#: plants, and the fit reads the extra cover as more, flatter leaf. Points with their discs
-#: capped at their spacing in the row view, each dropped where more than a tenth as many views
-#: see past it as agree with it (a stereo edge reaching over the soil is seen past from above),
-#: keep the gaps: on two 60-photo maize drone scenes (true poses, 10 × 300) LAI −10.3 % and
-#: −12.0 % against the fused surface's +58.8 % and +46.9 % (``benchmarks/RESULTS.md``, *Maize
-#: through the photo pipeline*). Soybean, photographed walking round the plot, splats without
-#: the cap (its oblique views put points under the leaves, which the cap counts): through SfM,
-#: each canopy's stereo shared by both arms, 10 × 500, LAI −5.3 / −7.7 / −49.9 % on canopies of
-#: LAI 1.26 / 2.32 / 0.58 against the fused surface's −1.3 / −17.5 / −49.2 %, and the depth
-#: histogram's L1 against the true mesh 0.120 / 0.073 / 0.087 against 0.285 / 0.139 / 0.207
-#: (*#holes-76*, *#sparse-77*; the switch by a rule written before the last canopy was read).
-#: Soybean's stereo planes span only the heights the scene occupies (``sweep_heights``; *The
-#: sweep's height range*) and keep depths down to an NCC of 0.25 (``min_ncc``; *The NCC
-#: threshold through SfM*), both measured on the fused surface; maize's were not measured.
+#: pipeline`` apply them under the user's own). Maize is photographed from a drone (~13 m), where
+#: a stereo point's source footprint is 1.5 cm wide: the fused surface and footprint-sized splats
+#: both close the soil gaps between the plants, and the fit reads the extra cover as more, flatter
+#: leaf. Points with their discs capped at their spacing in the row view, each dropped where more
+#: than a tenth as many views see past it as agree with it (a stereo edge reaching over the soil
+#: is seen past from above), keep the gaps: on two 60-photo maize drone scenes (true poses,
+#: 10 × 300) LAI −10.3 % and −12.0 % against the fused surface's +58.8 % and +46.9 %
+#: (``benchmarks/RESULTS.md``, *Maize through the photo pipeline*). Soybean, photographed
+#: walking round the plot, keeps the fused surface, its stereo planes spanning only the heights
+#: the scene occupies (``sweep_heights``; *The sweep's height range*): on two dense synthetic
+#: canopies (true poses) the row view's loss against the true mesh fell from 0.229 to 0.027 and
+#: from 0.047 to 0.018; maize's drone stereo has not been measured with it. Soybean's stereo
+#: keeps depths down to an NCC of 0.25 (``min_ncc``; *The NCC threshold through SfM*): through
+#: SfM at 10 × 500, LAI −41.8 → −34.3 % (SC, LAI 3.66), −5.7 → −7.1 % (SB), +32.9 → +29.8 %
+#: (SA), the demo +3.1 % (+3.3 and +13.8 % on two runs at 0.4), with fewer holes on every
+#: canopy; maize's was not measured. Soybean's points (no cap) were its default for one commit
+#: in session 77: through SfM over canopies of LAI 1.26 / 2.32 / 0.58 they read LAI −5.3 /
+#: −7.7 / −49.9 % against the fused surface's −1.3 / −17.5 / −49.2 %, but the demo (metric
+#: poses) read +21.6 % against −0.3 % on the same host (*#sparse-77*).
 CROP_SURFACES: dict[str, dict[str, Any]] = {
-    "soybean": {"backend": "points", "sweep_heights": "auto", "min_ncc": 0.25},
+    "soybean": {"sweep_heights": "auto", "min_ncc": 0.25},
     "maize": {"backend": "points", "splat_density": 1.0, "visibility_ratio": 0.1},
 }
 
@@ -144,9 +146,8 @@ class SurfacesConfig:
     """Settings of the visible-surfaces stage. Unused fields are ignored by other backends."""
 
     backend: str = "tsdf"
-    """'tsdf' (CPU multi-view stereo + TSDF fusion), 'points' (the same stereo, its points
-    filtered by visibility and splatted, no fusion: both crops' default in the scene flow,
-    ``CROP_SURFACES``), 'nerfacto' (nerfstudio, CUDA)
+    """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'points' (the same stereo,
+    its points filtered by visibility and splatted, no fusion), 'nerfacto' (nerfstudio, CUDA)
     or 'truth' (the true mesh, for tests and benchmarks). The settings marked tsdf that shape
     the stereo (neighbours to min_consistent) apply to points too."""
     voxel_size: float = 0.0075

@@ -35,12 +35,11 @@ covers with a leaf 0.3 m higher (median), and for 40 % of those pixels a filtere
 held the low leaf. Splatting the same depth maps without the visibility step is worse (the
 fattened edges close the gaps: mask area +17 %). With it the observation's depth histogram is
 closer to the true mesh's than the fused surface's on four of five synthetic canopies (L1 0.249
-→ 0.133 on that one). With true poses the fits of it missed the same two canopies as the fused
-surface's and the sparsest canopy's leaf edges eroded (mask area −17 %; *LAI through the whole
-photo pipeline*); through SfM, each canopy's stereo shared by both, the points read LAI closer
-on average over three canopies (mean |error| 21.0 against 22.7 %) and met the depth
-histogram's L1 target on all three (the fused surface on one), so both crops splat by default
-(``CROP_SURFACES``; ``benchmarks/RESULTS.md``, *#holes-76*, *#sparse-77*).
+→ 0.133 on that one), but the fits of it miss the same two canopies as the fused surface's, and
+the sparse canopies' leaf edges erode (mask area −17 % on the sparsest), so tsdf stays the
+default (``benchmarks/RESULTS.md``, *LAI through the whole photo pipeline*). Through SfM the
+points read two of three canopies' LAI closer, but the demo's (metric poses) +21.6 % against
+the fusion's −0.3 % (*#sparse-77*).
 
 ``save`` writes ``points.ply`` (binary: float32 x y z, uint8 r g b, float32 radius).
 """
