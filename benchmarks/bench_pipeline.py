@@ -180,6 +180,39 @@ def truth_mask(obs, d_true: np.ndarray) -> np.ndarray:
     return predicted_mask(d_true, *box)
 
 
+def cover_errors(obs, d_true: np.ndarray) -> dict:
+    """Where the observation's foreground and a perfect reconstruction's (:func:`truth_mask`)
+    differ, as shares of the truth's: ``missed`` (a true leaf pixel outside the observation's
+    mask), split into ``missed_deeper`` (the observation has a surface there, farther than the
+    leaf: the soil or a lower leaf seen where the leaf was lost) and ``missed_empty`` (no
+    surface: the holes' side), and ``extra`` (observation foreground where the truth has
+    none). A lost leaf over the soil is no hole, so the holes figure cannot see it
+    (``benchmarks/RESULTS.md``, *#sparse-77*)."""
+    tm = truth_mask(obs, d_true)
+    n = max(int(tm.sum()), 1)
+    seen = np.isfinite(obs.depth)
+    missed = tm & ~obs.mask
+    deeper = missed & seen & (np.nan_to_num(obs.depth, nan=-np.inf) > np.nan_to_num(d_true))
+    return {
+        "truth": float(tm.mean()),
+        "observation": float(obs.mask.mean()),
+        "missed": float(missed.sum() / n),
+        "missed_deeper": float(deeper.sum() / n),
+        "missed_empty": float((missed & ~seen).sum() / n),
+        "extra": float((obs.mask & ~tm).sum() / n),
+    }
+
+
+def cover_line(c: dict) -> str:
+    """:func:`cover_errors` as the bench prints it."""
+    return (
+        f"  row-view cover: the observation's mask {c['observation']:.3f} against the truth's "
+        f"{c['truth']:.3f}; {100 * c['missed']:.1f} % of the true leaf pixels not in it "
+        f"({100 * c['missed_deeper']:.1f} % show a surface behind the leaf, "
+        f"{100 * c['missed_empty']:.1f} % none), extra {100 * c['extra']:.1f} %"
+    )
+
+
 def truth_stats(obs, d_true: np.ndarray):
     """Statistics of the true canopy mesh's depth ``d_true`` from the observation's camera,
     as a perfect reconstruction would give them (:func:`truth_mask`; not blurred as the
@@ -359,6 +392,7 @@ def run(a: argparse.Namespace) -> dict:
     out["hist_truth"] = h_true.round(4).tolist()
     out["depth_bins"] = list(obs.preset.depth_range)
     out["mask_area"] = area
+    out["cover"] = cover_errors(obs, d_true)
     # the surfaces against the photos at the photos' cameras (the flow's consistency stage),
     # beside the truth's figures: how far its net cover follows the reconstruction's miss
     t = time.perf_counter()
@@ -904,6 +938,8 @@ def _print(out: dict) -> None:
         f"{100 * out['hist_l1_shift']['rel']:.1f} % of the render height: "
         f"{out['hist_l1_shift']['l1']:.4f} (how tight the L1 target is)"
     )
+    if "cover" in out:
+        print(cover_line(out["cover"]))
     if "blur_match" in out:
         print(blur_match_line(out["blur_match"]))
     if "hist_l1_true_scale" in out:

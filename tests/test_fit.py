@@ -992,6 +992,45 @@ def test_rows_bench_compares_the_centre_row_with_the_rows_mean_and_resumes(tmp_p
         run("soybean", first=3, checkpoint_dir=str(tmp_path), **{**kw, "scale": 0.3})
 
 
+def test_pipeline_bench_names_the_leaves_an_observation_lost_without_a_hole():
+    """bench pipeline's cover errors: an observation the same as its truth misses nothing;
+    leaf pixels that show the soil behind them count as missed deeper (no hole), empty ones as
+    missed empty, and foreground where the truth has none as extra, all as shares of the
+    truth's leaf pixels; one printed line."""
+    from benchmarks.bench_pipeline import cover_errors, cover_line
+    from cropcraft_core.observe import Observation
+
+    sharp, _ = observation("soybean", SOY_TRUTH)
+    d_true = np.where(sharp.mask, sharp.depth, np.nan)
+
+    def observed(depth, mask):
+        return Observation(
+            "soybean", sharp.camera, depth, mask, preset=sharp.preset, box_mask=False
+        )
+
+    same = cover_errors(observed(d_true, sharp.mask), d_true)
+    assert same["missed"] == same["extra"] == 0 and same["truth"] == same["observation"] > 0
+    rows = np.zeros_like(sharp.mask)
+    rows[: rows.shape[0] // 4] = True
+    soil = rows & sharp.mask  # the leaves of the top quarter lost over the soil
+    depth = np.where(soil, d_true + 0.3, d_true)
+    empty = np.zeros_like(rows)
+    empty[-rows.shape[0] // 8 :] = True
+    empty &= sharp.mask  # the bottom eighth's leaves lost with nothing behind them
+    depth = np.where(empty, np.nan, depth)
+    ground = ~sharp.mask & np.roll(sharp.mask, 3, axis=1)  # a fattened edge beside each leaf
+    depth = np.where(ground, float(np.nanmax(d_true)), depth)
+    c = cover_errors(observed(depth, (sharp.mask & ~soil & ~empty) | ground), d_true)
+    n = sharp.mask.sum()
+    assert c["missed_deeper"] == pytest.approx(soil.sum() / n)
+    assert c["missed_empty"] == pytest.approx(empty.sum() / n)
+    assert c["missed"] == pytest.approx(c["missed_deeper"] + c["missed_empty"])
+    assert c["extra"] == pytest.approx(ground.sum() / n) and c["extra"] > 0
+    line = cover_line(c)
+    assert line.startswith("  row-view cover: the observation's mask")
+    assert f"{100 * c['missed_deeper']:.1f} % show a surface behind the leaf" in line
+
+
 def test_pipeline_bench_measures_which_blur_of_the_truth_matches_the_observation():
     """bench pipeline's blur match: the true mesh blurred by each width against the
     observation; an observation the same as its truth matches it unblurred (0, at loss 0), one
