@@ -183,22 +183,20 @@ def truth_mask(obs, d_true: np.ndarray) -> np.ndarray:
 def cover_errors(obs, d_true: np.ndarray) -> dict:
     """Where the observation's foreground and a perfect reconstruction's (:func:`truth_mask`)
     differ, as shares of the truth's: ``missed`` (a true leaf pixel outside the observation's
-    mask), split into ``missed_deeper`` (the observation has a surface there, farther than the
+    mask), of which ``missed_deeper`` (the observation has a surface there, farther than the
     leaf: the soil or a lower leaf seen where the leaf was lost) and ``missed_empty`` (no
-    surface: the holes' side), and ``extra`` (observation foreground where the truth has
-    none). A lost leaf over the soil is no hole, so the holes figure cannot see it
-    (``benchmarks/RESULTS.md``, *#sparse-77*)."""
+    surface: the holes' side; the rest hold a nearer surface the mask left out), and
+    ``extra`` (observation foreground where the truth has none). A lost leaf over the soil is
+    no hole, so the holes figure cannot see it (``benchmarks/RESULTS.md``, *#sparse-77*)."""
     tm = truth_mask(obs, d_true)
     n = max(int(tm.sum()), 1)
-    seen = np.isfinite(obs.depth)
     missed = tm & ~obs.mask
-    deeper = missed & seen & (np.nan_to_num(obs.depth, nan=-np.inf) > np.nan_to_num(d_true))
     return {
         "truth": float(tm.mean()),
         "observation": float(obs.mask.mean()),
         "missed": float(missed.sum() / n),
-        "missed_deeper": float(deeper.sum() / n),
-        "missed_empty": float((missed & ~seen).sum() / n),
+        "missed_deeper": float((missed & (obs.depth > d_true)).sum() / n),  # NaN: not deeper
+        "missed_empty": float((missed & np.isnan(obs.depth)).sum() / n),
         "extra": float((obs.mask & ~tm).sum() / n),
     }
 
