@@ -375,11 +375,6 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
 
     The identity is the object's size plus its ETag / checksum / modification time, whatever the
     backend reports: cheap (no file is read), and any edit, replacement or re-upload changes it.
-    A local file's also holds its inode and status-change time (``st_ctime``, which no tool
-    sets back): a photo rewritten in place and given its old size and mtime (``cp -p``,
-    ``rsync -t``, ``touch -r``) is still seen as new. A mere ``chmod`` or a move changes it too;
-    that costs a re-ingest, and the stages after it stay cached where the decoded photos hash
-    the same.
     A file gives one entry; a folder of images one per file directly in it (what ingest reads),
     a poses folder one per file anywhere under it (a COLMAP project keeps its model in
     ``sparse/0/``), named by relative path; hidden files and folders are skipped. Listings are
@@ -426,8 +421,6 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
             or info.get("last_modified")
             or ""
         )
-        if info.get("ino") is not None and info.get("created") is not None:  # a local file
-            tag = f"{tag}:{info['created']}:{info['ino']}"
         out[name] = f"{info.get('size')}:{str(tag).strip(chr(34))}"
     if not out:
         raise InputError(

@@ -5,7 +5,6 @@ from __future__ import annotations
 import datetime as dt
 import io
 import json
-import os
 import pickle
 import sys
 import time
@@ -620,35 +619,6 @@ def test_photo_listings_on_s3_see_uploads_since(s3_server, tmp_path, monkeypatch
     assert sorted(second) == ["p0.png", "p1.png", "p2.png", "p3.png"]
     assert second["p0.png"] != first["p0.png"]
     assert len(ingest_images(f"s3://{folder}", tmp_path / "b")) == 4
-
-
-def test_a_photo_rewritten_with_its_old_size_and_mtime_is_seen(tmp_path):
-    """`cp -p`, `rsync -t` or `touch -r` give a replaced photo its predecessor's mtime, and a
-    same-sized edit keeps its size: a local photo's identity holds the status-change time and
-    the inode too, so the run re-ingests it rather than serving the old photos from the cache.
-    An untouched folder keeps its identity."""
-    from tasks.common import fingerprint
-
-    folder = tmp_path / "photos"
-    folder.mkdir()
-    for i in range(3):
-        (folder / f"p{i}.png").write_bytes(_photo(i))
-    first = fingerprint(str(folder))
-    assert fingerprint(str(folder)) == first
-    photo = folder / "p1.png"
-    before = photo.stat()
-    data = bytearray(photo.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    time.sleep(0.05)  # the kernel's file clock is coarse (a few ms)
-    photo.write_bytes(bytes(data))
-    os.utime(photo, ns=(before.st_atime_ns, before.st_mtime_ns))
-    after = photo.stat()
-    assert (after.st_size, after.st_mtime_ns) == (before.st_size, before.st_mtime_ns)
-    second = fingerprint(str(folder))
-    assert second["p1.png"] != first["p1.png"]
-    assert {k: v for k, v in second.items() if k != "p1.png"} == {
-        k: v for k, v in first.items() if k != "p1.png"
-    }
 
 
 def test_poses_fingerprint_covers_a_colmap_project(tmp_path):
