@@ -188,9 +188,9 @@ class SurfacesConfig:
     0.58) an eighth of every photo's plant pixels hold the soil's depth, which carves the leaf
     out. 3 cuts those depths by a third (0.127 → 0.081 of the plant pixels) and the row view's
     lost leaves from 32.5 to 26.1 % (its L1 0.207 → 0.091; the default canopy's 0.285 → 0.197,
-    with more holes), but fits (10 × 500, through SfM) read LAI −44.4 %
-    against −49.2 % on the sparse canopy and +9.5 % against −1.3 % on the default one
-    (benchmarks/RESULTS.md, *#window-78*): not adopted."""
+    with more holes), but fits (10 × 500, through SfM) read LAI −44.4 % against −49.2 % on
+    the sparse canopy and +9.5 % against −1.3 % on the default one (benchmarks/RESULTS.md,
+    *#window-78*): not adopted."""
     shiftable_windows: bool = False
     """tsdf: score a pixel by the best of the ``window``-sized windows that contain it (per
     source, a max filter of the centred windows' NCC), not only the window centred on it: a
