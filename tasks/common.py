@@ -134,8 +134,8 @@ STAGE_FOLDERS: dict[str, str] = {
 def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:
     """``{name: {store key: sha256}}`` of upstream stage records (or input fingerprints).
 
-    Each value of ``upstream`` is a stage record (its ``hashes`` are used) or a plain
-    ``{name: hash}`` mapping (an input fingerprint).
+    Each value of ``upstream`` is a stage record (its ``identity`` where it has one, else its
+    ``hashes``) or a plain ``{name: hash}`` mapping (an input fingerprint).
     """
     out: dict[str, dict[str, str]] = {}
     for name, rec in sorted((upstream or {}).items()):
@@ -143,7 +143,7 @@ def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, s
             continue
         if not isinstance(rec, Mapping):
             raise ConfigError(f"upstream {name!r} must be a stage record, got {type(rec)}")
-        hashes = rec.get("hashes") if "hashes" in rec else rec
+        hashes = (rec.get("identity") or rec["hashes"]) if "hashes" in rec else rec
         out[str(name)] = {str(k): str(v) for k, v in dict(hashes).items()}
     return out
 
@@ -313,12 +313,18 @@ def make_record(
     hashes: Mapping[str, str],
     summary: Mapping[str, Any] | None = None,
     seconds: float = 0.0,
+    identity: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """A stage record: ``artefacts`` {name: key}, ``hashes`` {key: sha256}, a small summary,
     and ``environment``: the numeric libraries of the process that computed it
     (:func:`cropcraft_core.store.environment_versions`; a cached record keeps the one that
-    computed it)."""
-    return {
+    computed it).
+
+    ``identity`` ({key: sha256}, optional): what later stages key on instead of ``hashes``,
+    for an artefact whose bytes hold provenance that no later stage reads (the ingest
+    manifest names the folder it read). ``hashes`` stay the bytes written: the check that a
+    cached record's artefacts are still in the store uses them."""
+    record = {
         "stage": stage,
         "scene": scene,
         "artefacts": dict(artefacts),
@@ -327,6 +333,9 @@ def make_record(
         "seconds": float(seconds),
         "environment": environment_versions(),
     }
+    if identity is not None:
+        record["identity"] = dict(sorted(identity.items()))
+    return record
 
 
 def key_of(record: Mapping[str, Any], name: str) -> str:

@@ -28,6 +28,9 @@ def ingest(
         )
         hashes = store.put_tree(tmp / "images", artefact(scene, "ingest", "images"))
     manifest_key = artefact(scene, "ingest", "images/manifest.json")
+    # later stages key on the images and the manifest's content, not on where the photos were
+    # read from: the same photos re-read (new mtimes, a copied inbox) leave SfM and on cached
+    identity = {**hashes, manifest_key: manifest.identity()}
     return make_record(
         "ingest",
         scene,
@@ -40,4 +43,5 @@ def ingest(
             "size_px": [manifest.images[0].width, manifest.images[0].height],
         },
         t.seconds,
+        identity=identity,
     )

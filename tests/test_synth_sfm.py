@@ -334,6 +334,35 @@ def test_ingest_dedup_manifest_and_exif(tmp_path):
     assert len(e["sha256_pixels"]) == 64
 
 
+def test_ingest_identity_is_what_the_images_are_not_where_they_were_read(tmp_path):
+    """The same photos read from another folder, one of them re-saved with new metadata (same
+    pixels), give the same identity; a changed photo, a new one or another downscale do not."""
+    src, copy = tmp_path / "src", tmp_path / "copy"
+    src.mkdir()
+    for i, col in enumerate([(200, 30, 30), (30, 200, 30), (30, 30, 200)]):
+        _png(col).save(src / f"p{i}.png")
+    shutil.copytree(src, copy)
+    with Image.open(src / "p1.png") as im:
+        im.save(copy / "p1.png", pnginfo=_png_text("Software", "a photo manager"))
+    assert (copy / "p1.png").read_bytes() != (src / "p1.png").read_bytes()
+    a = ingest_images(str(src), tmp_path / "a")
+    b = ingest_images(str(copy), tmp_path / "b")
+    assert a.to_dict() != b.to_dict() and a.identity() == b.identity()
+    assert ingest_images(str(src), tmp_path / "c", max_size=32).identity() != a.identity()
+    _png((31, 200, 30)).save(copy / "p1.png")
+    assert ingest_images(str(copy), tmp_path / "d").identity() != a.identity()
+    _png((90, 90, 90)).save(src / "p3.png")
+    assert ingest_images(str(src), tmp_path / "e").identity() != a.identity()
+
+
+def _png_text(key, value):
+    from PIL import PngImagePlugin
+
+    info = PngImagePlugin.PngInfo()
+    info.add_text(key, value)
+    return info
+
+
 def test_ingest_malformed_exif(tmp_path):
     """A photo whose EXIF has one mis-typed tag (the pixels are fine) ingests, turned upright by
     its orientation tag; one whose orientation tag cannot be parsed is an error naming it."""

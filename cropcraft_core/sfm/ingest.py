@@ -86,6 +86,21 @@ class IngestManifest:
         d["n_images"] = len(self.images)
         return d
 
+    def identity(self) -> str:
+        """sha256 of what the written images are, apart from where and how they were read.
+
+        Covers each written image's name, the source name it came from, its pixel hash, sizes,
+        orientation, scale and format, and ``max_size``: what a later stage reads (the poses
+        map source names to written names). Leaves out the provenance: the source URI, the
+        destination folder (a fresh scratch folder in a pipeline), the source files' byte
+        hashes (a re-saved photo with new metadata has the same pixels) and the dropped
+        duplicates and ignored files. The same photos read again from a copy, with new
+        modification times, give the same identity, so nothing keyed on it is recomputed.
+        """
+        images = [{k: v for k, v in asdict(im).items() if k != "sha256_file"} for im in self.images]
+        text = json.dumps({"max_size": self.max_size, "images": images}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()
+
     @classmethod
     def read(cls, path: str | os.PathLike) -> IngestManifest:
         p = Path(path)
