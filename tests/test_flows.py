@@ -370,32 +370,22 @@ def test_a_cached_answer_records_where_its_inputs_were_read(base_run, scene_dir,
     assert after.stages == before.stages and after.stages
 
 
-def test_the_same_photos_read_again_recompute_the_ingest_only(base_run, scene_dir, tmp_path):
-    """Photos copied to another folder with new modification times (an inbox synced again)
-    are read again, but they are the same photos: the stages after the ingest key on what the
-    images are, not on where they were read, so SfM, stereo and the fit stay cached."""
-    from flows.scene import run_scene
-
+def test_the_same_files_read_again_rerun_only_their_reading(base_run, scene_dir, tmp_path):
+    """Photos and poses copied to another folder with new modification times (an inbox synced
+    again) are read again, but they are the same files: the stages after them key on what the
+    images and poses are, not on where they were read, so stereo and the fit stay cached."""
     store = tmp_path / "store"
     shutil.copytree(base_run["store"], store)
-    photos = tmp_path / "images"
-    shutil.copytree(scene_dir / "images", photos, copy_function=shutil.copyfile)
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy, copy_function=shutil.copyfile)
     later = time.time() + 3600
-    for photo in photos.iterdir():
-        os.utime(photo, (later, later))
-    out = run_scene(
-        "plotA",
-        CROP,
-        DATE,
-        images=str(photos),
-        poses=str(scene_dir / "transforms.json"),
-        overrides=OVERRIDES,
-        store=str(store),
-    )
-    assert _executed(out["states"]) == ["ingest"]
+    for path in copy.rglob("*"):
+        os.utime(path, (later, later))
+    out = _run("plotA", store, copy)
+    assert _executed(out["states"]) == ["ingest", "poses"]
     assert out["params"] == base_run["first"]["params"]
     manifest = SceneStore(str(store)).get_json(f"plotA/{CROP}/{DATE}/ingest/images/manifest.json")
-    assert manifest["source"] == str(photos)  # the provenance is the new read's
+    assert manifest["source"] == str(copy / "images")  # the provenance is the new read's
 
 
 def test_late_config_change_recomputes_from_that_stage_on(base_run, scene_dir):
