@@ -16,6 +16,10 @@ Cache key (see :func:`stage_key`)::
                                                          config hash, upstream artefact hashes,
                                                          extra (e.g. the seed)})}
 
+The upstream hashes are a record's ``identity`` where it has one (the ingest's: its images
+and its manifest's content, not the folder the photos were read from), so the same photos read
+again from a copy or with new modification times leave every later stage cached.
+
 The key is also the path of Prefect's persisted result under the result storage, which is the
 scene store's root (a local ``Path`` or an fsspec ``RemoteFileSystem`` block for ``s3://``), so
 cached results live in the same store as the artefacts, beside the scene they belong to, hidden
