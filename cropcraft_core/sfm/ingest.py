@@ -29,6 +29,7 @@ from pathlib import Path, PurePosixPath
 from PIL import Image, ImageFile, UnidentifiedImageError
 
 from cropcraft_core.errors import InputError, OutputError
+from cropcraft_core.store import config_hash
 
 #: Extensions read as photos (case-insensitive).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
@@ -98,8 +99,7 @@ class IngestManifest:
         modification times, give the same identity, so nothing keyed on it is recomputed.
         """
         images = [{k: v for k, v in asdict(im).items() if k != "sha256_file"} for im in self.images]
-        text = json.dumps({"max_size": self.max_size, "images": images}, sort_keys=True)
-        return hashlib.sha256(text.encode()).hexdigest()
+        return config_hash({"max_size": self.max_size, "images": images})
 
     @classmethod
     def read(cls, path: str | os.PathLike) -> IngestManifest:
