@@ -31,6 +31,12 @@ complete object, never a partial one; a writer that fails leaves the old value u
 removes its temporary object (a writer killed outright may leave a ``.tmp-`` object behind,
 invisible to ``list`` and removed by :meth:`SceneStore.sweep_tmp`).
 
+Concurrency: a manifest's read-modify-write (:meth:`SceneStore.update_stage`,
+:meth:`SceneStore.init_manifest`) loses no update to other writers -- a thread lock within a
+process, an ``flock`` across processes on a local store, and on S3 a conditional PUT that
+replaces only the version read (``If-Match``), retried on the newer one. One run of a scene
+at a time is :mod:`cropcraft_core.lease`'s, built on the same conditional writes.
+
 Large arrays never travel through Prefect or Dask: a task writes its arrays here and returns the
 keys and the sha256 that every ``put_*`` returns; the next task reads them back by key.
 :class:`SceneStore` pickles to its root and options, so it can be shipped to workers, but flows
@@ -59,7 +65,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO, Literal
@@ -69,7 +75,7 @@ import numpy as np
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 from fsspec.spec import AbstractBufferedFile
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from cropcraft_core import __version__
 from cropcraft_core.config.params import CROPS
@@ -83,6 +89,7 @@ __all__ = [
     "SceneKey",
     "SceneStore",
     "StageRecord",
+    "SceneBusyError",
     "StoreError",
     "artefact_key",
     "canonical_json",
@@ -112,6 +119,11 @@ _CHUNK = 1 << 20
 
 class StoreError(CropCraftError, OSError):
     """The scene store cannot be reached, read or written (network, bucket, permissions)."""
+
+
+class SceneBusyError(StoreError):
+    """Another run holds the scene (:meth:`SceneStore.hold_scene`), or took it over from this
+    one after this one stopped renewing its lease."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,8 +170,9 @@ def _is_date(name: str) -> bool:
     return True
 
 
-def _check_key(key: object, *, allow_empty: bool = False) -> str:
-    """Validate a store key (relative POSIX path) and return it without a trailing slash."""
+def _check_key(key: object, *, allow_empty: bool = False, reserved: bool = False) -> str:
+    """Validate a store key (relative POSIX path) and return it without a trailing slash;
+    ``reserved``: a dot-named last segment allowed (the store's own objects: a scene's lease)."""
     if not isinstance(key, str):
         raise ConfigError(f"store key must be a string, got {type(key).__name__}")
     stripped = key.rstrip("/")
@@ -174,12 +187,13 @@ def _check_key(key: object, *, allow_empty: bool = False) -> str:
         )
     if _CONTROL_RE.search(stripped):
         raise ConfigError(f"invalid store key {key!r}: control characters are not allowed")
-    for part in stripped.split("/"):
+    parts = stripped.split("/")
+    for i, part in enumerate(parts):
         if part in ("", ".", ".."):
             raise ConfigError(
                 f"invalid store key {key!r}: empty, '.' and '..' path segments are not allowed"
             )
-        if part.startswith("."):
+        if part.startswith(".") and not (reserved and i == len(parts) - 1):
             raise ConfigError(
                 f"invalid store key {key!r}: segments starting with '.' are reserved for the "
                 "store's temporary objects"
@@ -594,6 +608,40 @@ def _resolve_s3_options(options: dict[str, Any]) -> dict[str, Any]:
                 options["endpoint_url"] = os.environ[var]
                 break
     return options
+
+
+def reserved_name(key: str) -> bool:
+    """True for the store's own objects: a key whose last segment starts with a dot."""
+    return key.rsplit("/", 1)[-1].startswith(".")
+
+
+def _lost_race(exc: BaseException) -> bool:
+    """True where a conditional S3 write failed because another writer changed the object
+    (412 Precondition Failed; 409 ConditionalRequestConflict for two at the same moment):
+    read again and retry, rather than report a store error."""
+    if isinstance(exc, FileExistsError):  # s3fs's If-None-Match failure
+        return True
+    cause = exc.__cause__ if exc.__cause__ is not None else exc
+    response = getattr(cause, "response", None) or {}
+    code = str((response.get("Error") or {}).get("Code", ""))
+    status = (response.get("ResponseMetadata") or {}).get("HTTPStatusCode")
+    return code in {"PreconditionFailed", "ConditionalRequestConflict"} or status in {409, 412}
+
+
+def _server_age(resp: Mapping[str, Any]) -> float | None:
+    """Seconds since an S3 object was written, by the server's clock alone (the response's
+    ``Date`` header less ``LastModified``): no trust in this machine's clock."""
+    import email.utils
+
+    modified = resp.get("LastModified")
+    date = ((resp.get("ResponseMetadata") or {}).get("HTTPHeaders") or {}).get("date")
+    if modified is None or not date:
+        return None
+    try:
+        now = email.utils.parsedate_to_datetime(date)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, (now - modified).total_seconds())
 
 
 class _HashingWriter:
@@ -1098,6 +1146,110 @@ class SceneStore:
                 pass
         self._invalidate(full)
 
+    # ---- compare-and-swap of small objects ------------------------------------------------
+    #
+    # Object storage has no locks that outlive a process; S3 (and MinIO, Ceph, moto) has
+    # conditional writes: a PUT with ``If-None-Match: *`` creates only where nothing is, one with
+    # ``If-Match: <ETag>`` replaces only the version that was read. Read-modify-write of a small
+    # object (a manifest, a lease) then loses no update among processes on any number of
+    # machines: a writer whose version was replaced meanwhile reads again and retries.
+
+    @property
+    def conditional(self) -> bool:
+        """True where :meth:`_write_if` is exact across processes and machines (S3); a local
+        store serialises with ``flock`` instead; elsewhere (``memory://``, ``gs://``) writes of
+        one object are serialised within this process only."""
+        return self.protocol in _S3_PROTOCOLS
+
+    def _s3_key(self, key: str) -> tuple[str, str]:
+        bucket, path, _ = self.fs.split_path(self._full(key))
+        return bucket, path
+
+    def _read_tagged(self, key: str) -> tuple[bytes | None, str | None, float | None]:
+        """``(bytes, version tag, age in seconds)`` of a small object, or ``(None, None, None)``
+        where there is none. On S3 the tag is the ETag and the age the server's own clock
+        (its ``Date`` less the object's ``Last-Modified``), read in one GET; elsewhere the tag
+        is the content's sha256 and the age from the local clock. Reserved (dot-named) keys
+        are allowed: the store's own objects."""
+        key = _check_key(key, reserved=True)
+        with self._io("read", key, reading=False):
+            if not self.conditional:
+                try:
+                    data = self.fs.cat_file(self._full(key))
+                except FileNotFoundError:
+                    return None, None, None
+                try:
+                    age = time.time() - self.fs.modified(self._full(key)).timestamp()
+                except (NotImplementedError, FileNotFoundError, OSError):
+                    age = None
+                return data, sha256_bytes(data), age
+            from fsspec.asyn import sync
+
+            bucket, path = self._s3_key(key)
+
+            async def get() -> tuple[bytes | None, str | None, float | None]:
+                try:
+                    resp = await self.fs._call_s3("get_object", Bucket=bucket, Key=path)
+                except FileNotFoundError:
+                    return None, None, None
+                body = resp["Body"]
+                try:
+                    data = await body.read()
+                finally:
+                    body.close()
+                return data, resp["ETag"], _server_age(resp)
+
+            return sync(self.fs.loop, get)
+
+    def _write_if(self, key: str, data: bytes, tag: str | None) -> str | None:
+        """Write ``data`` under ``key`` only if it still holds version ``tag`` (None: only if
+        there is no object). Returns the new version's tag, or None where another writer got
+        there first. Exact on S3 (one conditional PUT, atomic for readers); elsewhere call it
+        under a lock that serialises the writers (``put_bytes`` after a tag check)."""
+        key = _check_key(key, reserved=True)
+        if not self.conditional:
+            current, current_tag, _ = self._read_tagged(key)
+            if current_tag != tag:
+                return None
+            if reserved_name(key):
+                with self._io("write", key, reading=False):
+                    if self._local:
+                        os.makedirs(os.path.dirname(self._full(key)), exist_ok=True)
+                    self.fs.pipe_file(self._full(key), bytes(data))
+                self._invalidate(self._full(key))
+            else:
+                self.put_bytes(key, data)
+            return sha256_bytes(data)
+        bucket, path = self._s3_key(key)
+        cond = {"IfMatch": tag} if tag is not None else {"IfNoneMatch": "*"}
+        try:
+            with self._io("write", key, reading=False):
+                try:
+                    resp = self.fs.call_s3(
+                        "put_object", Bucket=bucket, Key=path, Body=bytes(data), **cond
+                    )
+                except OSError as exc:
+                    if _lost_race(exc):
+                        return None
+                    raise
+        finally:
+            self._invalidate(self._full(key))
+        return resp["ETag"]
+
+    def _delete_if(self, key: str, tag: str) -> bool:
+        """Delete ``key`` only if it still holds version ``tag``; False where it does not (or
+        is gone). S3: a read, a compare and a delete (a conditional DELETE is not offered by
+        every S3-compatible server), so call it only where no other writer may replace the
+        object between the two (a lease its holder renews)."""
+        _, current_tag, _ = self._read_tagged(key)
+        if current_tag != tag:
+            return False
+        full = self._full(_check_key(key, reserved=True))
+        with self._io("delete", key, reading=False), contextlib.suppress(FileNotFoundError):
+            self.fs.rm_file(full)
+        self._invalidate(full)
+        return True
+
     def sweep_tmp(self, prefix: str = "", older_than_s: float = 3600.0) -> list[str]:
         """Remove temporary objects left by killed writers, older than ``older_than_s``.
 
@@ -1175,18 +1327,59 @@ class SceneStore:
     def load_manifest(self, scene: SceneKey) -> Manifest:
         """The scene's manifest; InputError if the scene has none (run ingest first)."""
         key = manifest_key(scene)
-        data = self.get_json(key)
+        return self._parse_manifest(key, self.get_bytes(key))
+
+    def _parse_manifest(self, key: str, data: bytes) -> Manifest:
         try:
-            return Manifest.model_validate(data)
-        except ValidationError as exc:
+            return Manifest.model_validate(json.loads(data))
+        except ValueError as exc:  # JSON's and pydantic's errors both
             raise InputError(f"{self.url(key)} is not a valid manifest: {exc}") from exc
 
-    def save_manifest(self, manifest: Manifest) -> str:
-        """Write a manifest atomically (``updated`` set to now); return its sha256."""
+    @staticmethod
+    def _manifest_bytes(manifest: Manifest) -> bytes:
+        """``manifest`` stamped ``updated`` now, as :meth:`put_json` writes it."""
         manifest.updated = _now()
         if manifest.created is None:
             manifest.created = manifest.updated
-        return self.put_json(manifest_key(manifest.scene), manifest.model_dump(mode="json"))
+        text = json.dumps(
+            manifest.model_dump(mode="json"), sort_keys=True, indent=2, ensure_ascii=False
+        )
+        return (text + "\n").encode("utf-8")
+
+    def save_manifest(self, manifest: Manifest) -> str:
+        """Write a manifest atomically (``updated`` set to now); return its sha256. Replaces
+        whatever is there: to change one, use :meth:`update_stage` (no lost updates)."""
+        return self.put_bytes(manifest_key(manifest.scene), self._manifest_bytes(manifest))
+
+    #: Attempts of one manifest change against writers in other processes (S3), each after a
+    #: random pause of up to ``0.05 * 1.5**attempt`` s: ~25 s in all before giving up.
+    _CAS_ATTEMPTS = 16
+
+    def _change_manifest(
+        self, scene: SceneKey, change: Callable[[bytes | None], Manifest]
+    ) -> Manifest:
+        """Read-modify-write of one scene's manifest with no lost update: ``change(current
+        bytes or None)`` returns the new manifest. Within a process a thread lock serialises
+        the writers; across processes a local store holds an ``flock``, and S3 replaces only the
+        version that was read (a conditional PUT) and runs ``change`` again on the newer one."""
+        key = manifest_key(scene)
+        with self._manifest_lock(scene):
+            if not self.conditional:
+                current = self.get_bytes(key) if self.isfile(key) else None
+                manifest = change(current)
+                self.save_manifest(manifest)
+                return manifest
+            rng = np.random.default_rng()
+            for attempt in range(self._CAS_ATTEMPTS):
+                current, tag, _ = self._read_tagged(key)
+                manifest = change(current)
+                if self._write_if(key, self._manifest_bytes(manifest), tag) is not None:
+                    return manifest
+                time.sleep(float(rng.uniform(0.0, 0.05 * 1.5**attempt)))
+            raise StoreError(
+                f"cannot update {self.url(key)}: other writers replaced it on each of "
+                f"{self._CAS_ATTEMPTS} attempts; is something rewriting it in a loop?"
+            )
 
     def init_manifest(
         self,
@@ -1208,14 +1401,16 @@ class SceneStore:
         if not isinstance(data, dict):
             raise InputError(f"scene config for {scene} must be a mapping, got {type(config)}")
         chash = config_hash(data)
-        with self._manifest_lock(scene):
+        key = manifest_key(scene)
+
+        def change(current: bytes | None) -> Manifest:
             recovered: dict[str, str] | None = None
-            try:
-                old = self.load_manifest(scene)
-            except InputError:
-                old = None
-                if self.isfile(manifest_key(scene)):
-                    recovered = self._set_aside_manifest(scene)
+            old = None
+            if current is not None:
+                try:
+                    old = self._parse_manifest(key, current)
+                except InputError:
+                    recovered = self._set_aside_manifest(scene, current)
             manifest = Manifest(
                 site=scene.site,
                 crop=scene.crop,
@@ -1233,10 +1428,11 @@ class SceneStore:
                     manifest.stages = old.stages
             elif recovered is not None:
                 manifest.written = recovered
-            self.save_manifest(manifest)
-        return manifest
+            return manifest
 
-    def _set_aside_manifest(self, scene: SceneKey) -> dict[str, str]:
+        return self._change_manifest(scene, change)
+
+    def _set_aside_manifest(self, scene: SceneKey, damaged: bytes) -> dict[str, str]:
         """A scene's manifest is there but unreadable (damaged, or written by a newer version):
         keep a copy beside it (``manifest.unreadable-<UTC time>.json``) and return the sha256 of
         every object of the scene now, the ``written`` that its replacement starts from (what
@@ -1245,7 +1441,7 @@ class SceneStore:
         key = manifest_key(scene)
         stamp = _now().strftime("%Y%m%dT%H%M%S%fZ")
         aside = f"{scene.prefix}/manifest.unreadable-{stamp}.json"
-        self.put_bytes(aside, self.get_bytes(key))
+        self.put_bytes(aside, damaged)
         log.warning("%s is unreadable: kept as %s, replaced", self.url(key), self.url(aside))
         skip = f"{scene.prefix}/manifest"
         return {k: self.sha256(k) for k in self.list(scene.prefix) if not k.startswith(skip)}
@@ -1297,28 +1493,34 @@ class SceneStore:
         * ``artefacts`` and ``inputs`` are merged into the record; ``config_hash`` replaces it.
         * ``environment`` (the computing process's :func:`environment_versions`) replaces it.
 
-        Updates are serialised within a process (and across processes on a local store); on
-        object storage two processes must not update the same scene's manifest at the same time
-        (the scene flow owns it; mapped seeds write their own artefacts). Returns the new
-        manifest.
+        No update is lost to another writer, in this process or any other (a local store's
+        ``flock``, S3's conditional writes: :meth:`_change_manifest`). Returns the new manifest.
         """
         _check_name(stage, "stage")
         if status is not None and status not in STAGE_STATUSES:
             raise ConfigError(
                 f"invalid status {status!r} for stage {stage!r}: one of {STAGE_STATUSES}"
             )
-        with self._manifest_lock(scene):
-            manifest = self.load_manifest(scene)
+        key = manifest_key(scene)
+
+        def change(current: bytes | None) -> Manifest:
+            if current is None:
+                raise InputError(
+                    f"cannot update {self.url(key)}: no such object; the scene's run writes it "
+                    "first (init_manifest)"
+                )
+            manifest = self._parse_manifest(key, current)
             rec = manifest.stages.get(stage) or StageRecord()
             now = _now()
             if status == "running":  # a new attempt: forget the previous one
                 rec = StageRecord(status="running", started=now)
-            elif status in ("done", "failed"):
+            took = seconds
+            if status in ("done", "failed"):
                 rec.status = status
                 rec.finished = now
-                if seconds is None and rec.started is not None:
-                    seconds = (now - rec.started).total_seconds()
-            elif status is not None:
+                if took is None and rec.started is not None:
+                    took = (now - rec.started).total_seconds()
+            elif status is not None and status != "running":
                 rec.status = status
             if config_hash is not None:
                 rec.config_hash = config_hash
@@ -1327,17 +1529,19 @@ class SceneStore:
             if artefacts:
                 rec.artefacts.update({_check_key(k): str(v) for k, v in artefacts.items()})
                 manifest.written.update({_check_key(k): str(v) for k, v in artefacts.items()})
-            if seconds is not None:
-                rec.seconds = float(seconds)
+            if took is not None:
+                rec.seconds = float(took)
             if environment is not None:
                 rec.environment = {str(k): str(v) for k, v in environment.items()}
             if error is not None:
+                why = error
                 if isinstance(error, BaseException):
-                    error = f"{type(error).__name__}: {error}"
-                rec.error = redact(" ".join(str(error).split()))[:2000]
+                    why = f"{type(error).__name__}: {error}"
+                rec.error = redact(" ".join(str(why).split()))[:2000]
             manifest.stages[stage] = rec
-            self.save_manifest(manifest)
-        return manifest
+            return manifest
+
+        return self._change_manifest(scene, change)
 
     def stage_is_current(
         self,

@@ -32,6 +32,7 @@ from typing import Any, Literal
 from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
+from cropcraft_core.lease import SceneLease, hold_scene
 from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
 from tasks.common import fingerprint, get_task, stage_key
@@ -815,13 +816,24 @@ def _manifest_stage(stage: str, row: int | None) -> str:
 class _PrefectRun:
     """Executes the wiring with Prefect tasks, recording each stage in the manifest."""
 
-    def __init__(self, req: SceneRequest, storage: Any, refresh: bool = False) -> None:
+    def __init__(
+        self,
+        req: SceneRequest,
+        storage: Any,
+        refresh: bool = False,
+        lease: SceneLease | None = None,
+    ) -> None:
         self.req = req
         self.storage = storage
         self.refresh = refresh  # recompute every stage, replacing its cached result
         self.store = SceneStore(req.store_root)
+        self.lease = lease  # checked before every stage and record: no writes after a takeover
         self.states: dict[str, str] = {}
         self.log = get_run_logger()
+
+    def _check_lease(self) -> None:
+        if self.lease is not None:
+            self.lease.check()
 
     def _task(self, stage: str, refresh: bool = False):
         """The stage's task on the scene's result storage; ``refresh``: recompute and replace
@@ -837,6 +849,7 @@ class _PrefectRun:
         error: Any = None,
         row: int | None = None,
     ) -> None:
+        self._check_lease()
         scene = self.req.scene
         chash = config_hash(self.req.stages[stage])
         name = _manifest_stage(stage, row)
@@ -864,6 +877,7 @@ class _PrefectRun:
 
     def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
         """The stage's task submitted (not waited for)."""
+        self._check_lease()
         return self._task(stage, refresh).submit(
             store_root=self.req.store_root,
             scene=self.req.scene.prefix,
@@ -922,6 +936,7 @@ class _PrefectRun:
         self, upstream: dict, seeds: list[int], row: int | None, refresh: bool = False
     ) -> dict[int, Any]:
         """Submit ``seeds`` of one row's fit (not waited for)."""
+        self._check_lease()
         futures = self._task("fit_seed", refresh).map(
             store_root=unmapped(self.req.store_root),
             scene=unmapped(self.req.scene.prefix),
@@ -1122,6 +1137,18 @@ def cache_walk(req: SceneRequest) -> tuple[dict[str, str], str | None]:
 # --------------------------------------------------------------------------- the flow
 
 
+def _run_owner() -> str:
+    """Who holds a scene's lease, for another run's refusal: this flow run, by name and id."""
+    try:
+        from prefect.runtime import flow_run
+
+        if flow_run.id:
+            return f"flow run {flow_run.name} ({flow_run.id})"
+    except Exception:  # pragma: no cover - outside a run
+        pass
+    return f"process {os.getpid()}"
+
+
 @flow(
     name="reconstruct-scene",
     persist_result=False,
@@ -1158,20 +1185,23 @@ def reconstruct_scene(
     overrides = with_backend(overrides, surfaces_backend)
     req = prepare(site, crop, date, images, poses, overrides, store)
     st = SceneStore(req.store_root)
-    st.init_manifest(
-        req.scene,
-        manifest_inputs(req.inputs),
-        req.config,
-        sources={"images": _located(images), "poses": _located(poses)},
-    )
-    ex = _PrefectRun(req, result_storage(req.store_root), refresh=refresh)
-    try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
-        swept = st.sweep_tmp(req.scene.prefix)
-        if swept:
-            ex.log.info("%s: removed %d stale temporary objects", req.scene.prefix, len(swept))
-    except Exception as exc:  # housekeeping must not fail the run
-        ex.log.warning("%s: could not sweep temporary objects: %s", req.scene.prefix, exc)
-    records = _wire(ex, req)
+    # one run of a scene at a time, from its first write to its last (cropcraft_core/lease.py)
+    with hold_scene(st, req.scene, owner=_run_owner()) as lease:
+        st.init_manifest(
+            req.scene,
+            manifest_inputs(req.inputs),
+            req.config,
+            sources={"images": _located(images), "poses": _located(poses)},
+        )
+        ex = _PrefectRun(req, result_storage(req.store_root), refresh=refresh, lease=lease)
+        try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
+            swept = st.sweep_tmp(req.scene.prefix)
+            if swept:
+                ex.log.info("%s: removed %d stale temporary objects", req.scene.prefix, len(swept))
+        except Exception as exc:  # housekeeping must not fail the run
+            ex.log.warning("%s: could not sweep temporary objects: %s", req.scene.prefix, exc)
+        records = _wire(ex, req)
+        lease.check()
     out = summarize(req, records, ex.states)
     for warning in (out["observation"]["warning"], (out["consistency"] or {}).get("warning")):
         if warning:

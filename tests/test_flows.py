@@ -325,6 +325,26 @@ def test_rerun_is_cached_everywhere(base_run):
     assert second["params"] == base_run["first"]["params"]
 
 
+def test_a_scene_being_run_is_not_run_again_at_the_same_time(base_run, scene_dir):
+    """A second run of a scene while one holds it (the nightly season and an ad hoc run of
+    the same date) is refused before it writes anything, naming the run that holds it -- here
+    with other settings, which would otherwise reset the holder's stage records; once the
+    first is done the same request runs."""
+    from cropcraft_core.lease import hold_scene
+
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    before = store.get_bytes(f"{scene.prefix}/manifest.json")
+    late = {**OVERRIDES, "fit.polish_evals": 5}
+    with hold_scene(store, scene, owner="flow run nightly-plotA"):
+        with pytest.raises(StoreError, match="being run by flow run nightly-plotA") as err:
+            _run("plotA", base_run["store"], scene_dir, overrides=late)
+        assert type(err.value).__name__ == "SceneBusyError"
+        assert store.get_bytes(f"{scene.prefix}/manifest.json") == before
+    again = _run("plotA", base_run["store"], scene_dir)
+    assert set(again["states"].values()) == {"Cached"}
+
+
 def test_force_recomputes_every_stage_and_keeps_the_answer(base_run, scene_dir):
     """``cropcraft run --force`` (``refresh``): no stage is served from the cache, each one's
     cached result is replaced, the answer is the same, and the next plain rerun is cached."""

@@ -1,0 +1,179 @@
+"""One run of a scene at a time (cropcraft_core/lease.py) and manifests that lose no update to
+writers in other processes (SceneStore._change_manifest), on a local folder and on a real
+S3-compatible server (moto) -- in separate processes, as two runs on two workers are."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import uuid
+
+import pytest
+
+from cropcraft_core.lease import LEASE_NAME, LOCK_NAME, SceneLease, hold_scene
+from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, scene_prefix
+from tests import conftest_s3
+from tests.conftest_s3 import S3Server
+
+s3_server = conftest_s3.s3_server  # the session fixture, made visible to this module
+
+SCENE = SceneKey("plotA", "soybean", "2024-07-01")
+
+
+@pytest.fixture(params=["local", "s3"])
+def store(request, tmp_path) -> SceneStore:
+    if request.param == "local":
+        return SceneStore(str(tmp_path / "store"))
+    server: S3Server = request.getfixturevalue("s3_server")
+    return SceneStore(
+        f"s3://{server.bucket}/{uuid.uuid4().hex}", storage_options=server.storage_options()
+    )
+
+
+def _spawned() -> mp.context.SpawnContext:
+    return mp.get_context("spawn")
+
+
+# ---- manifests: no lost update across processes -----------------------------------------------
+
+
+def _record_stages(root: str, options: dict, worker: int, n: int) -> None:
+    store = SceneStore(root, storage_options=options)
+    for i in range(n):
+        store.update_stage(SCENE, f"fit_seed_{worker}_{i}", status="done", seconds=float(i))
+
+
+def test_manifest_updates_from_many_processes_are_all_kept(store):
+    """Four processes record five stages each into one manifest at the same time: every
+    record is there (on S3 each writer replaces only the version it read, and retries)."""
+    store.init_manifest(SCENE, {}, {"seeds": 20})
+    options = store._storage_options
+    procs = [
+        _spawned().Process(target=_record_stages, args=(store._raw_root, options, w, 5))
+        for w in range(4)
+    ]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=120)
+        assert p.exitcode == 0
+    expected = sorted(f"fit_seed_{w}_{i}" for w in range(4) for i in range(5))
+    assert store.load_manifest(SCENE).done_stages() == expected
+
+
+def test_a_conditional_write_replaces_only_the_version_it_read(store):
+    key = f"{scene_prefix(SCENE)}/note.json"
+    first = store._write_if(key, b"1", None)
+    assert first is not None
+    assert store._write_if(key, b"2", None) is None  # something is there
+    second = store._write_if(key, b"2", first)
+    assert second is not None and store.get_bytes(key) == b"2"
+    assert store._write_if(key, b"3", first) is None  # the version read is gone
+    assert store.get_bytes(key) == b"2"
+    assert not store._delete_if(key, first) and store.isfile(key)
+    assert store._delete_if(key, second) and not store.isfile(key)
+
+
+# ---- the scene lease ---------------------------------------------------------------------------
+
+
+def test_a_second_run_of_a_held_scene_is_refused_naming_the_first(store):
+    with hold_scene(store, SCENE, owner="flow run nightly-plotA (1234)") as lease:
+        lease.check()
+        with pytest.raises(SceneBusyError) as err:
+            with hold_scene(store, SCENE, owner="flow run ad-hoc"):
+                pass
+        message = str(err.value)
+        assert "plotA/soybean/2024-07-01 is being run by flow run nightly-plotA (1234)" in message
+        assert f"pid {os.getpid()}" in message and "wait for that run" in message
+        # another date of the same plot is another scene
+        with hold_scene(store, SceneKey("plotA", "soybean", "2024-07-08")):
+            pass
+    # released: the next run takes it, and the lease is hidden from the scene's listing
+    with hold_scene(store, SCENE, owner="flow run ad-hoc"):
+        pass
+    assert not any(k.endswith((LOCK_NAME, LEASE_NAME)) for k in store.list(scene_prefix(SCENE)))
+
+
+_HOLD = textwrap.dedent(
+    """
+    import json, sys, time
+    from cropcraft_core.lease import hold_scene
+    from cropcraft_core.store import SceneKey, SceneStore
+    store = SceneStore(sys.argv[1], storage_options=json.loads(sys.argv[2]))
+    with hold_scene(store, SceneKey("plotA", "soybean", "2024-07-01"), owner="held",
+                    ttl_s=float(sys.argv[3]), renew_s=float(sys.argv[4])):
+        print("held", flush=True)
+        time.sleep(600)
+    """
+)
+
+
+def _holder(store: SceneStore, ttl_s: float, renew_s: float) -> subprocess.Popen:
+    """Another process holding the scene until it is killed."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            _HOLD,
+            store._raw_root,
+            json.dumps(store._storage_options),
+            str(ttl_s),
+            str(renew_s),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
+    """A live holder renews its lease past the lease's time to live and is not taken over;
+    killed outright (no release), a local lock goes with the process and an S3 lease lapses
+    after its time to live: the next run takes the scene."""
+    proc = _holder(store, ttl_s=3.0, renew_s=0.5)
+    try:
+        time.sleep(4.0)  # past the time to live: only renewals keep it
+        with pytest.raises(SceneBusyError, match="being run by held"):
+            SceneLease(store, SCENE, "second").acquire()
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    if not store._local:
+        with pytest.raises(SceneBusyError, match="lapses after 3 s"):
+            SceneLease(store, SCENE, "too soon").acquire()
+        time.sleep(4.5)  # the server's clock counts whole seconds
+    lease = SceneLease(store, SCENE, "next").acquire()
+    lease.release()
+
+
+def test_a_holder_that_stalled_past_its_lease_learns_it_was_taken_over(s3_server):
+    """On object storage a holder that stops renewing (a stalled process) loses the scene to
+    the next run; when it resumes, its next renewal finds another version and ``check``
+    fails its run rather than let it write over the new holder's results."""
+    store = SceneStore(
+        f"s3://{s3_server.bucket}/{uuid.uuid4().hex}",
+        storage_options=s3_server.storage_options(),
+    )
+    stalled = SceneLease(store, SCENE, "stalled", ttl_s=2.0, renew_s=1000.0).acquire()
+    time.sleep(3.5)
+    taker = SceneLease(store, SCENE, "taker", ttl_s=60.0).acquire()
+    # the stalled one resumes: one renewal turn
+    stalled.renew_s = 0.05
+    stalled._stop.set()
+    stalled._renewer.join()
+    stalled._stop.clear()
+    stalled._renew_once()
+    with pytest.raises(SceneBusyError, match="lost the scene's lease"):
+        stalled.check()
+    stalled.release()  # gives back nothing: the lease is the taker's
+    with pytest.raises(SceneBusyError, match="being run by taker"):
+        SceneLease(store, SCENE, "third").acquire()
+    taker.release()
