@@ -576,9 +576,7 @@ def ensure_demo_inputs(store) -> None:
     with other settings (``truth/synth.json`` differs from ``DEMO_SYNTH``, e.g. an older
     release's) gets the current one: its photos are replaced, so the scene flow recomputes
     from ingest on."""
-    import tempfile
-    from pathlib import Path
-
+    from cropcraft_core.lease import hold_scene
     from cropcraft_core.store import SceneKey
     from tasks.common import core
 
@@ -589,6 +587,15 @@ def ensure_demo_inputs(store) -> None:
     marker = f"{scene.prefix}/truth/synth.json"
     if store.isfile(marker) and store.get_json(marker) == settings:
         return
+    # not while a demo run elsewhere reads the scene (cropcraft_core/lease.py)
+    with hold_scene(store, scene, owner="cropcraft demo, making its scene"):
+        _remake_demo_inputs(store, scene, settings, marker, make_scene)
+
+
+def _remake_demo_inputs(store, scene, settings: dict, marker: str, make_scene) -> None:
+    import tempfile
+    from pathlib import Path
+
     if store.exists(f"{scene.prefix}/images"):
         print("the store's demo scene is incomplete or of other settings: remaking it", flush=True)
         store.delete(marker)  # first: a crash below leaves a scene that is remade next time
