@@ -38,7 +38,7 @@ import uuid
 from collections.abc import Iterator
 from typing import Any
 
-from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, scene_prefix
+from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 
 __all__ = ["LEASE_NAME", "LOCK_NAME", "SceneLease", "hold_scene"]
 
@@ -151,6 +151,12 @@ class SceneLease:
             text = fh.read()
             fh.close()
             raise SceneBusyError(self._busy_message(_parse(text), None)) from None
+        except OSError as exc:  # a filesystem without locks (some network mounts)
+            fh.close()
+            raise StoreError(
+                f"cannot lock {fh.name} ({exc}): the store's folder must allow flock; put the "
+                "store on a local disk or on S3"
+            ) from exc
         except BaseException:
             fh.close()
             raise
@@ -212,6 +218,8 @@ class SceneLease:
         except Exception as exc:  # transient: the next turn tries again within ttl_s
             log.warning("%s: could not renew the lease: %s", self.scene.prefix, exc)
             return True
+        if tag is None and self._still_ours():
+            return True
         if tag is None:
             self._lost = (
                 f"{self.scene.prefix}: this run ({self.holder['owner']}) lost the scene's "
@@ -220,6 +228,21 @@ class SceneLease:
             )
             log.error("%s", self._lost)
             self._tag = None
+            return False
+        self._tag = tag
+        return True
+
+    def _still_ours(self) -> bool:
+        """After a renewal found another version: True where that version is still this
+        run's own (a renewal whose answer was lost on the network did land), adopting it."""
+        try:
+            data, tag, _ = self.store._read_tagged(self.key)
+        except Exception:
+            return False
+        if (
+            data is None
+            or _parse(data.decode("utf-8", "replace")).get("token") != (self.holder["token"])
+        ):
             return False
         self._tag = tag
         return True

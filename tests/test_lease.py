@@ -177,3 +177,22 @@ def test_a_holder_that_stalled_past_its_lease_learns_it_was_taken_over(s3_server
     with pytest.raises(SceneBusyError, match="being run by taker"):
         SceneLease(store, SCENE, "third").acquire()
     taker.release()
+
+
+def test_a_renewal_whose_answer_was_lost_keeps_the_lease(s3_server):
+    """A renewal that landed but whose answer never came back leaves the holder with an old
+    version tag: the next renewal finds the lease still carries this run's token and goes on,
+    rather than stopping a healthy run as taken over."""
+    store = SceneStore(
+        f"s3://{s3_server.bucket}/{uuid.uuid4().hex}",
+        storage_options=s3_server.storage_options(),
+    )
+    lease = SceneLease(store, SCENE, "healthy", ttl_s=60.0, renew_s=1000.0).acquire()
+    try:
+        lease._tag = '"0123456789abcdef0123456789abcdef"'  # the version before the lost answer
+        assert lease._renew_once()
+        lease.check()
+        assert lease._renew_once() and lease._tag == store._read_tagged(lease.key)[1]
+    finally:
+        lease.release()
+    assert not store._read_tagged(lease.key)[0]
