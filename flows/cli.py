@@ -233,6 +233,7 @@ BENCHMARKS = {
     "fit-speed": "benchmarks.bench_fit_speed",
     "optimizer": "benchmarks.bench_optimizer",
     "pipeline": "benchmarks.bench_pipeline",
+    "draws": "benchmarks.bench_draws",
     "rows": "benchmarks.bench_rows",
     "surfaces": "benchmarks.bench_surfaces",
     "nerfacto": "benchmarks.bench_nerfacto",

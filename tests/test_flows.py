@@ -345,6 +345,40 @@ def test_a_scene_being_run_is_not_run_again_at_the_same_time(base_run, scene_dir
     assert set(again["states"].values()) == {"Cached"}
 
 
+def test_bench_draws_reanswers_a_stored_fit_in_sets_of_its_seeds(base_run, tmp_path, capsys):
+    """``cropcraft bench draws``: the stored seeds split into sets, each answered by each rule
+    as the aggregate would: the set holding all the flow's seeds under the crop's rule is the
+    flow's own answer; the store is left as it was."""
+    from benchmarks import bench_draws
+    from flows.cli import main as cli_main
+
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    before = {k: store.sha256(k) for k in store.list(scene)}
+    truth = str(tmp_path / "metrics.json")  # a truth to compare with (the scene skips its own)
+    Path(truth).write_text(json.dumps({"lai": 1.5, "node_count": 9.0}))
+    whole = bench_draws.run(str(base_run["store"]), scene, N_SEEDS, ["guarded"], truth)
+    [answer] = whole["answers"]["guarded"]
+    assert answer["params"] == pytest.approx(base_run["first"]["params"], rel=1e-9)
+    true_lai = json.loads(Path(truth).read_text())["lai"]
+    assert answer["lai_error"] == pytest.approx(answer["lai"] / true_lai - 1.0)
+
+    assert cli_main(["bench", "draws", scene, "--store", str(base_run["store"]),
+                     "--set-size", "1", "--truth", truth]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert f"{N_SEEDS} stored seeds in sets of 1; true LAI {true_lai:.3f}" in out
+    for rule in ("guarded", "median", "mean"):
+        assert any(line.startswith(rule) for line in out.splitlines()), out
+    assert "seeds 0-0" in out and f"seeds {N_SEEDS - 1}-{N_SEEDS - 1}" in out
+    one = bench_draws.run(str(base_run["store"]), scene, 1, ["median", "mean"], truth)
+    # one seed per set: every rule answers with that seed's own point
+    for a, b in zip(one["answers"]["median"], one["answers"]["mean"], strict=True):
+        assert a["params"] == pytest.approx(b["params"])
+    with pytest.raises(InputError, match="3 stored seeds make no set of 4"):
+        bench_draws.run(str(base_run["store"]), scene, 4, ["mean"], truth)
+    assert {k: store.sha256(k) for k in store.list(scene)} == before
+
+
 def test_force_recomputes_every_stage_and_keeps_the_answer(base_run, scene_dir):
     """``cropcraft run --force`` (``refresh``): no stage is served from the cache, each one's
     cached result is replaced, the answer is the same, and the next plain rerun is cached."""
