@@ -197,6 +197,8 @@ def print_table(res: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", help="SITE/CROP/DATE of a stored run (fitted with 20+ seeds)")
     ap.add_argument("--store", default=None, help="scene store root (default $CROPCRAFT_STORE)")
@@ -206,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--rule",
         action="append",
-        choices=("median", "mean", "reevaluate", "guarded"),
+        choices=[r for r in COMBINE_RULES if r not in OPT_IN_RULES],  # floors: seed tasks
         help="answer rule (repeatable; default: the crop's, median, mean)",
     )
     ap.add_argument("--truth", default=None, help="metrics.json of the true canopy")

@@ -130,11 +130,16 @@ class SceneLease:
             self._fh = None
         if self._tag is not None:
             try:
-                with _inprocess if not self.store.conditional else contextlib.nullcontext():
+                with self._serial():
                     self.store._delete_if(self.key, self._tag)
             except Exception as exc:  # it lapses after ttl_s anyway
                 log.warning("%s: could not release the lease: %s", self.scene.prefix, exc)
             self._tag = None
+
+    def _serial(self) -> contextlib.AbstractContextManager:
+        """Where the store has no conditional writes, this process's lease writes one at a
+        time (its read-compare-write is exact only so); S3's own conditions need no lock."""
+        return contextlib.nullcontext() if self.store.conditional else _inprocess
 
     # ---- local: flock -------------------------------------------------------------------
 
@@ -173,7 +178,7 @@ class SceneLease:
 
     def _acquire_object(self) -> None:
         for _ in range(8):  # each turn: create, or find it released, abandoned or held
-            with _inprocess if not self.store.conditional else contextlib.nullcontext():
+            with self._serial():
                 tag = self.store._write_if(self.key, self._body(), None)
                 if tag is None:
                     data, theirs, age = self.store._read_tagged(self.key)
@@ -213,7 +218,7 @@ class SceneLease:
     def _renew_once(self) -> bool:
         """One renewal: False once the lease was found taken over (then ``check`` fails)."""
         try:
-            with _inprocess if not self.store.conditional else contextlib.nullcontext():
+            with self._serial():
                 tag = self.store._write_if(self.key, self._body(), self._tag)
         except Exception as exc:  # transient: the next turn tries again within ttl_s
             log.warning("%s: could not renew the lease: %s", self.scene.prefix, exc)

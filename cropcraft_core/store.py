@@ -610,6 +610,26 @@ def _resolve_s3_options(options: dict[str, Any]) -> dict[str, Any]:
     return options
 
 
+def _json_bytes(key: str, obj: Any) -> bytes:
+    """``obj`` as :meth:`SceneStore.put_json` stores it under ``key``: stable JSON (sorted
+    keys, 2-space indent, UTF-8, trailing newline); InputError where it is no JSON."""
+    try:
+        text = json.dumps(
+            obj,
+            sort_keys=True,
+            indent=2,
+            ensure_ascii=False,
+            allow_nan=False,
+            default=_json_default,
+        )
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"cannot write {key!r} as JSON ({exc}); use plain numbers, strings, lists and "
+            "dicts, None instead of NaN, and put_npz for arrays"
+        ) from exc
+    return (text + "\n").encode("utf-8")
+
+
 def reserved_name(key: str) -> bool:
     """True for the store's own objects: a key whose last segment starts with a dot."""
     return key.rsplit("/", 1)[-1].startswith(".")
@@ -914,21 +934,7 @@ class SceneStore:
         Accepts dicts, lists, numbers, strings, pydantic models, dataclasses and small numpy
         values; NaN/Infinity are refused (use None). Returns the sha256 of the stored bytes.
         """
-        try:
-            text = json.dumps(
-                obj,
-                sort_keys=True,
-                indent=2,
-                ensure_ascii=False,
-                allow_nan=False,
-                default=_json_default,
-            )
-        except (TypeError, ValueError) as exc:
-            raise InputError(
-                f"cannot write {key!r} as JSON ({exc}); use plain numbers, strings, lists and "
-                "dicts, None instead of NaN, and put_npz for arrays"
-            ) from exc
-        return self.put_bytes(key, (text + "\n").encode("utf-8"))
+        return self.put_bytes(key, _json_bytes(key, obj))
 
     def put_npz(self, key: str, arrays: Mapping[str, Any], *, compress: bool = True) -> str:
         """Store named numpy arrays as one ``.npz`` (compressed by default, no pickles).
@@ -1341,10 +1347,7 @@ class SceneStore:
         manifest.updated = _now()
         if manifest.created is None:
             manifest.created = manifest.updated
-        text = json.dumps(
-            manifest.model_dump(mode="json"), sort_keys=True, indent=2, ensure_ascii=False
-        )
-        return (text + "\n").encode("utf-8")
+        return _json_bytes(manifest_key(manifest.scene), manifest.model_dump(mode="json"))
 
     def save_manifest(self, manifest: Manifest) -> str:
         """Write a manifest atomically (``updated`` set to now); return its sha256. Replaces
@@ -1512,15 +1515,15 @@ class SceneStore:
             manifest = self._parse_manifest(key, current)
             rec = manifest.stages.get(stage) or StageRecord()
             now = _now()
+            took = seconds  # per attempt: a retried change starts from the caller's value
             if status == "running":  # a new attempt: forget the previous one
                 rec = StageRecord(status="running", started=now)
-            took = seconds
-            if status in ("done", "failed"):
+            elif status in ("done", "failed"):
                 rec.status = status
                 rec.finished = now
                 if took is None and rec.started is not None:
                     took = (now - rec.started).total_seconds()
-            elif status is not None and status != "running":
+            elif status is not None:
                 rec.status = status
             if config_hash is not None:
                 rec.config_hash = config_hash
