@@ -177,6 +177,7 @@ class SceneLease:
         return (json.dumps({**self.holder, "renewed": _now()}, sort_keys=True) + "\n").encode()
 
     def _acquire_object(self) -> None:
+        self.store._require_conditional(self.key)
         for _ in range(8):  # each turn: create, or find it released, abandoned or held
             with self._serial():
                 tag = self.store._write_if(self.key, self._body(), None)

@@ -635,6 +635,12 @@ def reserved_name(key: str) -> bool:
     return key.rsplit("/", 1)[-1].startswith(".")
 
 
+_CONDITIONAL_CHECKED: dict[tuple[str, str], str | None] = {}
+"""Per (endpoint, bucket): None where the server honours conditional writes, else why not
+(:meth:`SceneStore._require_conditional`, probed once per process)."""
+_CONDITIONAL_LOCK = threading.Lock()
+
+
 def _lost_race(exc: BaseException) -> bool:
     """True where a conditional S3 write failed because another writer changed the object
     (412 Precondition Failed; 409 ConditionalRequestConflict for two at the same moment):
@@ -817,7 +823,7 @@ class SceneStore:
     def url(self, key: str) -> str:
         """Full, credential-free fsspec URL of a key (``s3://bucket/prefix/key``,
         ``file:///abs/path``)."""
-        key = _check_key(key, allow_empty=True)
+        key = _check_key(key, allow_empty=True, reserved=True)
         return redact(self.fs.unstrip_protocol(self._full(key)))
 
     @contextlib.contextmanager
@@ -1256,6 +1262,67 @@ class SceneStore:
         self._invalidate(full)
         return True
 
+    def _require_conditional(self, key: str) -> None:
+        """Refuse, once per process and bucket, an S3 server that ignores conditional writes.
+
+        S3-compatible servers that predate conditional writes (MinIO before 2024, some Ceph
+        releases) do not fail a PUT with ``If-None-Match: *`` or ``If-Match``: they write it.
+        Then two runs could both hold a scene's lease and manifest updates could be lost, with
+        nothing said. So before its first lease or manifest change a process writes a probe
+        object beside ``key`` three times -- created where there is none, again where it now
+        is (must fail), over a version it does not hold (must fail) -- and removes it; a server
+        that writes either of the last two is refused with a :class:`StoreError` naming it.
+        """
+        if not self.conditional:
+            return
+        bucket, path = self._s3_key(_check_key(key, reserved=True))
+        options = self._storage_options or {}
+        endpoint = options.get("endpoint_url") or (options.get("client_kwargs") or {}).get(
+            "endpoint_url"
+        )
+        cache_key = (str(endpoint or "aws"), bucket)
+        with _CONDITIONAL_LOCK:
+            if cache_key not in _CONDITIONAL_CHECKED:
+                _CONDITIONAL_CHECKED[cache_key] = self._probe_conditional(key)
+            problem = _CONDITIONAL_CHECKED[cache_key]
+        if problem:
+            raise StoreError(problem)
+
+    def _probe_conditional(self, key: str) -> str | None:
+        """:meth:`_require_conditional`'s probe: None where the server honours both
+        conditions, else the refusal's message; a store error (the network, permissions)
+        propagates and is not remembered."""
+        parent, _, _ = key.rpartition("/")
+        probe = f"{parent}/" * bool(parent) + f".conditional-probe-{uuid.uuid4().hex}"
+        where = self.url(probe)
+        ignored: list[str] = []
+        try:
+            tag = self._write_if(probe, b"1\n", None)
+            if tag is None:
+                return (
+                    f"{where}: the S3 server refused to create a new object with "
+                    "'If-None-Match: *' as if it existed; its conditional writes cannot be "
+                    "trusted for the scene lease and manifest updates"
+                )
+            if self._write_if(probe, b"2\n", None) is not None:
+                ignored.append("'If-None-Match: *' (it replaced an existing object)")
+            stale = '"00000000000000000000000000000000"'
+            if self._write_if(probe, b"3\n", stale) is not None:
+                ignored.append("'If-Match' (it replaced a version the writer did not hold)")
+        finally:
+            with contextlib.suppress(Exception):
+                self.fs.rm_file(self._full(probe))
+            self._invalidate(self._full(probe))
+        if not ignored:
+            return None
+        return (
+            f"{where}: this S3 server ignores conditional writes: a PUT with "
+            f"{' and one with '.join(ignored)} succeeded where it must fail. Without them two "
+            "runs of one scene could both go ahead and manifest updates could be lost, so "
+            "CropCraft does not run on it: use a server release with S3 conditional writes "
+            "(AWS S3 has them; MinIO and Ceph added them in later releases), or a local store"
+        )
+
     def sweep_tmp(self, prefix: str = "", older_than_s: float = 3600.0) -> list[str]:
         """Remove temporary objects left by killed writers, older than ``older_than_s``.
 
@@ -1372,6 +1439,7 @@ class SceneStore:
                 manifest = change(current)
                 self.save_manifest(manifest)
                 return manifest
+            self._require_conditional(key)
             rng = np.random.default_rng()
             for attempt in range(self._CAS_ATTEMPTS):
                 current, tag, _ = self._read_tagged(key)

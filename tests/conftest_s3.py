@@ -7,14 +7,19 @@ that need it are skipped when moto is not installed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import http.client
+import http.server
 import os
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -113,3 +118,74 @@ def s3_server() -> Iterator[S3Server]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=10)
+
+
+class _StripConditions(http.server.BaseHTTPRequestHandler):
+    """Forwards every request to ``upstream`` unchanged, except that a PUT loses its
+    ``If-Match`` and ``If-None-Match`` headers: what an S3 server without conditional writes
+    does with them (it writes anyway)."""
+
+    protocol_version = "HTTP/1.1"
+    upstream: tuple[str, int] = ("127.0.0.1", 0)
+
+    def log_message(self, format, *args) -> None:  # noqa: A002 - quiet
+        pass
+
+    def _body(self) -> bytes:
+        if self.headers.get("Transfer-Encoding", "").lower() == "chunked":
+            parts = []
+            while True:
+                size = int(self.rfile.readline().split(b";")[0].strip() or b"0", 16)
+                if size == 0:
+                    while self.rfile.readline() not in (b"\r\n", b"\n", b""):
+                        pass  # trailers
+                    return b"".join(parts)
+                parts.append(self.rfile.read(size))
+                self.rfile.readline()
+        length = int(self.headers.get("Content-Length") or 0)
+        return self.rfile.read(length) if length else b""
+
+    def _forward(self) -> None:
+        body = self._body()
+        dropped = {"transfer-encoding", "connection", "content-length"}
+        if self.command == "PUT":
+            dropped |= {"if-match", "if-none-match"}
+        headers = {k: v for k, v in self.headers.items() if k.lower() not in dropped}
+        headers["Content-Length"] = str(len(body))
+        conn = http.client.HTTPConnection(*self.upstream, timeout=30)
+        try:
+            conn.request(self.command, self.path, body=body, headers=headers)
+            resp = conn.getresponse()
+            data = resp.read()
+        finally:
+            conn.close()
+        self.send_response(resp.status, resp.reason)
+        for k, v in resp.getheaders():
+            if k.lower() not in {"transfer-encoding", "connection", "content-length"}:
+                self.send_header(k, v)
+        if self.command == "HEAD":
+            self.send_header("Content-Length", resp.getheader("Content-Length") or "0")
+            self.end_headers()
+            return
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    do_GET = do_PUT = do_POST = do_DELETE = do_HEAD = _forward
+
+
+@contextlib.contextmanager
+def server_without_conditional_writes(server: S3Server) -> Iterator[S3Server]:
+    """``server`` behind a proxy on 127.0.0.1 that drops the conditions of every PUT: an
+    S3-compatible server that predates conditional writes, for the tests of their refusal."""
+    parsed = urllib.parse.urlsplit(server.endpoint)
+    handler = type("Handler", (_StripConditions,), {"upstream": (parsed.hostname, parsed.port)})
+    proxy = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=proxy.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield dataclasses.replace(server, endpoint=f"http://127.0.0.1:{proxy.server_port}")
+    finally:
+        proxy.shutdown()
+        proxy.server_close()
+        thread.join(timeout=10)

@@ -17,7 +17,7 @@ import uuid
 import pytest
 
 from cropcraft_core.lease import LEASE_NAME, LOCK_NAME, SceneLease, hold_scene
-from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, scene_prefix
+from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 from tests import conftest_s3
 from tests.conftest_s3 import S3Server
 
@@ -196,3 +196,28 @@ def test_a_renewal_whose_answer_was_lost_keeps_the_lease(s3_server):
     finally:
         lease.release()
     assert not store._read_tagged(lease.key)[0]
+
+
+def test_a_server_that_ignores_conditional_writes_is_refused(s3_server):
+    """An S3-compatible server that predates conditional writes writes a PUT whatever its
+    ``If-None-Match`` / ``If-Match``: two runs could both take a scene and manifest updates
+    could be lost. The store finds that out with a probe before its first lease or manifest
+    change and refuses the server by name, having written nothing; a server that honours
+    them passes the same probe, which leaves nothing behind."""
+    root = f"s3://{s3_server.bucket}/{uuid.uuid4().hex}"
+    with conftest_s3.server_without_conditional_writes(s3_server) as old:
+        store = SceneStore(root, storage_options=old.storage_options())
+        refused = (
+            r"ignores conditional writes: a PUT with 'If-None-Match: \*'.* and one with "
+            r"'If-Match'"
+        )
+        with pytest.raises(StoreError, match=refused):
+            SceneLease(store, SCENE, "first").acquire()
+        with pytest.raises(StoreError, match=refused):
+            store.update_stage(SCENE, "ingest", status="done", seconds=1.0)
+        store.fs.invalidate_cache()
+        assert store.fs.find(root) == []
+    honest = SceneStore(root, storage_options=s3_server.storage_options())
+    with hold_scene(honest, SCENE, "second"):
+        honest.fs.invalidate_cache()
+        assert [p.rsplit("/", 1)[-1] for p in honest.fs.find(root)] == [LEASE_NAME]
