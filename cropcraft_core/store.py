@@ -1265,8 +1265,8 @@ class SceneStore:
     def _require_conditional(self, key: str) -> None:
         """Refuse, once per process and bucket, an S3 server that ignores conditional writes.
 
-        S3-compatible servers that predate conditional writes (MinIO before 2024, some Ceph
-        releases) do not fail a PUT with ``If-None-Match: *`` or ``If-Match``: they write it.
+        S3-compatible servers that predate conditional writes (MinIO before 2024, for one) do
+        not fail a PUT with ``If-None-Match: *`` or ``If-Match``: they write it.
         Then two runs could both hold a scene's lease and manifest updates could be lost, with
         nothing said. So before its first lease or manifest change a process writes a probe
         object beside ``key`` three times -- created where there is none, again where it now
@@ -1275,7 +1275,7 @@ class SceneStore:
         """
         if not self.conditional:
             return
-        bucket, path = self._s3_key(_check_key(key, reserved=True))
+        bucket, _ = self._s3_key(_check_key(key, reserved=True))
         options = self._storage_options or {}
         endpoint = options.get("endpoint_url") or (options.get("client_kwargs") or {}).get(
             "endpoint_url"
@@ -1309,6 +1309,11 @@ class SceneStore:
             stale = '"00000000000000000000000000000000"'
             if self._write_if(probe, b"3\n", stale) is not None:
                 ignored.append("'If-Match' (it replaced a version the writer did not hold)")
+        except StoreError as exc:
+            raise StoreError(
+                f"{where}: probing the S3 server's conditional writes (If-None-Match / If-Match "
+                f"on PUT, which the scene lease and manifest updates need) failed: {exc}"
+            ) from exc
         finally:
             with contextlib.suppress(Exception):
                 self.fs.rm_file(self._full(probe))
@@ -1320,7 +1325,7 @@ class SceneStore:
             f"{' and one with '.join(ignored)} succeeded where it must fail. Without them two "
             "runs of one scene could both go ahead and manifest updates could be lost, so "
             "CropCraft does not run on it: use a server release with S3 conditional writes "
-            "(AWS S3 has them; MinIO and Ceph added them in later releases), or a local store"
+            "(AWS S3 and current MinIO have them), or a local store"
         )
 
     def sweep_tmp(self, prefix: str = "", older_than_s: float = 3600.0) -> list[str]:
