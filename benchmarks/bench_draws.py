@@ -8,12 +8,12 @@ that draw's spread, which this measures. Fit a scene with more seeds than the fl
     cropcraft demo --store DIR --set fit.n_seeds=30
     cropcraft run SITE/CROP/DATE --images ... --set fit.n_seeds=30
 
-then ``cropcraft bench draws SITE/CROP/DATE --store DIR``: the stored seeds (the best row's
-``fit/seed-*.npz``) are split in order into disjoint sets of ``--set-size`` (the flow's
-``n_seeds``, ten), and each set is answered by each rule (the crop's default -- soybean's
-guarded median re-scores on the stored observation -- the seeds' median and the paper's
-mean), as the flow's aggregate would have answered with those seeds; seeds 0-9 under the
-crop's default are the flow's own answer. Each answer's traits are measured on the scene's
+then ``cropcraft bench draws SITE/CROP/DATE --store DIR``: the run's stored seeds (the best
+row's ``fit/seed-{0..n_seeds-1}.npz``) are split in order into disjoint sets of ``--set-size``
+(the flow's ``n_seeds``, ten), and each set is answered by each rule (the crop's default --
+soybean's guarded median re-scores on the stored observation -- the seeds' median and the
+paper's mean), as the flow's aggregate would have answered with those seeds; seeds 0-9 under
+the crop's default are the flow's own answer. Each answer's traits are measured on the scene's
 canopy seed (``generate/canopy.json``) and compared with the truth where there is one
 (``{scene}/truth/metrics.json``, as the demo stores it, or ``--truth FILE``). Printed per rule:
 each set's LAI (error), node count, and over the sets the mean |LAI error| and the spread
@@ -38,36 +38,34 @@ from benchmarks.options import at_least, output_file, write_json
 TRAITS = ("lai", "node_count", "leaf_angle_mean_deg")
 
 
-def _seed_number(key: str) -> int | None:
-    name = key.rsplit("/", 1)[-1]
-    if name.startswith("seed-") and name.endswith(".npz") and name[5:-4].isdigit():
-        return int(name[5:-4])
-    return None
-
-
 def load_scene(store, scene) -> dict[str, Any]:
     """What the answers need from a stored run: config, observation, seeds, canopy seed."""
     from cropcraft_core.errors import InputError
     from cropcraft_core.observe import Observation
     from cropcraft_core.optimize import SeedResult
     from flows.scene import stage_configs
+    from tasks.common import artefact
     from tasks.fit_seed import fit_config, layout_of
 
     manifest = store.load_manifest(scene)
     stages = stage_configs(manifest.config, scene.crop)
     config = stages["aggregate"]
+    # the run's own seeds, at the keys its seed tasks wrote (not those a run with more
+    # seeds left behind)
+    keys = {
+        s: artefact(scene.prefix, "fit_seed", f"seed-{s}.npz")
+        for s in range(fit_config(config).n_seeds)
+    }
+    missing = [key for key in keys.values() if not store.isfile(key)]
+    if missing:
+        raise InputError(
+            f"{store.url(missing[0])}: fit seed not stored ({len(missing)} of {len(keys)} "
+            "missing); run the scene first (with --set fit.n_seeds=30 for three draws)"
+        )
     seeds: dict[int, Any] = {}
-    for key in store.list(f"{scene.prefix}/fit"):
-        number = _seed_number(key)
-        if number is None or key.count("/") != scene.prefix.count("/") + 2:
-            continue  # neighbour rows' seeds live one folder deeper
+    for number, key in keys.items():
         with store.open_local(key) as path:
             seeds[number] = SeedResult.load(path)
-    if not seeds:
-        raise InputError(
-            f"{store.url(scene.prefix + '/fit')}: no fit seeds stored; run the scene first "
-            "(with --set fit.n_seeds=30 for three draws)"
-        )
     observation = Observation.load(
         io.BytesIO(store.get_bytes(f"{scene.prefix}/observe/observation.npz"))
     )
@@ -177,10 +175,10 @@ def print_table(res: dict[str, Any]) -> None:
     head = f"{res['scene']}: {res['n_stored_seeds']} stored seeds in sets of {res['set_size']}"
     if true.get("lai"):
         head += f"; true LAI {true['lai']:.3f}, nodes {true.get('node_count', math.nan):.2f}"
-    if len(sets_of(res)) < 2:
+    sets = sets_of(res)
+    if len(sets) < 2:
         head += " (one draw: no spread to measure)"
     print(head)
-    sets = sets_of(res)
     head = f"{'rule':<10}" + "".join(f"{'seeds ' + s:>26}" for s in sets)
     print(head + f"{'mean |LAI err|':>16}{'spread':>10}")
     for rule, answers in res["answers"].items():

@@ -599,10 +599,16 @@ def _protocol_of(root: str) -> str:
     return root.split("://", 1)[0].lower() if "://" in root else "file"
 
 
+def _s3_endpoint(options: Mapping[str, Any]) -> str | None:
+    """The S3 endpoint that ``storage_options`` name (``endpoint_url``, top level or in
+    ``client_kwargs``), or None."""
+    client_kwargs = options.get("client_kwargs") or {}
+    return options.get("endpoint_url") or client_kwargs.get("endpoint_url")
+
+
 def _resolve_s3_options(options: dict[str, Any]) -> dict[str, Any]:
     """Fill the S3 endpoint from the environment when ``storage_options`` do not name one."""
-    client_kwargs = options.get("client_kwargs") or {}
-    if not options.get("endpoint_url") and not client_kwargs.get("endpoint_url"):
+    if not _s3_endpoint(options):
         for var in ("FSSPEC_S3_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL"):
             if os.environ.get(var):
                 options["endpoint_url"] = os.environ[var]
@@ -1276,11 +1282,7 @@ class SceneStore:
         if not self.conditional:
             return
         bucket, _ = self._s3_key(_check_key(key, reserved=True))
-        options = self._storage_options or {}
-        endpoint = options.get("endpoint_url") or (options.get("client_kwargs") or {}).get(
-            "endpoint_url"
-        )
-        cache_key = (str(endpoint or "aws"), bucket)
+        cache_key = (str(_s3_endpoint(self._storage_options) or "aws"), bucket)
         with _CONDITIONAL_LOCK:
             if cache_key not in _CONDITIONAL_CHECKED:
                 _CONDITIONAL_CHECKED[cache_key] = self._probe_conditional(key)
