@@ -36,13 +36,16 @@ pip=(.venv/bin/python -m pip download -q --no-deps -d .whl)
 mkdir -p .whl
 "${pip[@]}" nerfstudio==1.1.5 tyro==0.8.14 shtab docstring-parser appdirs dill pathos ppft \
   gsplat==1.4.0 nerfacc==0.5.2 pyquaternion pytorch-msssim splines==0.3.0 tensorly viser==0.2.7
-# pytest, for the acceptance test (tests/test_surfaces.py -m gpu; it needs no Open3D)
-"${pip[@]}" pytest pluggy iniconfig pygments packaging
+# pytest, for the acceptance test (tests/test_surfaces.py -m gpu; it needs no Open3D);
+# pydantic, which the store's records (cropcraft_core.store) are made of and the device's image
+# lacks (session 82: the train half's first import died on it); versions as deploy/constraints.txt
+"${pip[@]}" pytest pluggy iniconfig pygments packaging \
+  pydantic==2.14.4 annotated-types typing-inspection
 # compiled ones for the host's CPython 3.12; rawpy, not newrawpy (built against numpy 1)
 "${pip[@]}" --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
   --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform manylinux1_x86_64 \
-  fpsample==0.3.3 msgspec==0.22.0 rawpy==0.28.0 websockets
+  fpsample==0.3.3 msgspec==0.22.0 rawpy==0.28.0 websockets pydantic_core==2.50.5
 
 name="$(basename "$scene")"
 dest=".gpu/$name"
