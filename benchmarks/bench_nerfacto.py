@@ -29,8 +29,37 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
+# The train half's imports, at the top so that importing this module checks a GPU host has them
+# all (deploy/gpu_check_run.sh does, before anything starts); the compare half's (Open3D, the
+# truth mesh) stay inside it.
 from benchmarks.options import at_least, output_file, seeds_by_evals, write_json
+from cropcraft_core.config import default_layout
+from cropcraft_core.errors import CropCraftError
+from cropcraft_core.observe import Observation
+from cropcraft_core.rowfit import fit_rows_with_scale
+from cropcraft_core.rowfit import preset as rowfit_preset
+from cropcraft_core.rowfit.truth import camera_in_truth, row_fit_errors
+from cropcraft_core.sfm import import_transforms_json
+from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
+
+#: The third-party modules the train half and the GPU acceptance test (``tests/test_surfaces.py
+#: -m gpu``) may import on a lent GPU host: what its image holds (CPython 3.12 with torch, numpy,
+#: SciPy, OpenCV, numba, Pillow, PyYAML, fsspec, pytest, ...) and the wheels
+#: ``deploy/gpu_check_prepare.sh`` carries there (nerfstudio and its needs, pydantic). An import
+#: outside it dies on the host after the machine's start (session 82: pydantic, which the store's
+#: records need); ``tests/test_cli.py`` checks it here.
+GPU_HOST_MODULES = frozenset(
+    {
+        # the image's
+        "PIL", "colorama", "cv2", "cython_runtime", "fsspec", "iniconfig", "llvmlite", "numba",
+        "numpy", "pluggy", "py", "pygments", "pytest", "scipy", "torch", "torchgen", "tqdm",
+        "typing_extensions", "yaml",
+        # carried by gpu_check_prepare.sh
+        "annotated_types", "nerfstudio", "pydantic", "pydantic_core", "typing_inspection",
+    }
+)  # fmt: skip
 
 #: how many of the photos' own views ``train`` renders and scores against their true depth
 VIEWS_SCORED = 8
@@ -120,17 +149,6 @@ def scored_views(poses) -> list:
 
 
 def train(a: argparse.Namespace) -> dict:
-    from PIL import Image
-
-    from cropcraft_core.config import default_layout
-    from cropcraft_core.errors import CropCraftError
-    from cropcraft_core.observe import Observation
-    from cropcraft_core.rowfit import fit_rows_with_scale
-    from cropcraft_core.rowfit import preset as rowfit_preset
-    from cropcraft_core.rowfit.truth import camera_in_truth, row_fit_errors
-    from cropcraft_core.sfm import import_transforms_json
-    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, make_backend, resolve_bbox
-
     root, out = Path(a.scene_dir), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     crop = json.loads((root / "scene.json").read_text())["crop"]
@@ -231,8 +249,6 @@ def compare(a: argparse.Namespace) -> dict:
     from benchmarks.bench_pipeline import depth_errors, fit_and_compare, observation_vs_truth
     from benchmarks.bench_surfaces import _truth_mesh
     from cropcraft_core.geometry.camera import PinholeCamera
-    from cropcraft_core.observe import Observation
-    from cropcraft_core.surfaces import SurfacesConfig, make_backend, resolve_bbox
     from cropcraft_core.surfaces.base import in_bbox
 
     root, kept = Path(a.scene_dir), Path(a.kept)
@@ -295,8 +311,6 @@ def visible_truth_points(root: Path, step: int = 4) -> np.ndarray:
     synth`` writes it) unprojected through its true camera (``transforms.json``), every
     ``step``-th pixel each way; (n, 3) m in the truth frame. Views without a depth file are
     skipped (a GPU host is sent only the scored views')."""
-    from cropcraft_core.sfm import import_transforms_json
-
     pts = []
     for name, cam in import_transforms_json(root / "transforms.json"):
         f = root / "depth" / f"{Path(name).stem}.npy"
@@ -409,8 +423,6 @@ def _margin(text: str) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cropcraft_core.surfaces import SurfacesConfig
-
     ap = argparse.ArgumentParser(
         prog="cropcraft bench nerfacto", description=__doc__.splitlines()[0]
     )

@@ -5,8 +5,8 @@
 #   bash deploy/gpu_check_run.sh SCENE_NAME SECONDS [--alone] [bench nerfacto train options...]
 # `bench nerfacto train` on .gpu/SCENE_NAME with a training deadline of SECONDS (checkpoints
 # every 500 steps), and in parallel the GPU acceptance test (tests/test_surfaces.py -m gpu:
-# nerfacto on a 14-view arc, then rendered again from its saved copy; ~3-4 min), unless
-# --alone: training alone gets the whole GPU (session 44: 6,500 iterations of the 1.1 m canopy
+# nerfacto on a 14-view arc, then rendered again from its saved copy; 240 s on an H200 beside a
+# failed train half, session 82), unless --alone: training alone gets the whole GPU (session 44: 6,500 iterations of the 1.1 m canopy
 # in 500 s on an H200; the call took 541 s, 572 s of device time with the machine's start).
 # Back on the CPU machine: cropcraft bench nerfacto compare --scene-dir SCENE_DIR --kept <files_at>.
 set -uo pipefail
@@ -21,6 +21,10 @@ pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl > /tmp/pip.log
   || { tail -n 20 /tmp/pip.log > "$out/pip.log"; exit 3; }
 export PYTHONPATH="/tmp/site:$PWD" PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader > "$out/gpu.txt"
+# the train half imports all it needs at its top: a module the host lacks stops the call here,
+# named in $OUT/preflight.log, before the acceptance test and the training start
+python3 -c "import benchmarks.bench_nerfacto, cropcraft_core.surfaces.nerfacto" \
+  > "$out/preflight.log" 2>&1 || { cat "$out/preflight.log"; exit 4; }
 if [ "$alone" = 0 ]; then
   ( python3 -m pytest tests/test_surfaces.py -o addopts= -m gpu -q -rA -p no:cacheprovider \
       > "$out/acceptance.log" 2>&1

@@ -299,6 +299,37 @@ def test_pipeline_benchmark_keeps_a_reused_scenes_crop(tmp_path):
     assert f.read_bytes() == before
 
 
+def test_the_gpu_check_imports_only_what_the_gpu_host_has():
+    """The nerfacto check's train half and the GPU acceptance test's module, imported in a fresh
+    interpreter, load no third-party module outside ``GPU_HOST_MODULES`` (the lent GPU host's
+    image and the wheels ``deploy/gpu_check_prepare.sh`` carries): an import the host lacks
+    otherwise shows only after a machine's start, as pydantic did in session 82."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from benchmarks.bench_nerfacto import GPU_HOST_MODULES
+
+    root = Path(__file__).resolve().parents[1]
+    code = """
+import importlib.util, json, sys
+sys.path.insert(0, "tests")
+import conftest  # as pytest loads it first: it pins the kernels
+import benchmarks.bench_nerfacto, cropcraft_core.surfaces.nerfacto
+spec = importlib.util.spec_from_file_location("test_surfaces", "tests/test_surfaces.py")
+spec.loader.exec_module(importlib.util.module_from_spec(spec))
+print(json.dumps(sorted({m.split(".")[0] for m in sys.modules})))
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    loaded = set(json.loads(done.stdout.splitlines()[-1]))
+    ours = {"benchmarks", "conftest", "cropcraft_core", "flows", "tests"}
+    third_party = {m for m in loaded - set(sys.stdlib_module_names) - ours if not m.startswith("_")}
+    assert third_party <= GPU_HOST_MODULES, sorted(third_party - GPU_HOST_MODULES)
+
+
 def test_nerfacto_benchmark_scores_a_view_against_its_true_depth():
     """``bench nerfacto``'s per-view score, by hand: a 2 × 2 truth, one pixel rendered 1 cm off,
     one 10 % too far, one left empty, and one where the truth has nothing (not counted)."""
