@@ -6,8 +6,9 @@
 # `bench nerfacto train` on .gpu/SCENE_NAME with a training deadline of SECONDS (checkpoints
 # every 500 steps), and in parallel the GPU acceptance test (tests/test_surfaces.py -m gpu:
 # nerfacto on a 14-view arc, then rendered again from its saved copy; 240 s on an H200 beside a
-# failed train half, session 82), unless --alone: training alone gets the whole GPU (session 44: 6,500 iterations of the 1.1 m canopy
-# in 500 s on an H200; the call took 541 s, 572 s of device time with the machine's start).
+# failed train half, session 82), unless --alone: training alone gets the whole GPU (session 44:
+# 6,500 iterations of the 1.1 m canopy in 500 s on an H200; the call took 541 s, 572 s of device
+# time with the machine's start; session 82: SA's 3,001 iterations in 272 s, the call 317 s).
 # Back on the CPU machine: cropcraft bench nerfacto compare --scene-dir SCENE_DIR --kept <files_at>.
 set -uo pipefail
 name="${1:?usage: gpu_check_run.sh SCENE_NAME SECONDS [--alone] [train options]}"
