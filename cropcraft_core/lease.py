@@ -20,7 +20,9 @@ naming the holder (who, where, since when).
   renewal, and :meth:`SceneLease.check`, which the flow calls before every stage and every
   record, then fails its run rather than write over the new holder's.
 * Other fsspec stores (``memory://``, ``gs://``): the same object, but its writes are exact
-  within one process only.
+  within one process only; on a store other processes can see (all but ``memory://``) the
+  first lease or manifest change of a process warns of it
+  (:meth:`~cropcraft_core.store.SceneStore._require_conditional`).
 
 Core code: no Prefect here; ``flows/scene.py`` holds the lease around the run.
 """

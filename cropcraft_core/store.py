@@ -645,6 +645,9 @@ _CONDITIONAL_CHECKED: dict[tuple[str, str], str | None] = {}
 """Per (endpoint, bucket): None where the server honours conditional writes, else why not
 (:meth:`SceneStore._require_conditional`, probed once per process)."""
 _CONDITIONAL_LOCK = threading.Lock()
+_UNGUARDED_WARNED: set[tuple[str, str]] = set()
+"""(protocol, root) of the stores without cross-process exclusion this process has warned of
+(:meth:`SceneStore._require_conditional`)."""
 
 
 def _lost_race(exc: BaseException) -> bool:
@@ -1278,8 +1281,25 @@ class SceneStore:
         object beside ``key`` three times -- created where there is none, again where it now
         is (must fail), over a version it does not hold (must fail) -- and removes it; a server
         that writes either of the last two is refused with a :class:`StoreError` naming it.
+
+        A store with neither conditional writes nor a local disk's ``flock`` (``gs://``, any
+        fsspec store but S3 and ``memory://``, which no other process sees) serialises the
+        lease and the manifest within this process only: it is warned of once per process,
+        because two workers running one scene there may both hold its lease.
         """
         if not self.conditional:
+            if not self._local and self.protocol != "memory":
+                with _CONDITIONAL_LOCK:
+                    first = (self.protocol, self.root) not in _UNGUARDED_WARNED
+                    _UNGUARDED_WARNED.add((self.protocol, self.root))
+                if first:
+                    log.warning(
+                        "%s: this store has no conditional writes, so a scene's lease and its "
+                        "manifest updates are exclusive within this process only: two workers "
+                        "running one scene at once would interleave its artefacts. Run each "
+                        "scene on one worker at a time, or use S3 (or a local disk)",
+                        self.root,
+                    )
             return
         bucket, _ = self._s3_key(_check_key(key, reserved=True))
         cache_key = (str(_s3_endpoint(self._storage_options) or "aws"), bucket)
@@ -1441,12 +1461,12 @@ class SceneStore:
         version that was read (a conditional PUT) and runs ``change`` again on the newer one."""
         key = manifest_key(scene)
         with self._manifest_lock(scene):
+            self._require_conditional(key)
             if not self.conditional:
                 current = self.get_bytes(key) if self.isfile(key) else None
                 manifest = change(current)
                 self.save_manifest(manifest)
                 return manifest
-            self._require_conditional(key)
             rng = np.random.default_rng()
             for attempt in range(self._CAS_ATTEMPTS):
                 current, tag, _ = self._read_tagged(key)

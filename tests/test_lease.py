@@ -83,6 +83,43 @@ def test_a_conditional_write_replaces_only_the_version_it_read(store):
 # ---- the scene lease ---------------------------------------------------------------------------
 
 
+def test_a_store_without_cross_process_exclusion_is_warned_of_once(tmp_path, caplog):
+    """A store with neither S3's conditional writes nor a local disk's flock (``gs://`` and
+    the like; here fsspec's in-memory filesystem registered under another protocol, which
+    this code cannot tell from one other processes share) holds the lease and the manifest
+    within this process only: the first lease or manifest change on it says so, once per
+    process, naming the store; ``memory://`` (no other process sees it) and a local store
+    are not warned of."""
+    import logging
+
+    import fsspec
+    from fsspec.implementations.memory import MemoryFileSystem
+
+    class SharedFileSystem(MemoryFileSystem):
+        protocol = ("sharedfs",)
+        store: dict = {}
+        pseudo_dirs = [""]
+
+    fsspec.register_implementation("sharedfs", SharedFileSystem, clobber=True)
+    shared = SceneStore(f"sharedfs://cropcraft/{uuid.uuid4().hex}")
+    said = "no conditional writes"
+    with caplog.at_level(logging.WARNING, logger="cropcraft_core.store"):
+        with hold_scene(shared, SCENE) as lease:
+            lease.check()
+            shared.init_manifest(SCENE, {}, {"seeds": 2})
+            shared.update_stage(SCENE, "ingest", status="done", seconds=1.0)
+        with hold_scene(shared, SceneKey("plotA", "soybean", "2024-07-08")):
+            pass
+        warned = [r.getMessage() for r in caplog.records if said in r.getMessage()]
+        assert len(warned) == 1, warned
+        assert shared.root in warned[0] and "one worker at a time" in warned[0]
+        for other in (SceneStore(f"memory://{uuid.uuid4().hex}"), SceneStore(str(tmp_path))):
+            with hold_scene(other, SCENE):
+                other.init_manifest(SCENE, {}, {"seeds": 2})
+                other.update_stage(SCENE, "ingest", status="done", seconds=1.0)
+    assert [r.getMessage() for r in caplog.records if said in r.getMessage()] == warned
+
+
 def test_a_second_run_of_a_held_scene_is_refused_naming_the_first(store):
     with hold_scene(store, SCENE, owner="flow run nightly-plotA (1234)") as lease:
         lease.check()
