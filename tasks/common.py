@@ -81,7 +81,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: imported poses are levelled too (metric ones on their gravity axis, unscaled), read
     # as metric only where their source is an AR capture ("auto"), their intrinsics scaled to
     # the ingested photos; every lens is recorded with its model
-    "poses": 2,
+    # 3: auto matching closes the capture's loop (the last photos with the first) before it
+    # matches every pair: another pair set, another model, where the sequential pass fell short
+    "poses": 3,
     # 2: TSDF truncation 3.5 voxels by default (3 thinned the leaves of SfM reconstructions)
     # 3: photos are undistorted into their pinhole cameras first (SfM's SIMPLE_RADIAL k and
     # imported lenses were dropped)

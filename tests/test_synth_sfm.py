@@ -23,7 +23,8 @@ from cropcraft_core.sfm import (
     run_sfm,
     umeyama,
 )
-from cropcraft_core.sfm.poses import quaternion_to_rotation, rotation_to_quaternion
+from cropcraft_core.sfm import poses as sfm_poses
+from cropcraft_core.sfm.poses import loop_pairs, quaternion_to_rotation, rotation_to_quaternion
 from cropcraft_core.synth import make_scene
 from cropcraft_core.synth.scene import camera_from_angles
 
@@ -516,6 +517,38 @@ def test_sfm_small_scene(tmp_path):
         Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(mixed / f"z_noise{i}.png")
     with pytest.raises(SfmError, match=r"registered only 8 of 17 images \(47 %, need 50 %\)"):
         run_sfm(mixed, tmp_path / "work-mixed", num_threads=2, focal_length_px=f0)
+
+
+def test_sfm_closes_the_loop_before_matching_every_pair(tmp_path, monkeypatch):
+    """``auto`` matching's three passes through real pycolmap: the neighbours in name order,
+    then the pairs round the end of the order (the list pycolmap imports), then every other
+    pair, each pass followed by mapping until enough images are registered. Here 8 views (the
+    auto threshold lowered to them) and a registration target no model can meet, so all three
+    run; each pass's time is reported."""
+    out, truth = _sfm_scene(tmp_path, 8, 20.0, seed=5)
+    monkeypatch.setattr(sfm_poses, "EXHAUSTIVE_MAX_IMAGES", 4)
+    res = run_sfm(
+        out / "images", tmp_path / "work", num_threads=2, sequential_overlap=3,
+        complete_below=1.01, focal_length_px=1.03 * truth.cameras[0].fx,
+    )  # fmt: skip
+    assert res.matcher == "sequential+loop+exhaustive"
+    assert {"matching_sequential", "matching_loop", "matching_exhaustive"} <= set(res.seconds)
+    listed = (tmp_path / "work" / "loop_pairs.txt").read_text().split("\n")
+    names = sorted(p.name for p in (out / "images").iterdir())
+    assert listed[:-1] == [f"{names[a]} {names[b]}" for a, b in loop_pairs(8, 3)]
+    _check_sfm(res, truth, 8)
+
+
+def test_loop_pairs_take_sequential_matching_round_the_end():
+    """By hand, 6 images and 2 neighbours (steps 1, 2; the quadratic steps 1, 2 are the same):
+    4 -> 0, 5 -> 0, 5 -> 1 wrap round the end; 10 images and 3 neighbours add step 4 (the
+    quadratic 2**2): 6..9 -> 0..3 by 4, 7..9 -> 0..2 by 3, 8, 9 -> 0, 1 by 2, 9 -> 0 by 1. Too few
+    images for a loop beyond the sequential pairs: none."""
+    assert loop_pairs(6, 2) == [(0, 4), (0, 5), (1, 5)]
+    got = loop_pairs(10, 3)
+    want = {(b, a) for a in range(10) for d in (1, 2, 3, 4) if a + d >= 10 for b in [(a + d) % 10]}
+    assert got == sorted(want) and len(got) == 10
+    assert loop_pairs(5, 2) == [] and loop_pairs(21, 10) == []
 
 
 @pytest.mark.slow

@@ -50,7 +50,8 @@ from cropcraft_core.geometry.lens import (
 #: Image extensions ``run_sfm`` reads.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
 #: Up to this many images ``matcher='auto'`` matches every pair; beyond, sequential matching
-#: first, completed by exhaustive matching when it registers too few images.
+#: first, then the pairs that close the order's loop (``loop_pairs``), completed by exhaustive
+#: matching when those register too few images.
 EXHAUSTIVE_MAX_IMAGES = 20
 #: Fewer registered images than this fraction make ``run_sfm`` fail.
 MIN_REGISTERED_FRACTION = 0.5
@@ -149,7 +150,8 @@ class SfmResult:
     colors: (n, 3) uint8 their RGB colours.  unregistered: names of images left out.
     camera_model / camera_params: the COLMAP camera of the first registered image (distortion is
     also in ``poses.distortion``).  seconds: wall time per stage.  model_dir: the kept model as a
-    COLMAP text model.
+    COLMAP text model.  matcher: the matching passes run, ``+``-joined in order ("exhaustive",
+    "sequential", "sequential+loop", "sequential+loop+exhaustive", ...).
     """
 
     poses: Poses
@@ -638,7 +640,8 @@ def _image_size(path: Path) -> tuple[int, int]:
 def choose_matcher(n_images: int, matcher: str = "auto") -> str:
     """'exhaustive', 'sequential' or 'auto': ``auto`` matches every pair up to
     ``EXHAUSTIVE_MAX_IMAGES`` images (cheap), beyond that each image with its neighbours in name
-    order first and every other pair only if that registers too few images (``run_sfm``)."""
+    order first, then the last images with the first (``loop_pairs``), and every other pair only
+    if those register too few images (``run_sfm``)."""
     if matcher not in ("auto", "exhaustive", "sequential"):
         raise InputError(f"unknown matcher {matcher!r}: choose auto, exhaustive or sequential")
     if matcher != "auto":
@@ -652,6 +655,24 @@ def choose_matcher(n_images: int, matcher: str = "auto") -> str:
 #: (989 points; a mapper accepting 8 inliers: 39), this threshold all 50 from sequential matching
 #: alone (3,582 points).
 SIFT_PEAK_THRESHOLD = 0.02 / 9
+
+
+def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
+    """The pairs that close a loop of ``n`` images in name order: sequential matching's pairs
+    (each image with the next ``overlap`` and those ``2**k`` on, COLMAP's quadratic overlap)
+    taken round the end of the order, the last images with the first; those sequential
+    matching already made (closer than ``n`` without the wrap) are left out. Empty for fewer
+    than ``2 * overlap + 2`` images, where the sequential pass's pairs already reach round."""
+    if n < 2 * overlap + 2:
+        return []
+    steps = sorted(set(range(1, overlap + 1)) | {2**k for k in range(overlap) if 2**k < n})
+    out = set()
+    for a in range(n):
+        for d in steps:
+            if a + d >= n and (a + d) % n != a:
+                b = (a + d) % n
+                out.add((min(a, b), max(a, b)))
+    return sorted(out)
 
 
 def run_sfm(
@@ -677,9 +698,11 @@ def run_sfm(
     SIFT features (``max_num_features`` per image, detected down to the scale-space contrast
     ``sift_peak_threshold``: see ``SIFT_PEAK_THRESHOLD``), matching by ``choose_matcher``
     (sequential: ``sequential_overlap`` neighbours, quadratic overlap, no loop detection;
-    auto: sequential, then the remaining pairs exhaustively when fewer than ``complete_below``
-    of the images registered — on the 50-view synthetic walk the verified pairs are 94 %
-    within three neighbours), incremental mapping;
+    auto: sequential; where fewer than ``complete_below`` of the images registered, the pairs
+    that close the name order's loop (``loop_pairs``: a walk round the plot ends where it
+    began), and where still too few, every remaining pair — on the 50-view synthetic walk the
+    verified pairs are 94 % within three neighbours; names with whitespace skip the loop pass,
+    which pycolmap's pair list cannot hold), incremental mapping after each pass;
     the model with the most registered images is kept and written as a text model to
     ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
     longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images.
@@ -775,6 +798,19 @@ def run_sfm(
                 pycolmap.match_exhaustive(
                     str(db), matching_options=mopt, device=pycolmap.Device.cpu
                 )
+            elif kind == "loop":
+                listed = work / "loop_pairs.txt"
+                listed.write_text(
+                    "".join(
+                        f"{names[a]} {names[b]}\n"
+                        for a, b in loop_pairs(len(names), int(sequential_overlap))
+                    )
+                )
+                pair = pycolmap.ImportedPairingOptions()
+                pair.match_list_path = str(listed)
+                pycolmap.match_image_pairs(
+                    str(db), matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu
+                )
             else:
                 pair = pycolmap.SequentialPairingOptions()
                 pair.overlap = int(sequential_overlap)
@@ -803,10 +839,19 @@ def run_sfm(
             match("sequential")
             models = mapping()
             mode = "sequential"
+            if (
+                registered(models) < complete_below * len(names)
+                and loop_pairs(len(names), int(sequential_overlap))
+                and not any(any(ch.isspace() for ch in n) for n in names)
+            ):
+                # a walk round the plot ends where it began: the last photos with the first
+                match("loop")
+                models = mapping()
+                mode = "sequential+loop"
             if registered(models) < complete_below * len(names):
                 match("exhaustive")
                 models = mapping()
-                mode = "sequential+exhaustive"
+                mode += "+exhaustive"
         else:
             match(mode)
             models = mapping()
