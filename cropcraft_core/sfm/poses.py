@@ -669,9 +669,8 @@ def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
     out = set()
     for a in range(n):
         for d in steps:
-            if a + d >= n and (a + d) % n != a:
-                b = (a + d) % n
-                out.add((min(a, b), max(a, b)))
+            if a + d >= n:  # d < n: b is another image, before a
+                out.add(((a + d) % n, a))
     return sorted(out)
 
 
@@ -791,7 +790,7 @@ def run_sfm(
         popt.mapper.abs_pose_min_num_inliers = 15
         popt.mapper.abs_pose_min_inlier_ratio = 0.15
 
-        def match(kind: str) -> None:
+        def match(kind: str, pairs: list[tuple[int, int]] | None = None) -> None:
             t0 = time.perf_counter()
             if kind == "exhaustive":
                 # pairs already in the database (from a sequential pass) are not matched again
@@ -800,12 +799,7 @@ def run_sfm(
                 )
             elif kind == "loop":
                 listed = work / "loop_pairs.txt"
-                listed.write_text(
-                    "".join(
-                        f"{names[a]} {names[b]}\n"
-                        for a, b in loop_pairs(len(names), int(sequential_overlap))
-                    )
-                )
+                listed.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs or []))
                 pair = pycolmap.ImportedPairingOptions()
                 pair.match_list_path = str(listed)
                 pycolmap.match_image_pairs(
@@ -839,13 +833,13 @@ def run_sfm(
             match("sequential")
             models = mapping()
             mode = "sequential"
-            if (
-                registered(models) < complete_below * len(names)
-                and loop_pairs(len(names), int(sequential_overlap))
-                and not any(any(ch.isspace() for ch in n) for n in names)
-            ):
-                # a walk round the plot ends where it began: the last photos with the first
-                match("loop")
+            # a walk round the plot ends where it began: the last photos with the first (not
+            # for names with whitespace, which pycolmap's space-separated pair list cannot hold)
+            loop = loop_pairs(len(names), int(sequential_overlap))
+            if any(ch.isspace() for n in names for ch in n):
+                loop = []
+            if loop and registered(models) < complete_below * len(names):
+                match("loop", loop)
                 models = mapping()
                 mode = "sequential+loop"
             if registered(models) < complete_below * len(names):
