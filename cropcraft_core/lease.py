@@ -22,7 +22,7 @@ naming the holder (who, where, since when).
 * Other fsspec stores (``memory://``, ``gs://``): the same object, but its writes are exact
   within one process only; on a store other processes can see (all but ``memory://``) the
   first lease or manifest change of a process warns of it
-  (:meth:`~cropcraft_core.store.SceneStore._require_conditional`).
+  (:meth:`~cropcraft_core.store.SceneStore._warn_unguarded`).
 
 Core code: no Prefect here; ``flows/scene.py`` holds the lease around the run.
 """

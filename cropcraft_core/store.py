@@ -647,7 +647,7 @@ _CONDITIONAL_CHECKED: dict[tuple[str, str], str | None] = {}
 _CONDITIONAL_LOCK = threading.Lock()
 _UNGUARDED_WARNED: set[tuple[str, str]] = set()
 """(protocol, root) of the stores without cross-process exclusion this process has warned of
-(:meth:`SceneStore._require_conditional`)."""
+(:meth:`SceneStore._warn_unguarded`)."""
 
 
 def _lost_race(exc: BaseException) -> bool:
@@ -1281,25 +1281,10 @@ class SceneStore:
         object beside ``key`` three times -- created where there is none, again where it now
         is (must fail), over a version it does not hold (must fail) -- and removes it; a server
         that writes either of the last two is refused with a :class:`StoreError` naming it.
-
-        A store with neither conditional writes nor a local disk's ``flock`` (``gs://``, any
-        fsspec store but S3 and ``memory://``, which no other process sees) serialises the
-        lease and the manifest within this process only: it is warned of once per process,
-        because two workers running one scene there may both hold its lease.
+        Any other store is left to :meth:`_warn_unguarded`.
         """
         if not self.conditional:
-            if not self._local and self.protocol != "memory":
-                with _CONDITIONAL_LOCK:
-                    first = (self.protocol, self.root) not in _UNGUARDED_WARNED
-                    _UNGUARDED_WARNED.add((self.protocol, self.root))
-                if first:
-                    log.warning(
-                        "%s: this store has no conditional writes, so a scene's lease and its "
-                        "manifest updates are exclusive within this process only: two workers "
-                        "running one scene at once would interleave its artefacts. Run each "
-                        "scene on one worker at a time, or use S3 (or a local disk)",
-                        self.root,
-                    )
+            self._warn_unguarded()
             return
         bucket, _ = self._s3_key(_check_key(key, reserved=True))
         cache_key = (str(_s3_endpoint(self._storage_options) or "aws"), bucket)
@@ -1309,6 +1294,25 @@ class SceneStore:
             problem = _CONDITIONAL_CHECKED[cache_key]
         if problem:
             raise StoreError(problem)
+
+    def _warn_unguarded(self) -> None:
+        """Warn, once per process and store, that a store with neither conditional writes nor
+        a local disk's ``flock`` (``gs://``, any fsspec store but S3 and ``memory://``, which
+        no other process sees) serialises the lease and the manifest within this process only:
+        two workers running one scene there may both hold its lease."""
+        if self._local or self.protocol == "memory":
+            return
+        with _CONDITIONAL_LOCK:
+            if (self.protocol, self.root) in _UNGUARDED_WARNED:
+                return
+            _UNGUARDED_WARNED.add((self.protocol, self.root))
+        log.warning(
+            "%s: this store has no conditional writes, so a scene's lease and its manifest "
+            "updates are exclusive within this process only: two workers running one scene at "
+            "once would interleave its artefacts. Run each scene on one worker at a time, or "
+            "use S3 (or a local disk)",
+            self.root,
+        )
 
     def _probe_conditional(self, key: str) -> str | None:
         """:meth:`_require_conditional`'s probe: None where the server honours both

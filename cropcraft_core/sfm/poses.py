@@ -835,13 +835,12 @@ def run_sfm(
             mode = "sequential"
             # a walk round the plot ends where it began: the last photos with the first (not
             # for names with whitespace, which pycolmap's space-separated pair list cannot hold)
-            loop = loop_pairs(len(names), int(sequential_overlap))
-            if any(ch.isspace() for n in names for ch in n):
-                loop = []
+            spaced = any(ch.isspace() for n in names for ch in n)
+            loop = [] if spaced else loop_pairs(len(names), int(sequential_overlap))
             if loop and registered(models) < complete_below * len(names):
                 match("loop", loop)
                 models = mapping()
-                mode = "sequential+loop"
+                mode += "+loop"
             if registered(models) < complete_below * len(names):
                 match("exhaustive")
                 models = mapping()
