@@ -34,7 +34,7 @@ from PIL import Image
 # The train half's imports, at the top so that importing this module checks a GPU host has them
 # all (deploy/gpu_check_run.sh does, before anything starts); the compare half's (Open3D, the
 # truth mesh) stay inside it.
-from benchmarks.options import at_least, output_file, seeds_by_evals, write_json
+from benchmarks.options import at_least, output_file, parse_kv, seeds_by_evals, write_json
 from cropcraft_core.config import default_layout
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.observe import Observation
@@ -169,6 +169,7 @@ def train(a: argparse.Namespace) -> dict:
             "nerf_args": a.nerf_arg,
             "nerf_far_margin": a.far_margin,
             "workdir": str(out / "work"),
+            **parse_kv(a.surfaces),
         },
     )
     sec: dict[str, float] = {}
@@ -195,6 +196,8 @@ def train(a: argparse.Namespace) -> dict:
         "backend": a.backend,
         "iterations": a.iterations,
         "nerf_args": list(a.nerf_arg),
+        "surfaces": parse_kv(a.surfaces),
+        "planes": {"near": cfg.near_plane, "far": cfg.far_plane},  # set ones, nerfstudio's frame
         "seconds": sec,
         "surfaces_timings": backend.timings,
         "pace": pace,
@@ -254,7 +257,7 @@ def compare(a: argparse.Namespace) -> dict:
     root, kept = Path(a.scene_dir), Path(a.kept)
     rec = json.loads((kept / "row.json").read_text())
     keys = ("scene_dir", "crop", "backend", "iterations", "seconds", "surfaces_timings")
-    keys += ("views_mean",)
+    keys += ("views_mean", "surfaces", "planes")
     out = {k: rec[k] for k in keys if k in rec}
     out["pace"] = rec.get("pace", {})  # train halves from before session 38 lack it
     truth_mesh = _truth_mesh(root)
@@ -355,10 +358,17 @@ def print_compare(out: dict) -> None:
     t = out.get("surfaces_timings", {})
     head = f"{out['backend']} surfaces of {out['scene_dir']}"
     if out["backend"] == "nerfacto":
-        far = t.get("nerf_far_plane")
+        far = t.get("nerf_far_plane")  # from the scene box (nerf_far_margin)
+        far_set = (out.get("planes") or {}).get("far")  # given (maize's paper setting)
         head += f": {t.get('nerf_iterations_done', '?')} iterations, far plane " + (
-            f"{far:.3f} (nerfstudio's frame)" if far is not None else "nerfstudio's"
+            f"{far:.3f} (nerfstudio's frame, from the scene box)"
+            if far is not None
+            else f"{far_set:g} (nerfstudio's frame, set)"
+            if far_set is not None
+            else "nerfstudio's (1000)"
         )
+        if out.get("surfaces"):
+            head += f"; settings {out['surfaces']}"
     print(head)
     pace = out.get("pace") or {}
     if pace:
@@ -444,6 +454,11 @@ def main(argv: list[str] | None = None) -> int:
         "--far-margin", type=_margin, default=SurfacesConfig.nerf_far_margin,
         help="surfaces.nerf_far_margin: far plane at this margin times the farthest "
         "camera-to-scene-box distance (default %(default)s); 'off': nerfstudio's far plane",
+    )  # fmt: skip
+    tr.add_argument(
+        "--surfaces", action="append", default=[], metavar="KEY=VALUE",
+        help="a SurfacesConfig setting over the crop's paper settings (value JSON, else text), "
+        "e.g. far_plane=null for the far plane at --far-margin instead of maize's 6.0",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the compare half's files")
     tr.add_argument(

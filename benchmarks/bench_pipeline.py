@@ -59,8 +59,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments, parse_kv
-from benchmarks.options import output_file, positive, seeds_by_evals, write_json
+from benchmarks.bench_surfaces import _truth_mesh, add_scene_arguments
+from benchmarks.options import output_file, parse_kv, positive, seeds_by_evals, write_json
 from cropcraft_core.fit.select import reevaluation_seeds
 
 TARGETS = {

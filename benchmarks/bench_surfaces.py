@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.options import at_least
+from benchmarks.options import at_least, parse_kv
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.surfaces import SurfacesConfig, make_backend
 
@@ -189,20 +189,6 @@ def size(text: str) -> tuple[int, int]:
     if sep and w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0:
         return int(w), int(h)
     raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x480, got {text!r}")
-
-
-def parse_kv(items: list[str]) -> dict:
-    """``["a=1", "b=text"]`` → ``{"a": 1, "b": "text"}`` (values are JSON, else strings)."""
-    out = {}
-    for kv in items:
-        k, sep, v = kv.partition("=")
-        if not sep or not k:
-            raise SystemExit(f"expected KEY=VALUE, got {kv!r}")
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

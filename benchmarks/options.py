@@ -88,3 +88,17 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
 
     text = json.dumps(_json_safe(data), indent=2, default=float, allow_nan=False) + "\n"
     return atomic_write_text(path, text)
+
+
+def parse_kv(items: list[str]) -> dict:
+    """``["a=1", "b=text"]`` → ``{"a": 1, "b": "text"}`` (values are JSON, else strings)."""
+    out = {}
+    for kv in items:
+        k, sep, v = kv.partition("=")
+        if not sep or not k:
+            raise SystemExit(f"expected KEY=VALUE, got {kv!r}")
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out

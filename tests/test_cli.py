@@ -382,6 +382,32 @@ def test_nerfacto_compare_prints_its_figures_against_the_targets(capsys):
     assert "lai 0.922 (true 1.26)" in text and "miss: reconstruction" in text
 
 
+def test_nerfacto_compare_names_the_far_plane_the_run_trained_with(capsys):
+    """The head line says which far plane nerfacto had: from the scene box (its value in
+    nerfstudio's frame), the one set in the config (maize's paper setting, 6.0: session 83's
+    first maize run was printed as nerfstudio's own), or nerfstudio's own, and the settings the
+    train half's ``--surfaces`` changed."""
+    from benchmarks.bench_nerfacto import print_compare
+
+    base = {"backend": "nerfacto", "scene_dir": "M", "error": "row fit: no ground found"}
+    heads = []
+    for rec in (
+        {"surfaces_timings": {"nerf_iterations_done": 3001}, "planes": {"near": 0.05, "far": 6.0}},
+        {"surfaces_timings": {"nerf_iterations_done": 4001, "nerf_far_plane": 5.7407},
+         "planes": {"near": None, "far": None},
+         "surfaces": {"far_plane": None, "near_plane": None}},
+        {"surfaces_timings": {"nerf_iterations_done": 500}},  # far margin off, pre-83 record
+    ):  # fmt: skip
+        print_compare({**base, **rec})
+        heads.append(capsys.readouterr().out.splitlines()[0])
+    assert heads[0].endswith("3001 iterations, far plane 6 (nerfstudio's frame, set)")
+    assert heads[1].endswith(
+        "4001 iterations, far plane 5.741 (nerfstudio's frame, from the scene box); "
+        "settings {'far_plane': None, 'near_plane': None}"
+    )
+    assert heads[2].endswith("500 iterations, far plane nerfstudio's (1000)")
+
+
 def test_nerfacto_benchmark_reads_the_training_pace_from_the_log():
     """``bench nerfacto train``'s pace, from an ``ns-train`` log as nerfstudio's local writer
     leaves it in a file (fixed 20-character columns, its last rows reprinted after cursor-up
