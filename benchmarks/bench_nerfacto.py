@@ -150,6 +150,7 @@ def scored_views(poses) -> list:
 
 def train(a: argparse.Namespace) -> dict:
     root, out = Path(a.scene_dir), Path(a.out)
+    settings = parse_kv(a.surfaces)  # a bad KEY=VALUE stops the run before the photos load
     out.mkdir(parents=True, exist_ok=True)
     crop = json.loads((root / "scene.json").read_text())["crop"]
     poses = import_transforms_json(root / "transforms.json")
@@ -169,7 +170,7 @@ def train(a: argparse.Namespace) -> dict:
             "nerf_args": a.nerf_arg,
             "nerf_far_margin": a.far_margin,
             "workdir": str(out / "work"),
-            **parse_kv(a.surfaces),
+            **settings,
         },
     )
     sec: dict[str, float] = {}
@@ -196,7 +197,7 @@ def train(a: argparse.Namespace) -> dict:
         "backend": a.backend,
         "iterations": a.iterations,
         "nerf_args": list(a.nerf_arg),
-        "surfaces": parse_kv(a.surfaces),
+        "surfaces": settings,
         "planes": {"near": cfg.near_plane, "far": cfg.far_plane},  # set ones, nerfstudio's frame
         "seconds": sec,
         "surfaces_timings": backend.timings,

@@ -660,9 +660,11 @@ SIFT_PEAK_THRESHOLD = 0.02 / 9
 def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
     """The pairs that close a loop of ``n`` images in name order: sequential matching's pairs
     (each image with the next ``overlap`` and those ``2**k`` on, COLMAP's quadratic overlap)
-    taken round the end of the order, the last images with the first; those sequential
-    matching already made (closer than ``n`` without the wrap) are left out. Empty for fewer
-    than ``2 * overlap + 2`` images, where the sequential pass's pairs already reach round."""
+    taken round the end of the order, the last images with the first: only steps that pass
+    the end. Where such a pair's distance without the wrap is itself a step (``n - d`` in the
+    steps, e.g. 16 of 32 images) the sequential pass already made it, and COLMAP's matcher
+    skips pairs its database holds. Empty for fewer than ``2 * overlap + 2`` images, where the
+    sequential pass's pairs already reach round."""
     if n < 2 * overlap + 2:
         return []
     steps = sorted(set(range(1, overlap + 1)) | {2**k for k in range(overlap) if 2**k < n})
