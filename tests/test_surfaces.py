@@ -605,6 +605,42 @@ def test_visibility_filter_drops_what_other_views_see_past_and_keeps_the_hidden(
         assert np.isfinite(out[0][15, 20]) == kept
 
 
+def test_consistency_with_colour_drops_a_leaf_pixel_that_matched_the_soil_beside_it():
+    from cropcraft_core.surfaces.tsdf import consistency_count
+
+    cams = _three_down()
+    ground = [np.ones((30, 40), np.float32) for _ in cams]
+    soil = [np.full((30, 40), 8.0, np.float32) for _ in cams]  # a* of brown soil
+    # view 0 sees a thin leaf (green, a* -20) at a few pixels, but its stereo put the soil's
+    # depth there (the window matched the soil beside the leaf); the others see that soil
+    a0 = soil[0].copy()
+    a0[14:16, 19:22] = -20.0
+    a_star = [a0, soil[1], soil[2]]
+    geometric = consistency_count(ground, cams, 0, [1, 2], 0.01)
+    # geometry alone agrees with the leaf's pixels (the others see that soil too)
+    assert (geometric[14:16, 19:22] == 2).all()
+    coloured = consistency_count(ground, cams, 0, [1, 2], 0.01, a_star, 10.0)
+    assert (coloured[14:16, 19:22] == 0).all()
+    outside = np.ones((30, 40), bool)
+    outside[14:16, 19:22] = False
+    np.testing.assert_array_equal(coloured[outside], geometric[outside])
+    # a leaf the others see in green where the depth puts it keeps its agreement; within the
+    # tolerance counts, past it does not
+    leaf_everywhere = [a0, np.full((30, 40), -20.0, np.float32), soil[2]]
+    both = consistency_count(ground, cams, 0, [1, 2], 0.01, leaf_everywhere, 10.0)
+    assert (both[14:16, 19:22] == 1).all()
+    wide = consistency_count(ground, cams, 0, [1, 2], 0.01, a_star, 28.0)
+    np.testing.assert_array_equal(wide, geometric)
+
+
+def test_colour_consistency_setting_is_checked():
+    assert SurfacesConfig(consistency_a_tol=None).consistency_a_tol is None
+    assert SurfacesConfig(consistency_a_tol=10).consistency_a_tol == 10
+    for bad in (0, -3.0, float("nan"), float("inf"), "ten", True):
+        with pytest.raises(ConfigError, match="consistency_a_tol must be a positive number"):
+            SurfacesConfig(consistency_a_tol=bad)
+
+
 def test_splat_renders_a_grid_of_points_as_a_closed_surface():
     from cropcraft_core.surfaces.points import splat
 

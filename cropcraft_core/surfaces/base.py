@@ -238,6 +238,12 @@ class SurfacesConfig:
     """tsdf: a depth is kept where at least this many other views' depth maps agree with it."""
     consistency_rel: float = 0.01
     """tsdf: relative z-depth tolerance of that agreement (0.01 = 1 %)."""
+    consistency_a_tol: float | None = None
+    """tsdf: where set, a view agrees with a depth only if its pixel there also has the colour
+    of the depth's own pixel: CIELAB a* (green to red, the axis the row fit splits plant from
+    soil by; brightness does not enter it) within this many units. A window on a thin leaf's
+    edge can match the soil beside it, which the neighbours see too: geometry alone keeps that
+    depth, and it carves the leaf out of the fused surface. None: geometry only."""
     weight_threshold: float = 1.0
     """tsdf: the extracted surface keeps a marching-cubes cell only where all 8 of its voxels have
     a fused weight *above* this (Open3D's rule): 1.0 = every voxel fused from two or more depth
@@ -388,6 +394,14 @@ class SurfacesConfig:
             raise ConfigError(f"surfaces best_sources must be ≥ 0, got {self.best_sources}")
         if int(self.min_consistent) < 0:
             raise ConfigError(f"surfaces min_consistent must be ≥ 0, got {self.min_consistent}")
+        tol = self.consistency_a_tol
+        if tol is not None and not (
+            isinstance(tol, int | float) and not isinstance(tol, bool) and 0 < tol < np.inf
+        ):
+            raise ConfigError(
+                f"surfaces consistency_a_tol must be a positive number of a* units or null, "
+                f"got {tol!r}"
+            )
         if self.depth_range is not None:
             try:
                 near, far = (float(x) for x in self.depth_range)

@@ -564,38 +564,63 @@ def _sgm(cost, p1, p2):  # pragma: no cover - numba
 # --------------------------------------------------------------------------- consistency
 
 
+def _pixels(
+    camera: PinholeCamera, points: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the (n, 3) world ``points`` fall in an (h, w) image of ``camera``: (n,) bool in
+    the image and in front of it, (n,) row and column (valid where that is True), (n,) the
+    points' z-depths."""
+    uv, z = camera.project(points)
+    ok = np.isfinite(uv).all(axis=1) & (z > 0)
+    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    h, w = shape
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return ok, v, u, z
+
+
 def sample_depth(
     depth: np.ndarray, camera: PinholeCamera, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(n,) value of the (h, w) depth map ``depth`` (matching ``camera``) at the pixel each of
     the (n, 3) world ``points`` projects to (NaN off the image or behind the camera), and (n,)
     the points' own z-depths in that camera."""
-    uv, z = camera.project(points)
-    ok = np.isfinite(uv).all(axis=1) & (z > 0)
-    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
-    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
-    h, w = depth.shape
-    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    ok, v, u, z = _pixels(camera, points, depth.shape)
     out = np.full(len(points), np.nan)
     out[ok] = depth[v[ok], u[ok]]
     return out, z
 
 
 def consistency_count(
-    depths: list[np.ndarray], cams: list[PinholeCamera], i: int, others: list[int], rel: float
+    depths: list[np.ndarray],
+    cams: list[PinholeCamera],
+    i: int,
+    others: list[int],
+    rel: float,
+    a_star: list[np.ndarray] | None = None,
+    a_tol: float | None = None,
 ) -> np.ndarray:
     """(h, w) int: for every valid pixel of depth map i, how many of the depth maps ``others``
-    see its 3D point at the same z-depth within ``rel`` (relative)."""
+    see its 3D point at the same z-depth within ``rel`` (relative). With ``a_star`` (per view,
+    the (h, w) CIELAB a* of its image at its depth map's size) and ``a_tol``, a view counts
+    only where its pixel's a* is also within ``a_tol`` of the depth's own pixel's
+    (``SurfacesConfig.consistency_a_tol``)."""
     d = depths[i]
     valid = np.isfinite(d)
     count = np.zeros(d.shape, np.int32)
     if not valid.any():
         return count
+    colour = a_star is not None and a_tol is not None
     pts = cams[i].unproject(d)[valid]
+    a_ref = a_star[i][valid] if colour else None
     for j in others:
-        dj, z = sample_depth(depths[j], cams[j], pts)
+        ok, v, u, z = _pixels(cams[j], pts, depths[j].shape)
+        agree = np.zeros(len(pts), bool)
+        dj = depths[j][v[ok], u[ok]]
         with np.errstate(invalid="ignore"):
-            agree = np.abs(dj - z) <= rel * z
+            agree[ok] = np.abs(dj - z[ok]) <= rel * z[ok]
+        if colour:
+            agree[ok] &= np.abs(a_star[j][v[ok], u[ok]] - a_ref[ok]) <= a_tol
         count[valid] += agree
     return count
 
@@ -663,10 +688,12 @@ def _match_views(
     n_depths: int,
     say: Progress,
     stage: str,
+    a_star: list[np.ndarray] | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray], float]:
     """Plane-sweep stereo of every view, then the consistency and box filters: (raw maps,
     filtered maps, seconds of stereo). ``views``: the images at ``small``'s size, grey or
-    colour as the caller prepared them (``cfg.colour`` is not read here)."""
+    colour as the caller prepared them (``cfg.colour`` is not read here); ``a_star``: their
+    CIELAB a* where ``cfg.consistency_a_tol`` is set (:func:`a_star_maps`)."""
     t0 = time.perf_counter()
     raw: list[np.ndarray] = []
     for i in range(len(small)):
@@ -689,7 +716,9 @@ def _match_views(
         if cfg.min_consistent > 0:
             # the views this one was matched with and those matched with it
             others = sorted(set(nbrs[i]) | {j for j in range(len(small)) if i in nbrs[j]})
-            cnt = consistency_count(raw, small, i, others, cfg.consistency_rel)
+            cnt = consistency_count(
+                raw, small, i, others, cfg.consistency_rel, a_star, cfg.consistency_a_tol
+            )
             d[cnt < cfg.min_consistent] = np.nan
         if box is not None:
             pts = small[i].unproject(d)
@@ -697,6 +726,15 @@ def _match_views(
             d[~inside] = np.nan
         filtered.append(d)
     return raw, filtered, stereo_s
+
+
+def a_star_maps(colours: list[np.ndarray], cfg: SurfacesConfig) -> list[np.ndarray] | None:
+    """Per view, the (h, w) float32 CIELAB a* of its (h, w, 3) RGB in [0, 1], where
+    ``cfg.consistency_a_tol`` is set; else None (the consistency filter then reads geometry
+    only)."""
+    if cfg.consistency_a_tol is None:
+        return None
+    return [srgb_to_lab(c, 1.0)[..., 1].astype(np.float32) for c in colours]
 
 
 def occupied_heights(
@@ -730,8 +768,9 @@ def occupied_heights(
     n = max(16, int(round(int(cfg.n_depths) * RANGE_PASS_PLANES)))
     # matched on colour whatever ``cfg.colour`` says: the soil is found by its colour
     _, filtered, _ = _match_views(
-        colours, small, nbrs, limits, (lo, hi), box, cfg, n, say, "stereo range"
-    )
+        colours, small, nbrs, limits, (lo, hi), box, cfg, n, say, "stereo range",
+        a_star_maps(colours, cfg),
+    )  # fmt: skip
     ok = [np.isfinite(d) for d in filtered]
     z = np.concatenate(
         [c.unproject(d)[m][:, 2] for c, d, m in zip(small, filtered, ok, strict=True)]
@@ -811,12 +850,14 @@ def stereo_depth_maps(
             box[:, 2] = heights
             nbrs = select_neighbours(cams, int(cfg.neighbours), box)
             limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
-    prep = to_colour if cfg.colour else to_grey
-    views = [prep(im, c, s) for im, c, s in zip(imgs, cams, scales, strict=True)]
+    photos = list(zip(imgs, cams, scales, strict=True))
+    colours = [to_colour(*p) for p in photos]
+    views = colours if cfg.colour else [to_grey(*p) for p in photos]
     t1 = time.perf_counter()
     raw, filtered, stereo_s = _match_views(
-        views, small, nbrs, limits, heights, box, cfg, int(cfg.n_depths), say, "stereo"
-    )
+        views, small, nbrs, limits, heights, box, cfg, int(cfg.n_depths), say, "stereo",
+        a_star_maps(colours, cfg),
+    )  # fmt: skip
     say("consistency", 1.0)
     return StereoDepths(
         small, raw, filtered, limits, stereo_s, time.perf_counter() - t1 - stereo_s,
