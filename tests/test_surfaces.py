@@ -633,6 +633,39 @@ def test_consistency_with_colour_drops_a_leaf_pixel_that_matched_the_soil_beside
     np.testing.assert_array_equal(wide, geometric)
 
 
+def test_stereo_with_colour_consistency_keeps_fewer_leaf_pixels_on_the_soil(scene):
+    """Through the stereo stage: with the colour check the filtered maps are a subset of the
+    geometric ones, and the leaf-coloured pixels holding a depth on the soil (a window that
+    matched the soil beside a leaf) lose more of their share than the rest."""
+    from cropcraft_core.rowfit.lab import srgb_to_lab
+    from cropcraft_core.surfaces.tsdf import stereo_depth_maps, to_colour
+
+    _, cams, imgs, bbox = scene
+    cams, imgs = cams[3:11], imgs[3:11]  # 8 of the 14: half the seconds
+    cfg = SurfacesConfig(n_depths=32, mvs_scale=0.5)
+    plain = stereo_depth_maps(imgs, cams, bbox, cfg, lambda *_: None)
+    tol = replace(cfg, consistency_a_tol=10.0)
+    coloured = stereo_depth_maps(imgs, cams, bbox, tol, lambda *_: None)
+    on_soil = {"plain": 0, "coloured": 0}
+    kept = {"plain": 0, "coloured": 0}
+    for i, cam in enumerate(plain.cameras):
+        p, c = plain.filtered[i], coloured.filtered[i]
+        np.testing.assert_array_equal(np.isfinite(c), np.isfinite(c) & np.isfinite(p))
+        np.testing.assert_array_equal(c[np.isfinite(c)], p[np.isfinite(c)])
+        leaf = srgb_to_lab(to_colour(imgs[i], cams[i], 0.5), 1.0)[..., 1] < -10
+        for name, d in (("plain", p), ("coloured", c)):
+            z = cam.unproject(np.where(np.isfinite(d), d, 0.0))[..., 2]
+            kept[name] += int(np.isfinite(d).sum())
+            on_soil[name] += int((leaf & np.isfinite(d) & (z < 0.01)).sum())
+    # measured: leaf pixels on the soil 346 -> 111, all kept depths 68,806 -> 55,606
+    assert kept["coloured"] < kept["plain"]
+    assert on_soil["plain"] > 0
+    assert on_soil["coloured"] / on_soil["plain"] < 0.5 * kept["coloured"] / kept["plain"], (
+        on_soil,
+        kept,
+    )
+
+
 def test_colour_consistency_setting_is_checked():
     assert SurfacesConfig(consistency_a_tol=None).consistency_a_tol is None
     assert SurfacesConfig(consistency_a_tol=10).consistency_a_tol == 10

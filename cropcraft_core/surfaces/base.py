@@ -155,7 +155,7 @@ class SurfacesConfig:
     """'tsdf' (CPU multi-view stereo + TSDF fusion, the default), 'points' (the same stereo,
     its points filtered by visibility and splatted, no fusion), 'nerfacto' (nerfstudio, CUDA)
     or 'truth' (the true mesh, for tests and benchmarks). The settings marked tsdf that shape
-    the stereo (neighbours to min_consistent) apply to points too."""
+    the stereo (neighbours to consistency_a_tol) apply to points too."""
     voxel_size: float = 0.0075
     """tsdf: TSDF voxel edge (m)."""
     trunc_voxels: float = 3.5

@@ -19,8 +19,9 @@ Pipeline (``TsdfSurfaces.fit``):
    per pixel wins, refined to sub-plane precision by a parabola. Pixels whose score is below
    ``config.min_ncc`` are dropped.
 3. **Consistency.** A depth survives where at least ``config.min_consistent`` neighbour depth maps
-   agree with its reprojection within ``config.consistency_rel`` relative z-depth; depths outside
-   the bounding box are dropped.
+   agree with its reprojection within ``config.consistency_rel`` relative z-depth (and, with
+   ``config.consistency_a_tol``, in colour: the CIELAB a* of the two pixels within it); depths
+   outside the bounding box are dropped.
 4. **Fusion.** Open3D's ``VoxelBlockGrid`` integrates the filtered depth maps with colour into a
    TSDF (``config.voxel_size``, truncation ``config.trunc_voxels`` voxels); marching cubes extracts
    a triangle mesh with vertex colours, cropped to the bounding box, from the cells whose voxels
