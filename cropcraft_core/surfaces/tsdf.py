@@ -852,7 +852,9 @@ def stereo_depth_maps(
             nbrs = select_neighbours(cams, int(cfg.neighbours), box)
             limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
     photos = list(zip(imgs, cams, scales, strict=True))
-    colours = [to_colour(*p) for p in photos]
+    # RGB copies only where the match or the colour check reads them (memory: 500 drone photos)
+    need_rgb = cfg.colour or cfg.consistency_a_tol is not None
+    colours = [to_colour(*p) for p in photos] if need_rgb else []
     views = colours if cfg.colour else [to_grey(*p) for p in photos]
     t1 = time.perf_counter()
     raw, filtered, stereo_s = _match_views(
