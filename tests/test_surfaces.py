@@ -780,6 +780,7 @@ def test_unknown_backend_is_config_error():
     [
         ({"splat_density": 0.0}, "splat_density must be a positive number or null"),
         ({"splat_density": float("nan")}, "splat_density must be a positive number or null"),
+        ({"splat_density": True}, "splat_density must be a positive number or null"),
         ({"splat_density_window": 4}, "splat_density_window must be odd and ≥ 1"),
         ({"best_sources": -1}, "best_sources must be ≥ 0"),
         # each setting of its default's kind (the scene flow's --set passes text through)

@@ -362,13 +362,15 @@ class SurfacesConfig:
             raise ConfigError(f"surfaces weight_threshold must be ≥ 0, got {self.weight_threshold}")
         for name in (
             "voxel_size", "trunc_voxels", "mvs_scale", "consistency_rel", "visibility_rel",
-            "splat_radius", "splat_density",
+            "splat_radius", "splat_density", "consistency_a_tol",
         ):  # fmt: skip
             v = getattr(self, name)
-            optional = name == "splat_density"
+            optional = name in ("splat_density", "consistency_a_tol")
             if optional and v is None:
                 continue
-            if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
+            # bool is an int to isinstance; the optional ones have no default kind to refuse it
+            number = isinstance(v, int | float) and not isinstance(v, bool)
+            if not (number and np.isfinite(v) and v > 0):
                 null = " or null" if optional else ""
                 raise ConfigError(f"surfaces {name} must be a positive number{null}, got {v!r}")
         if self.mvs_max_side is not None and self.mvs_max_side < 32:
@@ -406,14 +408,6 @@ class SurfacesConfig:
             raise ConfigError(f"surfaces best_sources must be ≥ 0, got {self.best_sources}")
         if int(self.min_consistent) < 0:
             raise ConfigError(f"surfaces min_consistent must be ≥ 0, got {self.min_consistent}")
-        tol = self.consistency_a_tol
-        if tol is not None and not (
-            isinstance(tol, int | float) and not isinstance(tol, bool) and 0 < tol < np.inf
-        ):
-            raise ConfigError(
-                f"surfaces consistency_a_tol must be a positive number of a* units or null, "
-                f"got {tol!r}"
-            )
         if self.depth_range is not None:
             try:
                 near, far = (float(x) for x in self.depth_range)
