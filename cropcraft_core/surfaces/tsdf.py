@@ -299,7 +299,9 @@ def best_of(n_sources: int, best_sources: int) -> int:
 # parallel code are optimised differently), so a scene's first reconstruction on a machine
 # differed from its reruns in the last bits of the matching scores, and a tie in the fit can
 # turn on those (benchmarks/RESULTS.md, *#compile-state*). Without it the two agree to the bit.
-@njit(cache=True, parallel=True, fastmath=False)
+# error_model="numpy": a float division is IEEE's, with no zero check, so the loops below can be
+# vectorised; every divisor that is read is nonzero (RESULTS, *#stereo-simd-85*).
+@njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
 def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no cover - numba
     """ref (C, h, w) float32; srcs (S, C, hs, ws) float32, C-contiguous; src_hw (S, 2) int64 real
     sizes; homs (D, S, 3, 3) float64 ref index pixel -> src index pixel; out (h, w, D) float32
@@ -324,6 +326,7 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
     uplane = np.uint64(plane)
     one = np.uint64(1)
     nwin = 2 * half + 1
+    uhalf = np.uint64(half)
     inv_nx = np.empty(w)  # 1 / the window's width at each column
     for x in range(w):
         inv_nx[x] = 1.0 / (min(w, x + half + 1) - max(0, x - half))
@@ -359,6 +362,9 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
         p1 = pre[1]
         p2 = pre[2]
         acc = np.empty(w)
+        su = np.empty(w)  # a row's source coordinates, and whether the plane lies in front
+        sv = np.empty(w)
+        front = np.empty(w, np.bool_)
         tmp = np.empty((h, w), np.float32)
         rank = np.empty(w, np.int32)
         tot = np.empty(w)
@@ -379,13 +385,19 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                     ax = h01 * y + h02
                     bx = h11 * y + h12
                     cz = h21 * y + h22
+                    # the projective division in a loop of its own (vectorised), then the
+                    # bilinear lookups (gathers); the coordinates where pz <= 1e-9 are not read
                     for x in range(w):
                         pz = h20 * x + cz
+                        ip = 1.0 / pz
+                        su[x] = (h00 * x + ax) * ip
+                        sv[x] = (h10 * x + bx) * ip
+                        front[x] = pz > 1e-9
+                    for x in range(w):
                         ok = False
-                        if pz > 1e-9:
-                            ip = 1.0 / pz
-                            u = (h00 * x + ax) * ip
-                            v = (h10 * x + bx) * ip
+                        if front[x]:
+                            u = su[x]
+                            v = sv[x]
                             if u >= 0.0 and v >= 0.0 and u <= wsm and v <= hsm:
                                 x0 = min(int(u), ws - 2)
                                 y0 = min(int(v), hs - 2)
@@ -432,11 +444,14 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                         x1 = min(w, x + half + 1)
                         acc[x] += _ncc(p0[x1] - p0[0], p1[x1] - p1[0], p2[x1] - p2[0],
                                        inv_nx[x] * inv_ny, rm[x], ri[x])  # fmt: skip
+                    # unsigned indices: with signed ones numba wraps negative indices, and that
+                    # branch keeps LLVM from vectorising the loop
                     for x in range(half, w - half):
-                        x0 = x - half
-                        x1 = x + half + 1
-                        acc[x] += _ncc(p0[x1] - p0[x0], p1[x1] - p1[x0], p2[x1] - p2[x0],
-                                       inv_nx[x] * inv_ny, rm[x], ri[x])  # fmt: skip
+                        ux = np.uint64(x)
+                        a0 = ux - uhalf
+                        a1 = ux + uhalf + one
+                        acc[ux] += _ncc(p0[a1] - p0[a0], p1[a1] - p1[a0], p2[a1] - p2[a0],
+                                        inv_nx[ux] * inv_ny, rm[ux], ri[ux])  # fmt: skip
                     for x in range(max(half, w - half), w):  # clipped on the right
                         x0 = max(0, x - half)
                         acc[x] += _ncc(p0[w] - p0[x0], p1[w] - p1[x0], p2[w] - p2[x0],
@@ -489,7 +504,7 @@ def _sweep_ncc(ref, srcs, src_hw, homs, half, shift, m_best, out):  # pragma: no
                 out[y, x, k] = tot[x] / m_best
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _add_row(col, wq, ref, y, sign):  # pragma: no cover - numba
     """col (C, 3, w) += sign × (q, q², q·r) of the warped row wq (C, w) against ref's row y."""
     for c in range(wq.shape[0]):
@@ -505,12 +520,14 @@ def _add_row(col, wq, ref, y, sign):  # pragma: no cover - numba
             c2[x] += sign * (q * rr[x])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _ncc(s0, s1, s2, inv, rm, ri):  # pragma: no cover - numba
     """NCC of a window from its sums of q, q², q·r, 1 / its pixel count, the reference's window
-    mean and 1 / standard deviation (variances floored at 1e-5, as the reference's)."""
+    mean and 1 / standard deviation (variances floored at 1e-5, as the reference's; the floor a
+    select rather than ``max``, which vectorises)."""
     mw = s0 * inv
-    vw = max(s1 * inv - mw * mw + 1e-5, 1e-5)
+    vw = s1 * inv - mw * mw + 1e-5
+    vw = vw if vw > 1e-5 else 1e-5
     return (s2 * inv - rm * mw) * (ri / np.sqrt(vw))
 
 
