@@ -95,8 +95,9 @@ SCENE_BOX = {
 #: they also see its colour (``consistency_a_tol`` 10 a* units): over two draws of ten seeds the
 #: guarded answer's mean |LAI error| read 10.6 % on the sparse canopy (28.7 % without), 11.1 % on
 #: the default canopy through SfM (3.7 %) and 7.9 % on the demo (3.9 %): 9.9 % over the three
-#: against 12.1 %, the two denser canopies worse (their leaves read ~10 % long), the consistency
-#: pass ~5 s longer.
+#: against 12.1 %, the two denser canopies worse (their leaves read ~10 % long: the method's own
+#: reading from that canopy's row camera, its true mesh +7.4 %, *#lean-85*), the consistency
+#: pass ~5 s longer; a third draw on the sparse canopy read −1.3 % (*#draw3-85*).
 CROP_SURFACES: dict[str, dict[str, Any]] = {
     "soybean": {
         "sweep_heights": "auto",
