@@ -1,6 +1,7 @@
 """Fit speed, side by side in one run.
 
     cropcraft bench fit-speed [--json FILE] [--evals N] [--seeds N] [--skopt-seeds N]
+                              [--skopt-first K]
 
 (a) a full soybean fit at paper settings (10 seeds × 500 evaluations at 994 × 738), seeds run in
     parallel processes (one per core) — target ≤ 10 minutes wall on the 2-core machine (the paper
@@ -8,7 +9,8 @@
 (b) one seed of our optimiser and of scikit-optimize's ``gp_minimize`` (the paper's optimiser:
     Matérn + EI, 200 initial points) on the same objective and budget: wall time, optimiser
     overhead per iteration, final loss — target ≥ 10× less optimiser time at equal or lower final
-    loss (mean over ``--skopt-seeds`` seeds);
+    loss (mean over ``--skopt-seeds`` seeds, numbered from ``--skopt-first``: a scikit-optimize
+    seed takes ~40 CPU-minutes, so the five can be run over several sittings and joined);
 (c) where the time goes per evaluation (generate / render / histograms / optimiser).
 """
 
@@ -91,10 +93,14 @@ def _compare_one(args) -> tuple[str, dict]:
     }
 
 
-def skopt_vs_ours(n_evals: int, n_initial: int, n_seeds: int, workers: int = 1) -> dict:
-    """Each seed of each optimiser once; ``workers`` processes, one BLAS thread each (the
-    optimiser times are process CPU seconds, so they do not depend on the sharing)."""
-    jobs = [(m, s, n_evals, n_initial) for s in range(n_seeds) for m in ("skopt", "ours")]
+def skopt_vs_ours(
+    n_evals: int, n_initial: int, n_seeds: int, workers: int = 1, first: int = 0
+) -> dict:
+    """Seeds ``first`` … ``first + n_seeds - 1`` of each optimiser once; ``workers`` processes,
+    one BLAS thread each (the optimiser times are process CPU seconds, so they do not depend on
+    the sharing)."""
+    seeds = range(first, first + n_seeds)
+    jobs = [(m, s, n_evals, n_initial) for s in seeds for m in ("skopt", "ours")]
     rows: dict[str, list] = {"ours": [], "skopt": []}
     with processes(workers) as ex:
         for method, row in run_jobs(ex, _compare_one, jobs):
@@ -110,6 +116,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--initial", type=at_least(2), default=200)
     ap.add_argument("--seeds", type=at_least(1), default=10)
     ap.add_argument("--skopt-seeds", type=at_least(0), default=5)
+    ap.add_argument(
+        "--skopt-first", type=at_least(0), default=0, help="(b)'s first seed (default 0)"
+    )
     ap.add_argument("--skip-full", action="store_true")
     ap.add_argument(
         "--workers",
@@ -152,8 +161,14 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
     if a.skopt_seeds:
-        out["compare"] = rows = skopt_vs_ours(a.evals, a.initial, a.skopt_seeds, a.workers)
-        print(f"(b) one seed, {a.evals} evals ({a.initial} initial), mean of {a.skopt_seeds}:")
+        out["compare"] = rows = skopt_vs_ours(
+            a.evals, a.initial, a.skopt_seeds, a.workers, first=a.skopt_first
+        )
+        last = a.skopt_first + a.skopt_seeds - 1
+        print(
+            f"(b) one seed, {a.evals} evals ({a.initial} initial), "
+            f"mean of {a.skopt_seeds} (seeds {a.skopt_first}–{last}):"
+        )
         print(
             f"    {'optimiser':<12}{'wall s':>10}{'optimiser s':>14}{'s/iter':>10}{'best loss':>12}"
         )

@@ -95,3 +95,14 @@ def test_fit_speed_compares_skopt_on_the_objective_fit_seed_optimises(monkeypatc
     obj, box, _ = seed_objective(fs._observation(), 1, FitConfig(n_evals=7, n_initial=6))
     np.testing.assert_array_equal(got["bounds"], box.bounds)
     assert [obj(x, i) for i, x in enumerate(got["r"].X)] == got["r"].y.tolist()
+
+
+def test_fit_speed_runs_the_seeds_asked_for(tmp_path, capsys):
+    """``--skopt-first`` numbers (b)'s seeds from K, so the five ~40-minute scikit-optimize
+    seeds can be run over several sittings and joined seed by seed."""
+    out = tmp_path / "fs.json"
+    argv = ["--skip-full", "--skopt-first", "3", "--skopt-seeds", "1", "--evals", "7"]
+    main(["bench", "fit-speed", *argv, "--initial", "6", "--workers", "1", "--json", str(out)])
+    rows = json.loads(out.read_text())["compare"]
+    assert {k: [r["seed"] for r in v] for k, v in rows.items()} == {"ours": [3], "skopt": [3]}
+    assert "mean of 1 (seeds 3–3)" in capsys.readouterr().out
