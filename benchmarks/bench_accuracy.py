@@ -37,6 +37,9 @@ the true LAI by more than 15 %, and of the largest misses that carry 80 % of LAI
 whose miss it is: the answer's and the truth's parameters scored
 on K fresh canopies each, paired (:func:`diagnose`): where the truth scores lower, the
 optimiser's; where it does not, the loss's (this observation's statistics do not prefer it).
+``--draw K`` (K ≥ 1) builds every scene's true canopy anew with another random seed at the same
+true parameters (checkpoints of its own; draw 0 is the table's): how much of a scene's miss
+belongs to its one observed draw rather than to its parameters.
 """
 
 from __future__ import annotations
@@ -111,16 +114,31 @@ def budget(
     return Budget(30 if scenes is None else scenes, cfg, 1.0 if scale is None else scale)
 
 
-def scene_truth(crop: str, index: int, seed: int = 2024):
+#: Canopy seeds of one draw apart: more than any scene number.
+DRAW_STRIDE = 1_000_000
+
+
+def canopy_seed(index: int, draw: int = 0) -> int:
+    """The random seed of scene ``index``'s true canopy in observation draw ``draw`` (0: the
+    table's); a fitted canopy is measured on the same seed, so a scene's LAI error is its
+    parameters', not two canopies' draws."""
+    if not 0 <= index < DRAW_STRIDE or draw < 0:
+        raise ConfigError(f"scene {index}, draw {draw}: out of range")
+    return 100_000 + index + DRAW_STRIDE * draw
+
+
+def scene_truth(crop: str, index: int, seed: int = 2024, draw: int = 0):
+    """Scene ``index``'s true parameters (by ``seed`` and the index: the same in every draw)
+    and its true canopy (draw ``draw``'s random seed, :func:`canopy_seed`)."""
     rng = np.random.default_rng([seed, index])
     params = {s.name: float(rng.uniform(s.low, s.high)) for s in param_space(crop)}
-    canopy = generate_canopy(crop, params, default_layout(crop), seed=100_000 + index)
+    canopy = generate_canopy(crop, params, default_layout(crop), seed=canopy_seed(index, draw))
     return params, canopy
 
 
-def truth_record(crop: str, index: int) -> dict:
-    """Scene ``index``'s true parameters and canopy metrics."""
-    return _record(*scene_truth(crop, index))
+def truth_record(crop: str, index: int, draw: int = 0) -> dict:
+    """Scene ``index``'s true parameters and canopy metrics (in draw ``draw``)."""
+    return _record(*scene_truth(crop, index, draw=draw))
 
 
 def _record(params: dict, canopy) -> dict:
@@ -128,22 +146,22 @@ def _record(params: dict, canopy) -> dict:
 
 
 def scene_observation(
-    crop: str, index: int, scale: float, preset_overrides: dict | None = None
+    crop: str, index: int, scale: float, preset_overrides: dict | None = None, draw: int = 0
 ) -> tuple[dict, object]:
     """Scene ``index``'s truth record (:func:`truth_record`) and its observation: the true
     canopy's depth from the row camera at ``scale`` × 994×738, at the crop's render height
     raised over a tall canopy as the row fit raises it (``observe.clear_render_height`` of the
     mesh's 99.5th height percentile), with the crop's observation preset changed by
-    ``preset_overrides`` (e.g. ``{"lambda_lateral": 0.25}``). Deterministic, so a worker
-    anywhere can rebuild it from these values."""
-    params, canopy = scene_truth(crop, index)
+    ``preset_overrides`` (e.g. ``{"lambda_lateral": 0.25}``), the true canopy of draw ``draw``.
+    Deterministic, so a worker anywhere can rebuild it from these values."""
+    params, canopy = scene_truth(crop, index, draw=draw)
     size = {"image_width": round(994 * scale), "image_height": round(738 * scale)}
     size.update(preset_overrides or {})
     base = preset(crop, **size)
     top = float(np.percentile(canopy.mesh.vertices[:, 2], 99.5))
     h = clear_render_height(crop, base.render_height, top)
     p = base if h == base.render_height else preset(crop, **{**size, "render_height": h})
-    obs = observe_canopy(canopy, p, meta={"scene": index})
+    obs = observe_canopy(canopy, p, meta={"scene": index, "draw": draw})
     return _record(params, canopy), obs
 
 
@@ -198,15 +216,17 @@ def score(
     seconds: list[float],
     log=print,
     indices: list[int] | None = None,
+    draw: int = 0,
 ):
     """One method's row of the table: each scene's fitted canopy (built with the truth's canopy
-    seed) measured like the truth; LAIE, LAIPE (and its median), AME, ASDE, NDPE, NCPE.
-    ``indices``: the scenes' numbers where they are not 0, 1, 2, ... (``--finished-only``)."""
+    seed, :func:`canopy_seed` of its number and ``draw``) measured like the truth; LAIE, LAIPE
+    (and its median), AME, ASDE, NDPE, NCPE. ``indices``: the scenes' numbers where they are
+    not 0, 1, 2, ... (``--finished-only``)."""
     indices = list(range(len(params))) if indices is None else list(indices)
     preds = []
     for k, p_ in enumerate(params):
         i = indices[k]
-        fitted = generate_canopy(crop, p_, default_layout(crop), seed=100_000 + i)
+        fitted = generate_canopy(crop, p_, default_layout(crop), seed=canopy_seed(i, draw))
         preds.append({"params": p_, **canopy_metrics(fitted, gap_fraction=False)})
         log(
             f"  {crop} scene {i}: LAI {preds[-1]['lai']:.2f} (true {truths[k]['lai']:.2f}), "
@@ -226,7 +246,11 @@ def score(
 
 
 def seed_coverage(
-    crop: str, seed_params: list[list[dict]], truths: list[dict], indices: list[int]
+    crop: str,
+    seed_params: list[list[dict]],
+    truths: list[dict],
+    indices: list[int],
+    draw: int = 0,
 ) -> dict | None:
     """How the seeds' own answers spread around the truth, scene by scene: each seed's
     parameters built on the scene's truth layout and canopy seed and measured
@@ -240,7 +264,8 @@ def seed_coverage(
         return None
     per = []
     for i, params, truth in zip(indices, seed_params, truths, strict=True):
-        lai = seed_traits(crop, params, default_layout(crop), seed=100_000 + i)["traits"]["lai"]
+        seed = canopy_seed(i, draw)
+        lai = seed_traits(crop, params, default_layout(crop), seed=seed)["traits"]["lai"]
         per.append(
             {
                 "scene": int(i),
@@ -275,6 +300,7 @@ def run(
     first: int = 0,
     only: tuple[int, ...] = (),
     diagnose: int = 0,
+    draw: int = 0,
 ) -> dict:
     """The benchmark's result: per method its errors, seconds of fitting per scene (summed over
     seeds, so independent of ``workers``) and the per-scene predictions; and the truths.
@@ -286,7 +312,8 @@ def run(
     truth, so the parts' per-scene results join); ``only``: fit and score just these scene
     numbers of the ``scenes`` (a probe of the scenes a change is about); ``diagnose``: canopies
     on which each optimiser's LAI misses are scored against the truth (:func:`diagnose_misses`,
-    under the method's ``diagnosis``)."""
+    under the method's ``diagnosis``); ``draw``: the true canopies' draw (:func:`canopy_seed`;
+    0 is the table's)."""
     if diagnose == 1 or diagnose < 0:
         raise ConfigError(f"bench accuracy: --diagnose takes 2 canopies or more, got {diagnose}")
     runs = [(m, m, True) for m in methods]
@@ -305,7 +332,7 @@ def run(
         numbers = tuple(sorted(set(only)))
     truths, observations = [], []
     for i in numbers:
-        truth, obs = scene_observation(crop, i, b0.scale, preset_overrides)
+        truth, obs = scene_observation(crop, i, b0.scale, preset_overrides, draw)
         truths.append(truth)
         observations.append(obs)
     out = {
@@ -316,6 +343,7 @@ def run(
         "budget": {**b0.fit.to_dict(), "image_scale": b0.scale},
         "preset_overrides": dict(preset_overrides or {}),
         "known": list(known),
+        "draw": draw,
     }
     scene_set = _Scenes(
         observations,
@@ -323,6 +351,7 @@ def run(
         checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
         preset_overrides=preset_overrides,
         indices=numbers,
+        draw=draw,
     )
     if finished_only:
         if scene_set.checkpoint_dir is None:
@@ -355,7 +384,7 @@ def run(
                     ParamBox.of(crop, bx).clip(p) for p, bx in zip(params, boxes, strict=True)
                 ]
                 out["methods"][label] = score(
-                    crop, params, truths, seconds, log=log, indices=scene_set.indices
+                    crop, params, truths, seconds, log=log, indices=scene_set.indices, draw=draw
                 )
                 continue
             rows = rules(crop, label, b.fit)
@@ -365,7 +394,7 @@ def run(
                 seconds = [answers[i][row][1] for i in range(len(observations))]
                 log(f"  {row}:")
                 out["methods"][row] = score(
-                    crop, params, truths, seconds, log=log, indices=scene_set.indices
+                    crop, params, truths, seconds, log=log, indices=scene_set.indices, draw=draw
                 )
             out["methods"][label]["seed_spread"] = seed_coverage(
                 crop,
@@ -378,6 +407,7 @@ def run(
                 ],
                 truths,
                 scene_set.indices,
+                draw,
             )
             if diagnose:
                 r = out["methods"][label]
@@ -524,14 +554,16 @@ def _seed_job(args) -> tuple[int, object, float]:
 class _Scenes:
     """What every method's fits in one benchmark run share: the scenes' observations, the
     parameters given in each (``boxes[k]``, ``{}`` where none), the observation preset's
-    changes (part of a checkpoint's name), where the seeds checkpoint (``None``: nowhere) and
-    the scenes' numbers (``indices[k]``; 0, 1, 2, ... unless a subset was taken)."""
+    changes (part of a checkpoint's name), where the seeds checkpoint (``None``: nowhere), the
+    scenes' numbers (``indices[k]``; 0, 1, 2, ... unless a subset was taken) and the true
+    canopies' draw (:func:`canopy_seed`; part of a checkpoint's name where not 0)."""
 
     observations: list
     boxes: list[dict]
     checkpoint_dir: Path | None = None
     preset_overrides: dict | None = None
     indices: tuple[int, ...] | None = None
+    draw: int = 0
 
     def __post_init__(self) -> None:
         if self.indices is None:
@@ -567,6 +599,8 @@ class _Scenes:
             tag += f"-top{top:g}"
         if any(self.boxes):  # parameters given: another fit, its own checkpoints
             tag += "-known-" + "-".join(sorted(self.boxes[0]))
+        if self.draw:  # another observed canopy: another fit, its own checkpoints
+            tag += f"-draw{self.draw}"
         default_h = preset(crop).render_height
         out = []
         for i, obs in zip(self.indices, self.observations, strict=True):
@@ -739,6 +773,8 @@ def print_table(res: dict) -> None:
     b = res.get("budget", {})
     idx = res.get("scene_indices")
     some = f" (numbers {idx})" if idx is not None and idx != list(range(len(idx))) else ""
+    if res.get("draw"):
+        some += f", true canopies of draw {res['draw']}"
     print(
         f"\nSynthetic accuracy, {crop}, {res['scenes']} scenes{some}"
         f"{' (quick budget)' if res['quick'] else ''}: {b.get('n_seeds')} seeds x "
@@ -923,6 +959,14 @@ def main(argv: list[str] | None = None) -> int:
         "it would (repeatable; such fits keep their own checkpoints)",
     )
     ap.add_argument(
+        "--draw",
+        type=at_least(0),
+        default=0,
+        metavar="K",
+        help="build every scene's true canopy with draw K's random seed at the same true "
+        "parameters (0, the default, is the table's; others keep their own checkpoints)",
+    )
+    ap.add_argument(
         "--preset",
         action="append",
         default=[],
@@ -965,9 +1009,10 @@ def main(argv: list[str] | None = None) -> int:
             or a.diagnose
             or a.checkpoint_dir
             or a.crn_ablation
+            or a.draw
         ):
             raise SystemExit(
-                "bench accuracy: --preset, --known, --first, --only, --diagnose, "
+                "bench accuracy: --preset, --known, --first, --only, --diagnose, --draw, "
                 "--checkpoint-dir and --crn-ablation are not available with --runner"
             )
         res = _run_flow(a, methods, overrides)
@@ -992,6 +1037,7 @@ def main(argv: list[str] | None = None) -> int:
         first=a.first,
         only=a.only,
         diagnose=a.diagnose,
+        draw=a.draw,
     )
     print_table(res)
     if a.json:

@@ -69,7 +69,7 @@ def test_bad_benchmark_options_stop_before_any_work(argv, message, capsys):
 
 
 def test_accuracy_with_a_runner_refuses_the_options_it_cannot_honour(capsys):
-    for extra in (["--checkpoint-dir", "x"], ["--crn-ablation"]):
+    for extra in (["--checkpoint-dir", "x"], ["--crn-ablation"], ["--draw", "1"]):
         with pytest.raises(SystemExit, match="not available with --runner"):
             main(["bench", "accuracy", "--crop", "soybean", "--runner", "threads", *extra])
 

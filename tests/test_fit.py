@@ -649,6 +649,26 @@ def test_accuracy_bench_gives_known_parameters_their_true_value_in_checkpoints_o
     assert np.asarray(ck["X"]).shape == (6, 3)
 
 
+def test_accuracy_bench_redraws_the_true_canopies_at_the_same_parameters(tmp_path):
+    """``bench accuracy --draw 1``: every scene keeps its true parameters, its true canopy is
+    another random draw (another LAI, another observation), the fitted canopies are measured on
+    that draw's seed, and its seeds checkpoint apart from the table's."""
+    from benchmarks.bench_accuracy import DRAW_STRIDE, canopy_seed, run
+
+    budget = {"n_seeds": 1, "n_evals": 6, "n_initial": 3, "reevaluate_canopies": 2}
+    kw = {"overrides": {**budget, "polish_evals": 4}, "checkpoint_dir": tmp_path, "log": print}
+    table = run("soybean", ["bo"], True, 1, **kw)
+    drawn = run("soybean", ["bo"], True, 1, draw=1, **kw)
+    names = sorted(p.name for p in tmp_path.glob("*-seed*.json"))
+    assert len(names) == 2 and sum("-draw1-" in n for n in names) == 1
+    t0, t1 = table["truths"][0], drawn["truths"][0]
+    assert t0["params"] == t1["params"] and t0["lai"] != t1["lai"]
+    assert (table["draw"], drawn["draw"]) == (0, 1)
+    assert canopy_seed(3, 2) == canopy_seed(3) + 2 * DRAW_STRIDE
+    with pytest.raises(ConfigError, match="draw -1"):
+        canopy_seed(3, -1)
+
+
 def test_accuracy_bench_combines_scenes_in_its_worker_processes_as_it_would_in_process(tmp_path):
     """With ``--workers`` each scene's answers (re-scoring and polish included) are combined in
     the worker processes as soon as its seeds are in; the answers are the ones the in-process
