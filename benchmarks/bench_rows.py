@@ -127,11 +127,13 @@ def run(
         for i, k, answers in run_jobs(ex, _job, jobs):
             fitted[i, k] = answers
             log(f"  {crop} scene {i} row {k:+d}: fitted")
+    from benchmarks.bench_accuracy import canopy_seed
+
     truths = [row_observation(crop, i, 0, scale)[0] for i in indices]
     layout = default_layout(crop)
 
-    def measure(params: dict, i: int) -> dict:
-        canopy = generate_canopy(crop, params, layout, seed=100_000 + i)
+    def measure(params: dict, i: int) -> dict:  # on the scene's own true canopy's seed
+        canopy = generate_canopy(crop, params, layout, seed=canopy_seed(i))
         return {"params": params, **canopy_metrics(canopy, gap_fraction=False)}
 
     table: dict[str, dict[str, dict]] = {}
