@@ -1,7 +1,7 @@
 """Fit speed, side by side in one run.
 
     cropcraft bench fit-speed [--json FILE] [--evals N] [--seeds N] [--skopt-seeds N]
-                              [--skopt-first K]
+                              [--skopt-first K] [--local-share S] [--arms ours,skopt,ours+local]
 
 (a) a full soybean fit at paper settings (10 seeds × 500 evaluations at 994 × 738), seeds run in
     parallel processes (one per core) — target ≤ 10 minutes wall on the 2-core machine (the paper
@@ -11,6 +11,10 @@
     overhead per iteration, final loss — target ≥ 10× less optimiser time at equal or lower final
     loss (mean over ``--skopt-seeds`` seeds, numbered from ``--skopt-first``: a scikit-optimize
     seed takes ~40 CPU-minutes, so the five can be run over several sittings and joined);
+    ``--local-share S`` adds a third arm, ``ours+local``: our optimiser with its closing local
+    search (the last S of the evaluations on Nelder-Mead from the lowest point; not the fit's
+    default). ``--arms`` runs a subset, so an arm measured in an earlier sitting on the same host
+    (scikit-optimize's, the long one) need not run again;
 (c) where the time goes per evaluation (generate / render / histograms / optimiser).
 """
 
@@ -72,9 +76,13 @@ def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
     return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
 
 
+ARMS = ("ours", "skopt", "ours+local")
+
+
 def _compare_one(args) -> tuple[str, dict]:
-    """One seed of one optimiser on the shared objective (run in a worker process)."""
-    method, s, n_evals, n_initial = args
+    """One seed of one optimiser on the shared objective (run in a worker process);
+    ``ours+local`` is ours with ``local_share`` of the evaluations on the closing local search."""
+    method, s, n_evals, n_initial, *rest = args
     from cropcraft_core.optimize.skopt_reference import run_skopt
 
     obs = _observation()
@@ -82,6 +90,8 @@ def _compare_one(args) -> tuple[str, dict]:
     t = time.perf_counter()
     if method == "ours":
         r = fit_seed(obs, s, cfg)
+    elif method == "ours+local":
+        r = fit_seed(obs, s, FitConfig(n_evals=n_evals, n_initial=n_initial, local_share=rest[0]))
     else:  # the objective fit_seed optimises (soybean: two canopies an evaluation), its box
         obj, box, _ = seed_objective(obs, s, cfg)
         r = run_skopt(obj, box.bounds, n_evals=n_evals, n_initial=n_initial, seed=s)
@@ -90,18 +100,26 @@ def _compare_one(args) -> tuple[str, dict]:
         "wall_s": time.perf_counter() - t,
         "best": float(r.best_y),
         "optimizer_s": _optimizer_seconds(r),
+        "local_evals": int(r.config.get("local_evals") or 0),
     }
 
 
 def skopt_vs_ours(
-    n_evals: int, n_initial: int, n_seeds: int, workers: int = 1, first: int = 0
+    n_evals: int,
+    n_initial: int,
+    n_seeds: int,
+    workers: int = 1,
+    first: int = 0,
+    arms: tuple[str, ...] = ("ours", "skopt"),
+    local_share: float = 0.2,
 ) -> dict:
-    """Seeds ``first`` … ``first + n_seeds - 1`` of each optimiser once; ``workers`` processes,
+    """Seeds ``first`` … ``first + n_seeds - 1`` of each arm once; ``workers`` processes,
     one BLAS thread each (the optimiser times are process CPU seconds, so they do not depend on
-    the sharing)."""
+    the sharing). Each seed's scikit-optimize job is queued first: it is the long one."""
     seeds = range(first, first + n_seeds)
-    jobs = [(m, s, n_evals, n_initial) for s in seeds for m in ("skopt", "ours")]
-    rows: dict[str, list] = {"ours": [], "skopt": []}
+    order = [m for m in ("skopt", "ours", "ours+local") if m in arms]
+    jobs = [(m, s, n_evals, n_initial, local_share) for s in seeds for m in order]
+    rows: dict[str, list] = {m: [] for m in arms}
     with processes(workers) as ex:
         for method, row in run_jobs(ex, _compare_one, jobs):
             rows[method].append(row)
@@ -119,6 +137,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--skopt-first", type=at_least(0), default=0, help="(b)'s first seed (default 0)"
     )
+    ap.add_argument(
+        "--local-share",
+        type=float,
+        default=None,
+        help="add the arm ours+local: ours with this share of the evaluations on its closing "
+        "local search (0 < S < 1)",
+    )
+    ap.add_argument(
+        "--arms",
+        default=None,
+        help=f"(b)'s arms, comma-separated, from {','.join(ARMS)} (default: ours,skopt, and "
+        "ours+local with --local-share)",
+    )
     ap.add_argument("--skip-full", action="store_true")
     ap.add_argument(
         "--workers",
@@ -129,6 +160,17 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.initial > a.evals:
         ap.error(f"--initial {a.initial} exceeds --evals {a.evals}")
+    if a.local_share is not None and not 0.0 < a.local_share < 1.0:
+        ap.error(f"--local-share must be between 0 and 1, got {a.local_share}")
+    if a.arms is None:
+        arms = ("ours", "skopt") + (("ours+local",) if a.local_share is not None else ())
+    else:
+        arms = tuple(dict.fromkeys(x.strip() for x in a.arms.split(",") if x.strip()))
+        bad = [x for x in arms if x not in ARMS]
+        if bad or not arms:
+            ap.error(f"--arms: unknown arm(s) {bad or a.arms!r}; choose from {', '.join(ARMS)}")
+        if "ours+local" in arms and a.local_share is None:
+            ap.error("--arms ours+local needs --local-share")
     out: dict = {}
     if not a.skip_full:
         out["full"] = full_fit(a.seeds, a.evals, a.initial, workers=a.workers)
@@ -162,8 +204,16 @@ def main(argv: list[str] | None = None) -> int:
         )
     if a.skopt_seeds:
         out["compare"] = rows = skopt_vs_ours(
-            a.evals, a.initial, a.skopt_seeds, a.workers, first=a.skopt_first
+            a.evals,
+            a.initial,
+            a.skopt_seeds,
+            a.workers,
+            first=a.skopt_first,
+            arms=arms,
+            local_share=0.2 if a.local_share is None else a.local_share,
         )
+        if a.local_share is not None:
+            out["local_share"] = a.local_share
         last = a.skopt_first + a.skopt_seeds - 1
         print(
             f"(b) one seed, {a.evals} evals ({a.initial} initial), "
@@ -177,10 +227,12 @@ def main(argv: list[str] | None = None) -> int:
             o = np.mean([r["optimizer_s"] for r in rs])
             b = np.mean([r["best"] for r in rs])
             print(f"    {k:<12}{w:>10.1f}{o:>14.1f}{o / (a.evals - a.initial):>10.3f}{b:>12.4f}")
-        ratio = np.mean([r["optimizer_s"] for r in rows["skopt"]]) / max(
-            np.mean([r["optimizer_s"] for r in rows["ours"]]), 1e-9
-        )
-        print(f"    optimiser time ratio skopt/ours: {ratio:.1f}× (target ≥ 10×)")
+        for k in ("ours", "ours+local"):
+            if "skopt" in rows and k in rows:
+                ratio = np.mean([r["optimizer_s"] for r in rows["skopt"]]) / max(
+                    np.mean([r["optimizer_s"] for r in rows[k]]), 1e-9
+                )
+                print(f"    optimiser time ratio skopt/{k}: {ratio:.1f}× (target ≥ 10×)")
     if a.json:
         write_json(a.json, out)
     return 0

@@ -59,6 +59,9 @@ def test_json_results_are_strict_json(tmp_path):
         (["optimizer", "--n", "10", "--n-initial", "20"], "--n-initial 20 exceeds --n 10"),
         (["pipeline", "--fit", "10"], "not SEEDSxEVALS"),
         (["fit-speed", "--initial", "30", "--evals", "20"], "--initial 30 exceeds --evals 20"),
+        (["fit-speed", "--arms", "ours,nope"], "unknown arm(s) ['nope']"),
+        (["fit-speed", "--arms", "ours+local"], "--arms ours+local needs --local-share"),
+        (["fit-speed", "--local-share", "1.5"], "--local-share must be between 0 and 1"),
     ],
 )
 def test_bad_benchmark_options_stop_before_any_work(argv, message, capsys):
@@ -106,3 +109,22 @@ def test_fit_speed_runs_the_seeds_asked_for(tmp_path, capsys):
     rows = json.loads(out.read_text())["compare"]
     assert {k: [r["seed"] for r in v] for k, v in rows.items()} == {"ours": [3], "skopt": [3]}
     assert "mean of 1 (seeds 3–3)" in capsys.readouterr().out
+
+
+def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, capsys):
+    """``--local-share`` adds ``ours+local`` (our optimiser with its closing local search), and
+    ``--arms`` leaves out an arm measured in an earlier sitting (scikit-optimize's, the long
+    one), so the run prints no time ratio it has no scikit-optimize arm for."""
+    out = tmp_path / "fs.json"
+    argv = ["--skip-full", "--skopt-seeds", "1", "--evals", "10", "--initial", "6"]
+    argv += ["--workers", "1", "--local-share", "0.4", "--arms", "ours,ours+local"]
+    main(["bench", "fit-speed", *argv, "--json", str(out)])
+    got = json.loads(out.read_text())
+    assert {k: [r["seed"] for r in v] for k, v in got["compare"].items()} == {
+        "ours": [0],
+        "ours+local": [0],
+    }
+    assert got["local_share"] == 0.4
+    assert [got["compare"][k][0]["local_evals"] for k in ("ours", "ours+local")] == [0, 4]
+    printed = capsys.readouterr().out
+    assert "ours+local" in printed and "ratio" not in printed
