@@ -16,6 +16,9 @@
     default). ``--arms`` runs a subset, so an arm measured in an earlier sitting on the same host
     (scikit-optimize's, the long one) need not run again;
 (c) where the time goes per evaluation (generate / render / histograms / optimiser).
+
+``--json FILE`` is rewritten (atomically) after each of (b)'s seeds finishes, with
+``"complete": false`` until the run ends, so a stopped run keeps the rows it had.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -112,10 +116,12 @@ def skopt_vs_ours(
     first: int = 0,
     arms: tuple[str, ...] = ("ours", "skopt"),
     local_share: float = 0.2,
+    on_row: Callable[[dict], None] | None = None,
 ) -> dict:
     """Seeds ``first`` … ``first + n_seeds - 1`` of each arm once; ``workers`` processes,
     one BLAS thread each (the optimiser times are process CPU seconds, so they do not depend on
-    the sharing). Each seed's scikit-optimize job is queued first: it is the long one."""
+    the sharing). Each seed's scikit-optimize job is queued first: it is the long one.
+    ``on_row(rows)`` after each finished job (the rows so far), so a stopped run keeps them."""
     seeds = range(first, first + n_seeds)
     order = [m for m in ("skopt", "ours", "ours+local") if m in arms]
     jobs = [(m, s, n_evals, n_initial, local_share) for s in seeds for m in order]
@@ -124,6 +130,8 @@ def skopt_vs_ours(
         for method, row in run_jobs(ex, _compare_one, jobs):
             rows[method].append(row)
             print(f"    {method} seed {row['seed']}: {row}", flush=True)
+            if on_row is not None:
+                on_row(rows)
     return rows
 
 
@@ -203,6 +211,13 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
     if a.skopt_seeds:
+        if a.local_share is not None:
+            out["local_share"] = a.local_share
+
+        def partial(rows: dict) -> None:  # (b)'s rows so far, in case the run is stopped
+            if a.json:
+                write_json(a.json, {**out, "compare": rows, "complete": False})
+
         out["compare"] = rows = skopt_vs_ours(
             a.evals,
             a.initial,
@@ -211,9 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             first=a.skopt_first,
             arms=arms,
             local_share=0.2 if a.local_share is None else a.local_share,
+            on_row=partial,
         )
-        if a.local_share is not None:
-            out["local_share"] = a.local_share
         last = a.skopt_first + a.skopt_seeds - 1
         print(
             f"(b) one seed, {a.evals} evals ({a.initial} initial), "
@@ -234,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 print(f"    optimiser time ratio skopt/{k}: {ratio:.1f}× (target ≥ 10×)")
     if a.json:
-        write_json(a.json, out)
+        write_json(a.json, {**out, "complete": True})
     return 0
 
 

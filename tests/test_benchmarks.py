@@ -111,14 +111,31 @@ def test_fit_speed_runs_the_seeds_asked_for(tmp_path, capsys):
     assert "mean of 1 (seeds 3–3)" in capsys.readouterr().out
 
 
-def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, capsys):
+def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, capsys, monkeypatch):
+    import benchmarks.bench_fit_speed as bench_fit_speed
+
     """``--local-share`` adds ``ours+local`` (our optimiser with its closing local search), and
     ``--arms`` leaves out an arm measured in an earlier sitting (scikit-optimize's, the long
     one), so the run prints no time ratio it has no scikit-optimize arm for."""
     out = tmp_path / "fs.json"
     argv = ["--skip-full", "--skopt-seeds", "1", "--evals", "10", "--initial", "6"]
     argv += ["--workers", "1", "--local-share", "0.4", "--arms", "ours,ours+local"]
+    written = []
+    keep = bench_fit_speed.write_json
+
+    def spy(path, data):  # every write of the JSON file, as its reader would find it
+        written.append(json.loads(json.dumps(data, default=float)))
+        return keep(path, data)
+
+    monkeypatch.setattr(bench_fit_speed, "write_json", spy)
     main(["bench", "fit-speed", *argv, "--json", str(out)])
+    # a row at a time (a stopped run keeps the rows it finished), complete only at the end
+    assert [(len(w["compare"]["ours"]), len(w["compare"]["ours+local"])) for w in written] == [
+        (1, 0),
+        (1, 1),
+        (1, 1),
+    ]
+    assert [w["complete"] for w in written] == [False, False, True]
     got = json.loads(out.read_text())
     assert {k: [r["seed"] for r in v] for k, v in got["compare"].items()} == {
         "ours": [0],
