@@ -32,6 +32,7 @@ import numpy as np
 
 from benchmarks.options import at_least, output_file, write_json
 from cropcraft_core.config import default_layout
+from cropcraft_core.errors import ConfigError
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
 from cropcraft_core.fit.fitting import seed_objective
 from cropcraft_core.observe import preset
@@ -115,13 +116,15 @@ def skopt_vs_ours(
     workers: int = 1,
     first: int = 0,
     arms: tuple[str, ...] = ("ours", "skopt"),
-    local_share: float = 0.2,
+    local_share: float | None = None,
     on_row: Callable[[dict], None] | None = None,
 ) -> dict:
     """Seeds ``first`` … ``first + n_seeds - 1`` of each arm once; ``workers`` processes,
     one BLAS thread each (the optimiser times are process CPU seconds, so they do not depend on
     the sharing). Each seed's scikit-optimize job is queued first: it is the long one.
     ``on_row(rows)`` after each finished job (the rows so far), so a stopped run keeps them."""
+    if "ours+local" in arms and local_share is None:
+        raise ConfigError("the arm ours+local needs a local_share")
     seeds = range(first, first + n_seeds)
     order = [m for m in ("skopt", "ours", "ours+local") if m in arms]
     jobs = [(m, s, n_evals, n_initial, local_share) for s in seeds for m in order]
@@ -225,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             a.workers,
             first=a.skopt_first,
             arms=arms,
-            local_share=0.2 if a.local_share is None else a.local_share,
+            local_share=a.local_share,
             on_row=partial,
         )
         last = a.skopt_first + a.skopt_seeds - 1
