@@ -112,11 +112,11 @@ def test_fit_speed_runs_the_seeds_asked_for(tmp_path, capsys):
 
 
 def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, capsys, monkeypatch):
-    import benchmarks.bench_fit_speed as bench_fit_speed
-
     """``--local-share`` adds ``ours+local`` (our optimiser with its closing local search), and
     ``--arms`` leaves out an arm measured in an earlier sitting (scikit-optimize's, the long
     one), so the run prints no time ratio it has no scikit-optimize arm for."""
+    import benchmarks.bench_fit_speed as bench_fit_speed
+
     out = tmp_path / "fs.json"
     argv = ["--skip-full", "--skopt-seeds", "1", "--evals", "10", "--initial", "6"]
     argv += ["--workers", "1", "--local-share", "0.4", "--arms", "ours,ours+local"]
