@@ -81,25 +81,26 @@ def full_fit(n_seeds: int, n_evals: int, n_initial: int, workers: int) -> dict:
     return {"wall_s": time.perf_counter() - t, "seeds": seeds, "workers": workers}
 
 
-ARMS = ("ours", "skopt", "ours+local")
+#: (b)'s arms, in the order each seed's jobs are queued: scikit-optimize's first, the long one
+ARMS = ("skopt", "ours", "ours+local")
 
 
 def _compare_one(args) -> tuple[str, dict]:
     """One seed of one optimiser on the shared objective (run in a worker process);
-    ``ours+local`` is ours with ``local_share`` of the evaluations on the closing local search."""
-    method, s, n_evals, n_initial, *rest = args
+    ``ours+local`` is ours with ``local_share`` of the evaluations on the closing local search
+    (the other arms: the crop's default, none)."""
+    method, s, n_evals, n_initial, local_share = args
     from cropcraft_core.optimize.skopt_reference import run_skopt
 
     obs = _observation()
-    cfg = FitConfig(n_evals=n_evals, n_initial=n_initial)
+    share = local_share if method == "ours+local" else None
+    cfg = FitConfig(n_evals=n_evals, n_initial=n_initial, local_share=share)
     t = time.perf_counter()
-    if method == "ours":
-        r = fit_seed(obs, s, cfg)
-    elif method == "ours+local":
-        r = fit_seed(obs, s, FitConfig(n_evals=n_evals, n_initial=n_initial, local_share=rest[0]))
-    else:  # the objective fit_seed optimises (soybean: two canopies an evaluation), its box
-        obj, box, _ = seed_objective(obs, s, cfg)
+    if method == "skopt":  # the objective fit_seed optimises (soybean: two canopies an
+        obj, box, _ = seed_objective(obs, s, cfg)  # evaluation), over its box
         r = run_skopt(obj, box.bounds, n_evals=n_evals, n_initial=n_initial, seed=s)
+    else:
+        r = fit_seed(obs, s, cfg)
     return method, {
         "seed": s,
         "wall_s": time.perf_counter() - t,
@@ -121,12 +122,12 @@ def skopt_vs_ours(
 ) -> dict:
     """Seeds ``first`` … ``first + n_seeds - 1`` of each arm once; ``workers`` processes,
     one BLAS thread each (the optimiser times are process CPU seconds, so they do not depend on
-    the sharing). Each seed's scikit-optimize job is queued first: it is the long one.
+    the sharing). Each seed's jobs are queued in ``ARMS``' order, scikit-optimize's first.
     ``on_row(rows)`` after each finished job (the rows so far), so a stopped run keeps them."""
     if "ours+local" in arms and local_share is None:
         raise ConfigError("the arm ours+local needs a local_share")
     seeds = range(first, first + n_seeds)
-    order = [m for m in ("skopt", "ours", "ours+local") if m in arms]
+    order = [m for m in ARMS if m in arms]
     jobs = [(m, s, n_evals, n_initial, local_share) for s in seeds for m in order]
     rows: dict[str, list] = {m: [] for m in arms}
     with processes(workers) as ex:

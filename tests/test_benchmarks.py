@@ -93,7 +93,7 @@ def test_fit_speed_compares_skopt_on_the_objective_fit_seed_optimises(monkeypatc
         return got["r"]
 
     monkeypatch.setattr(ref, "run_skopt", spy)
-    method, row = fs._compare_one(("skopt", 1, 7, 6))
+    method, row = fs._compare_one(("skopt", 1, 7, 6, None))
     assert method == "skopt" and math.isfinite(row["best"])
     obj, box, _ = seed_objective(fs._observation(), 1, FitConfig(n_evals=7, n_initial=6))
     np.testing.assert_array_equal(got["bounds"], box.bounds)
