@@ -23,14 +23,20 @@ from tasks.common import (
 
 def _rename_to_ingested(poses, manifest: dict, where: str):
     """Poses named by the source photos → named by the ingested images (same stems), their
-    intrinsics scaled to the ingested size (``ingest.max_size``)."""
+    intrinsics scaled to the ingested size (``ingest.max_size``). A camera of a photo that
+    ingest turned upright by its EXIF orientation, given at the size the photo is stored at
+    (COLMAP and the tools that run it ignore the tag), is turned with it; a mirroring
+    orientation is refused."""
     import dataclasses
 
     Poses = core("poses", "cropcraft_core.sfm", "Poses")
+    turn_upright, mirroring = core(
+        "poses", "cropcraft_core.geometry.lens", "turn_upright", "MIRRORING_ORIENTATIONS"
+    )
     by_source = {im["source"]: im["name"] for im in manifest["images"]}
     by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
     ingested = {im["name"]: im for im in manifest["images"]}
-    views, missing = [], []
+    views, missing, dist = [], [], {}
     for name, cam in poses:
         new = by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
         if new is None:
@@ -38,6 +44,18 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
             continue
         im = ingested[new]
         size = (im["width"], im["height"])
+        lens_of = poses.distortion.get(name)
+        orientation = int(im.get("exif_orientation") or 1)
+        if orientation in mirroring:
+            raise InputError(
+                f"the photo {im['source']} carries EXIF orientation {orientation}, a mirror "
+                f"image: the poses in {where} cannot be turned to it; save the photo upright "
+                "without the tag and pose it again"
+            )
+        upright = (im["source_width"], im["source_height"])
+        stored = upright[::-1] if orientation in (6, 8) else upright  # a quarter turn
+        if orientation != 1 and (cam.width, cam.height) == stored:
+            cam, lens_of = turn_upright(cam, lens_of, orientation)
         if (cam.width, cam.height) == (im["source_width"], im["source_height"]) != size:
             sx, sy = im["width"] / cam.width, im["height"] / cam.height
             cam = dataclasses.replace(
@@ -56,16 +74,14 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
                 "of other (rotated or cropped?) photos"
             )
         views.append((new, cam))
+        if lens_of:
+            dist[new] = lens_of
     if len(views) < 3:
         raise InputError(
             f"the imported poses name {len(poses)} images but only {len(views)} of them were "
             f"ingested (e.g. missing: {', '.join(missing[:5])}); give the poses of these photos"
         )
-    dist = {
-        by_source.get(k) or by_stem.get(PurePosixPath(k).stem): v
-        for k, v in poses.distortion.items()
-    }
-    return Poses(tuple(views), {k: v for k, v in dist.items() if k})
+    return Poses(tuple(views), dist)
 
 
 def _fetch(uri: str, dest: Path) -> Path:

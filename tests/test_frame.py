@@ -108,6 +108,24 @@ def test_metric_imported_poses_are_levelled_on_their_gravity_axis(crop, trajecto
     assert frame.up_source == "cameras" and _truth_error(out, cams)[0] > 0.1
 
 
+@pytest.mark.parametrize("arc", [180.0, 90.0, 45.0])
+def test_metric_poses_of_a_walk_along_one_side_are_levelled_on_gravity(arc):
+    """A walk that does not go round the plot (along one side of it) leaves the cameras' mean
+    optical axis tilted by their pitch, 30-45 deg off gravity, beyond the axis snap: the
+    frame's up axis is then the one the cameras' image rows are level with (little roll)."""
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG
+
+    rng = np.random.default_rng(3)
+    cams = walk_trajectory(default_layout("soybean"), 30, rng, 0.6, arc_deg=arc)
+    truth = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams)))
+    y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    arkit = truth.transformed(1.0, y_up, -(y_up @ cams[0].center))
+    kw = dict(metric=True, prior_camera_height_m=1.4, gravity_axis_deg=GRAVITY_AXIS_DEG)
+    out, _, frame = level_poses(arkit, None, **kw)
+    assert frame.up_source == "input_axis"
+    assert _truth_error(out, cams)[0] < 1e-6  # no tilt at all
+
+
 def test_cameras_only_walk_and_drone_with_points():
     rng = np.random.default_rng(3)
     cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)

@@ -118,9 +118,14 @@ def test_importers_record_the_lens_model_or_refuse_it(tmp_path):
         ({"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k4": 0.001}, FISHEYE),
         ({"camera_model": "OPENCV", "k1": -0.1, "p2": 0.001}, RADIAL_TANGENTIAL),
         ({"k1": -0.1}, RADIAL_TANGENTIAL),  # nerfstudio's default model
+        ({"camera_model": "SIMPLE_RADIAL", "k1": -0.1}, RADIAL_TANGENTIAL),
+        ({"camera_model": "RADIAL", "k1": -0.1, "k2": 0.01}, RADIAL_TANGENTIAL),
     ):
         (tmp_path / "t.json").write_text(json.dumps({**base, **extra}))
         assert import_poses(tmp_path / "t.json").poses.distortion["a.png"]["model"] == expect
+    for model in ("PINHOLE", "SIMPLE_PINHOLE"):  # nerfstudio reads them as perspective too
+        (tmp_path / "t.json").write_text(json.dumps({**base, "camera_model": model}))
+        assert import_poses(tmp_path / "t.json").poses.distortion == {}
     for extra, match in (
         ({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not supported"),
         ({"camera_model": "OPENCV", "k4": 0.01}, "OPENCV distortion k4=0.01 is read as"),
@@ -143,3 +148,45 @@ def test_the_stages_read_posed_photos_undistorted(tmp_path):
     assert not np.array_equal(a, b)
     (only,) = pinhole_photos(tmp_path, Poses.from_dict(poses.to_dict()), [1])
     np.testing.assert_array_equal(only, b)
+
+
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_a_camera_turned_upright_sees_each_point_where_ingest_turned_its_pixel(orientation):
+    """COLMAP poses a photo's pixels as stored; ingest turns them upright by the EXIF tag
+    (``Image.transpose``). The turned camera must project every point onto the pixel that
+    ingest moved the point's stored pixel to, and its lens must distort as the stored one."""
+    from cropcraft_core.geometry.lens import distort, turn_upright
+    from cropcraft_core.sfm.ingest import _UPRIGHT
+
+    w, h = 64, 48
+    rng = np.random.default_rng(orientation)
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.array([0.3, -0.2, 0.7]))[0]
+    pose[:3, 3] = [0.5, -1.0, 2.0]
+    cam = PinholeCamera(w, h, 50.0, 53.0, 30.3, 25.1, pose)
+    index = np.arange(w * h, dtype=np.int32).reshape(h, w)
+    moved = np.asarray(Image.fromarray(index).transpose(_UPRIGHT[orientation]))
+    turned, _ = turn_upright(cam, None, orientation)
+    assert (turned.width, turned.height) == (moved.shape[1], moved.shape[0])
+    # points on the rays through stored pixel centres, at random depths
+    i, j = rng.integers(0, w, 20), rng.integers(0, h, 20)
+    x, y = (i + 0.5 - cam.cx) / cam.fx, (j + 0.5 - cam.cy) / cam.fy
+    z = rng.uniform(1.0, 5.0, 20)
+    pc = np.stack([x * z, y * z, z, np.ones(20)], axis=1)
+    world = (pc @ cam.cam_to_world.T)[:, :3]
+    uv, _ = turned.project(world)
+    col, row = np.floor(uv).astype(int).T
+    np.testing.assert_allclose(uv - np.floor(uv), 0.5, atol=1e-9)  # pixel centres again
+    np.testing.assert_array_equal(moved[row, col], index[j, i])
+    # the lens: distorting in the stored frame then turning = turning then distorting
+    d = {"model": RADIAL_TANGENTIAL, "k1": -0.1, "k2": 0.02, "p1": 0.003, "p2": -0.002}
+    _, dt = turn_upright(cam, d, orientation)
+    assert dt["k1"] == d["k1"] and dt["k2"] == d["k2"]
+    m = turned.cam_to_world[:3, :3].T @ cam.cam_to_world[:3, :3]  # stored → upright axes
+    xs, ys = rng.uniform(-0.6, 0.6, (2, 50))
+    xd, yd = distort(xs, ys, d)
+    pts = np.stack([xs, ys, np.ones(50)])
+    up = m @ pts
+    upd = m @ np.stack([xd, yd, np.ones(50)])
+    got = distort(up[0] / up[2], up[1] / up[2], dt)
+    np.testing.assert_allclose(got, (upd[0] / upd[2], upd[1] / upd[2]), atol=1e-12)

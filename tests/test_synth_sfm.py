@@ -263,6 +263,15 @@ def test_imported_poses_follow_the_photos_as_ingested():
     images[2].update(width=120, height=160, source_width=240, source_height=320)
     with pytest.raises(InputError, match=r"poses.json gives IMG_2.JPG as 320x240 pixels, but"):
         _rename_to_ingested(poses, {"images": images}, "poses.json")
+    # ... unless the photo is stored sideways with its EXIF tag saying so (a phone held
+    # upright): COLMAP posed the stored pixels, so the camera turns as ingest turned them
+    images[2]["exif_orientation"] = 6
+    c = _rename_to_ingested(poses, {"images": images}, "poses.json").camera("IMG_2.png")
+    assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (120, 160, 125.0, 130.0, 60.25, 80.25)
+    np.testing.assert_allclose(c.cam_to_world[:3, 0], [0, -1, 0], atol=1e-12)  # x' = -y
+    images[2]["exif_orientation"] = 2  # a mirror image: no camera sees that
+    with pytest.raises(InputError, match=r"IMG_2.JPG carries EXIF orientation 2, a mirror"):
+        _rename_to_ingested(poses, {"images": images}, "poses.json")
 
 
 def test_imported_poses_say_whether_sfm_made_them(tmp_path):
@@ -283,6 +292,12 @@ def test_imported_poses_say_whether_sfm_made_them(tmp_path):
     applied = {"applied_transform": np.eye(4)[:3].tolist()}
     export_transforms_json(poses, tmp_path / "sfm.json", extra=applied)
     assert import_poses(tmp_path / "sfm.json").from_sfm
+    # ns-process-data releases before applied_transform: COLMAP's image ids on the frames
+    doc = json.loads((tmp_path / "ar.json").read_text())
+    for i, f in enumerate(doc["frames"]):
+        f["colmap_im_id"] = i + 1
+    (tmp_path / "old_sfm.json").write_text(json.dumps(doc))
+    assert import_poses(tmp_path / "old_sfm.json").from_sfm
     # ns-process-data's sparse points beside it, in the poses' frame
     lines = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in pts]
     head = ["ply", "format ascii 1.0", f"element vertex {len(pts)}"]
@@ -292,6 +307,17 @@ def test_imported_poses_say_whether_sfm_made_them(tmp_path):
         poses, tmp_path / "sfm.json", extra={**applied, "ply_file_path": "sparse_pc.ply"}
     )
     np.testing.assert_allclose(import_poses(tmp_path / "sfm.json").points, pts, atol=1e-5)
+    # ns-process-data's output folder given as it is: its transforms.json is read
+    out = tmp_path / "processed"
+    out.mkdir()
+    shutil.copy(tmp_path / "sfm.json", out / "transforms.json")
+    shutil.copy(tmp_path / "sparse_pc.ply", out / "sparse_pc.ply")
+    folder = import_poses(out)
+    assert folder.from_sfm and folder.poses.names == sorted(poses.names)
+    np.testing.assert_allclose(folder.points, pts, atol=1e-5)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no COLMAP model .* and no transforms.json"):
+        import_poses(tmp_path / "empty")
 
 
 # --------------------------------------------------------------------------- ingest
@@ -416,6 +442,10 @@ def test_ingest_names_corrupt_and_truncated(tmp_path):
     with pytest.raises(InputError, match=r"x\.heic"):
         ingest_images(str(src), tmp_path / "o4")
     (src / "x.heic").unlink()
+    (src / "x.jpg").write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
+    with pytest.raises(InputError, match=r"x\.jpg is HEIC whatever its name says"):
+        ingest_images(str(src), tmp_path / "o4b")
+    (src / "x.jpg").unlink()
     assert len(ingest_images(f"file://{src}", tmp_path / "o5")) == 3
     with pytest.raises(InputError, match="at least 4"):
         ingest_images(str(src), tmp_path / "o6", min_images=4)
@@ -441,6 +471,70 @@ def test_ingest_stage_drops_photos_removed_since(tmp_path):
     folder = second["artefacts"]["images"]
     images = [k for k in SceneStore(store_root).list(folder) if k.endswith(".png")]
     assert sorted(k.rsplit("/", 1)[-1] for k in images) == ["p0.png", "p1.png", "p2.png"]
+
+
+def test_ingest_reads_16_bit_grey_pngs_as_grey_not_white(tmp_path):
+    """A NIR or scientific camera's 16-bit greyscale PNG: Pillow's RGB conversion clipped
+    every value over 255 to white, so distinct photos all read as one white image (and then
+    as duplicates of each other)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    rng = np.random.default_rng(5)
+    for i in range(3):
+        a = rng.integers(0, 65536, (30, 40)).astype(np.uint16)
+        Image.fromarray(a).save(src / f"nir{i}.png")
+    man = ingest_images(str(src), tmp_path / "out")
+    assert man.names == ["nir0.png", "nir1.png", "nir2.png"] and man.duplicates == []
+    with Image.open(src / "nir0.png") as im16, Image.open(tmp_path / "out" / "nir0.png") as im:
+        want = np.asarray(im16).astype(np.uint32) >> 8
+        got = np.asarray(im.convert("RGB"))
+    assert got.shape == (30, 40, 3) and np.array_equal(got[..., 0], want.astype(np.uint8))
+
+
+def test_ingest_follows_linked_photos_and_sees_them_change(tmp_path):
+    """Photos linked into a folder (links into a camera dump, a DVC checkout) are photos:
+    both ingest and the input fingerprint read them, the fingerprint by the linked file."""
+    from tasks.common import fingerprint
+
+    dump, links = tmp_path / "dump", tmp_path / "links"
+    dump.mkdir()
+    links.mkdir()
+    for i in range(3):
+        _png((70 * i, 90, 60)).save(dump / f"p{i}.png")
+        (links / f"p{i}.png").symlink_to(dump / f"p{i}.png")
+    assert ingest_images(str(links), tmp_path / "out").names == ["p0.png", "p1.png", "p2.png"]
+    before = fingerprint(str(links))
+    assert sorted(before) == ["p0.png", "p1.png", "p2.png"]
+    _png((1, 2, 3), size=(41, 30)).save(dump / "p1.png")  # the linked photo replaced
+    assert fingerprint(str(links))["p1.png"] != before["p1.png"]
+
+
+def test_ingest_leaves_a_cameras_raw_and_band_files_beside_its_jpegs(tmp_path):
+    """A drone's RAW+JPEG mode or a multispectral drone's band TIFFs sit beside the JPEGs:
+    ignored and listed, not an error; without any JPEG/PNG they are named, and a phone's
+    HEIC (its photos themselves) is named even beside JPEGs. A HEIC added after a run
+    changes the input fingerprint, so the rerun reads the folder and names it."""
+    from tasks.common import fingerprint
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for i in range(3):
+        _png((60 * i, 120, 80)).save(src / f"DJI_000{i}.JPG", quality=90)
+        (src / f"DJI_000{i}.DNG").write_bytes(b"II*\x00raw")
+    (src / "DJI_0009.TIF").write_bytes(b"II*\x00band")
+    man = ingest_images(str(src), tmp_path / "out")
+    assert len(man.names) == 3
+    assert {"DJI_0000.DNG", "DJI_0009.TIF"} <= set(man.ignored)
+    before = fingerprint(str(src))
+    (src / "IMG_1.HEIC").write_bytes(b"ftypheic")
+    assert fingerprint(str(src)) != before
+    with pytest.raises(InputError, match=r"IMG_1\.HEIC.*convert it"):
+        ingest_images(str(src), tmp_path / "out2")
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    (raw / "DJI_0000.DNG").write_bytes(b"II*\x00raw")
+    with pytest.raises(InputError, match=r"DJI_0000\.DNG"):
+        ingest_images(str(raw), tmp_path / "out3")
 
 
 def test_ingest_memory_filesystem(tmp_path):
@@ -517,6 +611,21 @@ def test_sfm_small_scene(tmp_path):
         Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(mixed / f"z_noise{i}.png")
     with pytest.raises(SfmError, match=r"registered only 8 of 17 images \(47 %, need 50 %\)"):
         run_sfm(mixed, tmp_path / "work-mixed", num_threads=2, focal_length_px=f0)
+    # every other shot held upright (ingest turns it so: 480 x 640): COLMAP's one camera
+    # skipped every photo of the second size; one camera per size registers them all
+    upright = tmp_path / "upright"
+    upright.mkdir()
+    for i, p in enumerate(sorted((out / "images").iterdir())):
+        with Image.open(p) as im:
+            im = im.transpose(Image.Transpose.ROTATE_90) if i % 2 else im.copy()
+        im.save(upright / f"{p.stem}.png")
+    res = run_sfm(upright, tmp_path / "work-upright", num_threads=2, focal_length_px=f0)
+    assert res.n_registered == 8
+    sizes = {(c.width, c.height) for c in res.poses.cameras}
+    assert sizes == {(640, 480), (480, 640)}
+    for c in res.poses.cameras:  # each size's camera refined from the prior, centred on it
+        assert c.fx == pytest.approx(truth.cameras[0].fx, rel=0.05)
+        assert (c.cx, c.cy) == pytest.approx((c.width / 2, c.height / 2), abs=0.05 * c.width)
 
 
 def test_sfm_closes_the_loop_before_matching_every_pair(tmp_path, monkeypatch):

@@ -59,7 +59,17 @@ COLMAP_MODELS = {
 #: nerfstudio's ``camera_model`` values (``transforms.json``) by lens model. Its OPENCV lists
 #: k1-k4 but ns-process-data writes k3 and k4 as 0 and nerfstudio's own undistortion reads k4
 #: as OpenCV's (rational); a non-zero k4 there is refused as ambiguous.
-NERFSTUDIO_MODELS = {"OPENCV": RADIAL_TANGENTIAL, "OPENCV_FISHEYE": FISHEYE}
+#: nerfstudio's ``camera_model`` values and the lens each is read as: its perspective models
+#: share OpenCV's radial-tangential coefficients (k1, k2, p1, p2; absent ones are zero, so a
+#: PINHOLE frame is a pinhole camera), as nerfstudio's dataparser reads them.
+NERFSTUDIO_MODELS = {
+    "OPENCV": RADIAL_TANGENTIAL,
+    "OPENCV_FISHEYE": FISHEYE,
+    "PINHOLE": RADIAL_TANGENTIAL,
+    "SIMPLE_PINHOLE": RADIAL_TANGENTIAL,
+    "SIMPLE_RADIAL": RADIAL_TANGENTIAL,
+    "RADIAL": RADIAL_TANGENTIAL,
+}
 
 
 def lens(model: str | None, coefficients: Mapping[str, float], where: str) -> dict[str, Any]:
@@ -168,3 +178,46 @@ __all__ = [
     "stored_lens",
     "undistort_image",
 ]
+
+
+#: EXIF orientations that turn a photo (without mirroring it) → (M, how p1, p2 follow): M
+#: gives the stored camera's axes from the upright one's, (x, y, z)_stored = M (x, y, z)_upright,
+#: for ingest's turn (``Image.transpose``: 3 half a turn, 6 a quarter clockwise, 8 a quarter
+#: counter-clockwise).
+_TURNS = {
+    3: (np.diag([-1.0, -1.0, 1.0]), lambda p1, p2: (-p1, -p2)),
+    6: (np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), lambda p1, p2: (p2, -p1)),
+    8: (np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), lambda p1, p2: (-p2, p1)),
+}
+#: EXIF orientations that mirror the photo: no camera sees its scene mirrored.
+MIRRORING_ORIENTATIONS = (2, 4, 5, 7)
+
+
+def turn_upright(
+    camera: PinholeCamera, distortion: Mapping[str, Any] | None, orientation: int
+) -> tuple[PinholeCamera, dict[str, Any]]:
+    """The camera (and lens) of a photo's stored pixels → those of the photo turned upright
+    by its EXIF ``orientation`` (1, 3, 6 or 8), as ingest turns it: COLMAP, and the tools that
+    run it, ignore the tag and pose the pixels as stored. The intrinsics swap and move with
+    the pixel grid, the pose turns about the optical axis, and the tangential coefficients
+    turn with it (radial ones are symmetric)."""
+    d = dict(distortion or {})
+    if orientation == 1:
+        return camera, d
+    if orientation not in _TURNS:
+        raise ValueError(f"EXIF orientation {orientation} is not a turn of the photo")
+    m, tangential = _TURNS[orientation]
+    w, h, c = camera.width, camera.height, camera
+    pose = camera.cam_to_world.copy()
+    pose[:3, :3] = camera.cam_to_world[:3, :3] @ m
+    if orientation == 3:
+        turned = PinholeCamera(w, h, c.fx, c.fy, w - c.cx, h - c.cy, pose)
+    elif orientation == 6:  # stored (u, v) → upright (h - v, u)
+        turned = PinholeCamera(h, w, c.fy, c.fx, h - c.cy, c.cx, pose)
+    else:  # 8: stored (u, v) → upright (v, w - u)
+        turned = PinholeCamera(h, w, c.fy, c.fx, c.cy, w - c.cx, pose)
+    if d.get("model") == RADIAL_TANGENTIAL and ("p1" in d or "p2" in d):
+        p1, p2 = tangential(float(d.get("p1", 0.0)), float(d.get("p2", 0.0)))
+        d = {k: v for k, v in d.items() if k not in ("p1", "p2")}
+        d.update({k: v for k, v in (("p1", p1), ("p2", p2)) if v != 0.0})
+    return turned, d

@@ -119,6 +119,29 @@ def cameras_up(poses: Poses) -> np.ndarray:
     return ups / n
 
 
+#: A hand-held capture's image rows stay within about this angle of level (little roll).
+LEVEL_ROLL_DEG = 15.0
+
+
+def level_axis(poses: Poses, max_roll_deg: float = LEVEL_ROLL_DEG) -> np.ndarray | None:
+    """The axis of a gravity-aligned frame that is up, by the cameras' image rows: a hand-held
+    or drone capture keeps them level, so up is the axis they are most nearly perpendicular
+    to (nerfstudio's ``vertical`` orientation uses the same fact), signed so the cameras look
+    down on average. None where no axis is within ``max_roll_deg`` of every-row-level on
+    average, or the cameras look neither up nor down along it. Unlike minus the mean optical
+    axis (:func:`cameras_up`), which a walk along one side of the plot tilts by its pitch, it
+    does not need the walk to close a circle."""
+    rows = np.array([c.cam_to_world[:3, 0] for _, c in poses])
+    tilt = np.abs(rows).mean(axis=0)  # mean |sin| of each axis against the rows
+    axis = int(np.argmin(tilt))
+    if tilt[axis] > math.sin(math.radians(max_roll_deg)):
+        return None
+    look = float(np.array([c.cam_to_world[:3, 2] for _, c in poses]).mean(axis=0)[axis])
+    if abs(look) < 0.1:
+        return None
+    return np.eye(3)[axis] * (-1.0 if look > 0 else 1.0)
+
+
 def _trimmed(points: np.ndarray, keep: float = 0.9) -> np.ndarray:
     med = np.median(points, axis=0)
     d = np.linalg.norm(points - med, axis=1)
@@ -140,6 +163,12 @@ def _axes_focus(poses: Poses) -> np.ndarray | None:
     return np.linalg.solve(a, b)
 
 
+def photo_stem(path: str) -> str:
+    """A photo's name without folder (``/`` or ``\\``) or extension: how a camera-distance
+    hint's photo is matched to a posed (ingested, maybe renamed) photo."""
+    return str(path).replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0]
+
+
 def _camera_span(poses: Poses, hint: tuple[str, str, float]) -> float:
     """Metres per input unit from (photo A, photo B, metres between their cameras)."""
     try:
@@ -152,14 +181,10 @@ def _camera_span(poses: Poses, hint: tuple[str, str, float]) -> float:
     if not (math.isfinite(metres) and metres > 0):
         raise InputError(f"camera_distance must be a positive number of metres, got {metres!r}")
     names = [n for n, _ in poses]
-
-    def stem(path: str) -> str:
-        return str(path).replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0]
-
-    stems = {stem(n): n for n in names}
+    stems = {photo_stem(n): n for n in names}
 
     def centre(photo: str) -> np.ndarray:
-        name = photo if photo in names else stems.get(stem(photo))
+        name = photo if photo in names else stems.get(photo_stem(photo))
         if name is None:
             raise InputError(
                 f"camera_distance names photo {photo!r}, which has no pose "
@@ -258,6 +283,10 @@ def level_poses(
         if math.degrees(math.acos(min(1.0, abs(float(up[axis]))))) <= gravity_axis_deg:
             up = np.eye(3)[axis] * math.copysign(1.0, float(up[axis]))
             source = "input_axis"
+        elif source == "cameras":
+            level = level_axis(poses)
+            if level is not None:
+                up, source = level, "input_axis"
     r = _rotation_to_z(up)
 
     ground_z: float | None

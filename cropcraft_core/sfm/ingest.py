@@ -33,11 +33,16 @@ from cropcraft_core.store import config_hash
 
 #: Extensions read as photos (case-insensitive).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
-#: Extensions of image formats CropCraft recognises but does not read: an error, not ignored.
+#: Extensions of image formats CropCraft recognises but does not read: an error, not ignored
+#: (except :data:`COMPANION_EXTENSIONS` beside JPEG/PNG photos).
 UNSUPPORTED_EXTENSIONS = (
     ".heic", ".heif", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".dng", ".cr2", ".cr3", ".nef",
     ".arw", ".raw", ".jxl", ".avif",
 )  # fmt: skip
+#: Formats a camera writes beside its JPEGs rather than instead of them (a drone's RAW+JPEG
+#: mode, a multispectral drone's band TIFFs): ignored (and listed) in a folder that holds
+#: JPEG/PNG photos, an error in one that holds none. A phone's HEIC is its photos: an error.
+COMPANION_EXTENSIONS = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raw", ".tif", ".tiff")
 _FORMATS = {"JPEG", "PNG", "MPO"}  # MPO: multi-picture JPEG some phones write
 MANIFEST_NAME = "manifest.json"
 
@@ -134,8 +139,26 @@ def _list_source(source: str) -> tuple[object, list[str], str]:
         raise
     except (OSError, PermissionError) as e:
         raise InputError(f"cannot list image source {source!r}: {e}") from None
-    files = sorted(e["name"] for e in entries if e.get("type") == "file")
+    files = sorted(e["name"] for e in entries if is_listed_file(fs, e))
     return fs, files, root
+
+
+def is_listed_file(fs, info: dict) -> bool:
+    """Whether a listing's entry is a file to read: a file, or a link to one (fsspec lists a
+    local symlink as type ``other``, and photos linked into a folder are common: a folder of
+    links into a camera dump, a DVC or git-annex checkout)."""
+    if info.get("type") == "file":
+        return True
+    return bool(info.get("islink")) and fs.isfile(info["name"])
+
+
+def _grey16_to_8(img: Image.Image) -> Image.Image:
+    """A 16-bit (or 32-bit integer) greyscale image as 8-bit greyscale, its top 8 bits:
+    Pillow's ``convert("RGB")`` clips every value over 255 to white instead of scaling."""
+    import numpy as np
+
+    a = np.asarray(img)
+    return Image.fromarray((a.astype(np.uint32) >> 8).clip(0, 255).astype(np.uint8), "L")
 
 
 # EXIF orientation -> the transpose that makes the pixels upright (EXIF 2.32, tag 0x0112).
@@ -184,11 +207,18 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
         orientation = _orientation(img, label)
         if orientation in _UPRIGHT:
             img = img.transpose(_UPRIGHT[orientation])
+        if img.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit greyscale PNG
+            img = _grey16_to_8(img)
         if img.mode != "RGB":
             img = img.convert("RGB")
     except InputError:
         raise
     except UnidentifiedImageError:
+        if data[4:8] == b"ftyp" and data[8:12] in (b"heic", b"heix", b"mif1", b"msf1", b"hevc"):
+            raise InputError(  # a phone's or cloud export's HEIC named .jpg
+                f"image {label} is HEIC whatever its name says, which CropCraft does not read: "
+                "convert it to JPEG or PNG"
+            ) from None
         raise InputError(f"image {label} is not a readable JPEG or PNG (corrupt?)") from None
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise InputError(f"image {label} cannot be decoded (corrupt or truncated): {e}") from None
@@ -227,7 +257,13 @@ def ingest_images(
     except OSError as e:
         raise OutputError(f"cannot create {dest}: {e}") from None
 
-    photos, ignored = [], []
+    def unsupported(base: str) -> InputError:
+        return InputError(
+            f"image {base} in {source} is {PurePosixPath(base).suffix[1:].upper()}, which "
+            "CropCraft does not read: convert it to JPEG or PNG"
+        )
+
+    photos, ignored, companions = [], [], []
     for f in files:
         base = PurePosixPath(f).name
         ext = PurePosixPath(base).suffix.lower()
@@ -235,13 +271,15 @@ def ingest_images(
             ignored.append(base)
         elif ext in IMAGE_EXTENSIONS:
             photos.append(f)
+        elif ext in COMPANION_EXTENSIONS:  # ignored beside photos, named without any
+            companions.append(base)
+            ignored.append(base)
         elif ext in UNSUPPORTED_EXTENSIONS:
-            raise InputError(
-                f"image {base} in {source} is {ext[1:].upper()}, which CropCraft does not read: "
-                "convert it to JPEG or PNG"
-            )
+            raise unsupported(base)
         else:
             ignored.append(base)
+    if companions and not photos:
+        raise unsupported(companions[0])
 
     seen: dict[str, str] = {}
     used_names: set[str] = set()

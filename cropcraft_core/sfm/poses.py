@@ -46,9 +46,8 @@ from cropcraft_core.geometry.lens import (
     RADIAL_TANGENTIAL,
     lens,
 )
+from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS  # what ingest writes and run_sfm reads
 
-#: Image extensions ``run_sfm`` reads.
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
 #: Up to this many images ``matcher='auto'`` matches every pair; beyond, sequential matching
 #: first, then the pairs that close the order's loop (``loop_pairs``), completed by exhaustive
 #: matching when those register too few images.
@@ -423,9 +422,10 @@ class ImportedPoses:
     from_sfm: bool
     """Made by structure from motion, so of arbitrary scale and orientation: a COLMAP model, or
     a ``transforms.json`` with ``applied_transform`` (nerfstudio's ``ns-process-data`` writes
-    it for COLMAP and Metashape projects). False for a ``transforms.json`` without it: a
-    phone's AR tracking (``ns-process-data polycam`` / ``record3d``, ``cropcraft synth``),
-    metres and gravity-aligned."""
+    it for COLMAP and Metashape projects) or, from releases before that field, COLMAP's
+    ``colmap_im_id`` on its frames (:func:`transforms_from_sfm`). False for any other
+    ``transforms.json``: a phone's AR tracking (``ns-process-data polycam`` / ``record3d``,
+    ``cropcraft synth``), metres and gravity-aligned."""
 
 
 def import_poses(path: str | os.PathLike) -> ImportedPoses:
@@ -436,9 +436,27 @@ def import_poses(path: str | os.PathLike) -> ImportedPoses:
     ``sparse_pc.ply`` beside it), when it is there."""
     p = Path(path)
     if p.is_dir():
-        sub = p / "sparse" / "0"
-        poses, pts = _read_colmap(sub if sub.is_dir() else p)
-        return ImportedPoses(poses, pts if len(pts) else None, True)
+
+        def model_in(*folders: Path) -> Path | None:
+            return next(
+                (d for d in folders for f in ("cameras.txt", "cameras.bin") if (d / f).is_file()),
+                None,
+            )
+
+        # a COLMAP project (as before), else an ns-process-data output folder (its
+        # transforms.json, as nerfstudio reads it, then the COLMAP model it keeps)
+        model = model_in(p / "sparse" / "0", p)
+        if model is None and (p / "transforms.json").is_file():
+            p = p / "transforms.json"
+        else:
+            model = model or model_in(p / "colmap" / "sparse" / "0")
+            if model is None:
+                raise InputError(
+                    f"{p} holds no COLMAP model (cameras.txt or cameras.bin, in it, in "
+                    "sparse/0 or in colmap/sparse/0) and no transforms.json"
+                )
+            poses, pts = _read_colmap(model)
+            return ImportedPoses(poses, pts if len(pts) else None, True)
     doc = _transforms_doc(p)
     points = None
     rel = transforms_ply(doc)
@@ -448,7 +466,17 @@ def import_poses(path: str | os.PathLike) -> ImportedPoses:
         geom = read_geometry(p.parent / rel)  # a point cloud, or a mesh's vertices
         pts = geom.points if isinstance(geom, PointCloud) else geom.vertices
         points = np.asarray(pts, np.float64).reshape(-1, 3) if len(pts) else None
-    return ImportedPoses(_transforms_poses(doc, p), points, "applied_transform" in doc)
+    return ImportedPoses(_transforms_poses(doc, p), points, transforms_from_sfm(doc))
+
+
+def transforms_from_sfm(doc: dict) -> bool:
+    """Whether a ``transforms.json`` holds SfM poses (any scale and orientation) rather than a
+    phone's metric AR tracking: ``ns-process-data`` writes ``applied_transform`` for COLMAP and
+    Metashape projects, and releases before it wrote that field still gave every COLMAP frame
+    its ``colmap_im_id`` (which Polycam's and Record3D's frames never carry)."""
+    if "applied_transform" in doc:
+        return True
+    return any(isinstance(f, dict) and "colmap_im_id" in f for f in doc.get("frames") or ())
 
 
 def transforms_ply(doc: dict) -> str | None:
@@ -561,13 +589,13 @@ def _transforms_poses(doc: dict, p: Path) -> Poses:
         model = g.get("camera_model", "OPENCV")
         if model not in NERFSTUDIO_MODELS:
             raise InputError(
-                f"{where}: camera_model {model!r} is not supported (OPENCV or OPENCV_FISHEYE); "
-                "undistort the photos first"
+                f"{where}: camera_model {model!r} is not supported "
+                f"({', '.join(NERFSTUDIO_MODELS)}); undistort the photos first"
             )
         coeffs = {k: g[k] for k in _NS_DISTORTION if g.get(k) is not None}
-        if model == "OPENCV" and coeffs.get("k4"):
+        if NERFSTUDIO_MODELS[model] == RADIAL_TANGENTIAL and coeffs.get("k4"):
             raise InputError(
-                f"{where}: OPENCV distortion k4={coeffs['k4']} is read as a polynomial term by "
+                f"{where}: {model} distortion k4={coeffs['k4']} is read as a polynomial term by "
                 "nerfstudio's rays and as OpenCV's rational one by its undistortion; give "
                 "undistorted photos or a COLMAP model"
             )
@@ -706,7 +734,8 @@ def run_sfm(
     which pycolmap's pair list cannot hold), incremental mapping after each pass;
     the model with the most registered images is kept and written as a text model to
     ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
-    longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images.
+    longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images
+    of a size (photos of two sizes, portrait and landscape shots, get one camera each).
     ``focal_length_px``: prior focal length (e.g. from a calibration or EXIF), still refined by
     bundle adjustment; without it COLMAP starts at 1.2 × the longer side, which a short capture
     may not recover from. ``guided_matching``: re-match each verified pair under its epipolar
@@ -751,31 +780,49 @@ def run_sfm(
     ext.use_gpu = False
     ext.sift.max_num_features = int(max_num_features)
     ext.sift.peak_threshold = float(sift_peak_threshold)
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = camera_model
-    if focal_length_px is not None:
-        if camera_model not in ("SIMPLE_RADIAL", "SIMPLE_PINHOLE", "PINHOLE"):
-            raise InputError(
-                f"focal_length_px needs a SIMPLE_RADIAL/PINHOLE model, not {camera_model}"
-            )
-        w, h = _image_size(Path(image_dir) / names[0])
-        f = float(focal_length_px)
-        prior = {
-            "SIMPLE_RADIAL": [f, w / 2, h / 2, 0.0],
-            "SIMPLE_PINHOLE": [f, w / 2, h / 2],
-            "PINHOLE": [f, f, w / 2, h / 2],
-        }[camera_model]
-        reader.camera_params = ",".join(repr(v) for v in prior)
+    if focal_length_px is not None and camera_model not in (
+        "SIMPLE_RADIAL",
+        "SIMPLE_PINHOLE",
+        "PINHOLE",
+    ):
+        raise InputError(f"focal_length_px needs a SIMPLE_RADIAL/PINHOLE model, not {camera_model}")
+    # one camera per photo size: COLMAP's single camera skips every photo of another size than
+    # the first (a phone held upright for some shots: ingest turns them upright), and they
+    # read as merely unregistered
+    groups: list[tuple[tuple[int, int] | None, list[str]]] = [(None, names)]
+    if single_camera:
+        by_size: dict[tuple[int, int], list[str]] = {}
+        for name in names:
+            by_size.setdefault(_image_size(Path(image_dir) / name), []).append(name)
+        groups = list(by_size.items())
+
+    def reader_for(size: tuple[int, int] | None) -> Any:
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        if focal_length_px is not None:
+            w, h = size or _image_size(Path(image_dir) / names[0])
+            f = float(focal_length_px)
+            prior = {
+                "SIMPLE_RADIAL": [f, w / 2, h / 2, 0.0],
+                "SIMPLE_PINHOLE": [f, w / 2, h / 2],
+                "PINHOLE": [f, f, w / 2, h / 2],
+            }[camera_model]
+            reader.camera_params = ",".join(repr(v) for v in prior)
+        return reader
+
     try:
-        pycolmap.extract_features(
-            str(db),
-            str(image_dir),
-            image_names=names,
-            camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
-            reader_options=reader,
-            extraction_options=ext,
-            device=pycolmap.Device.cpu,
-        )
+        for size, group in groups:
+            pycolmap.extract_features(
+                str(db),
+                str(image_dir),
+                image_names=group,
+                camera_mode=pycolmap.CameraMode.SINGLE
+                if single_camera
+                else pycolmap.CameraMode.AUTO,
+                reader_options=reader_for(size),
+                extraction_options=ext,
+                device=pycolmap.Device.cpu,
+            )
         seconds["features"] = time.perf_counter() - t0
 
         mopt = pycolmap.FeatureMatchingOptions()
