@@ -7,7 +7,7 @@ from cropcraft_core.config import default_layout, param_space, resolve_params
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.geometry import Organ, PinholeCamera
 from cropcraft_core.procedural import generate_canopy, max_reach, plot_region, view_region
-from cropcraft_core.procedural.primitives import LEAFLET_AREA_FACTOR
+from cropcraft_core.procedural.primitives import LEAFLET_AREA_FACTOR, LEAFLET_FACES, LEAFLET_VERTS
 from cropcraft_core.procedural.soybean import node_counts
 
 CROPS = ["soybean", "maize"]
@@ -50,6 +50,24 @@ def test_invariants(crop, i):
     assert m.vertices[:, 2].min() >= -1e-9  # nothing below the ground
     assert c.ground_area > 0 and c.n_plants > 0
     assert np.all(c.node_internode > 0)
+
+
+def test_leaflet_template_faces_all_turn_counter_clockwise():
+    """Every face of the soybean leaflet template faces +z, the tip's too (its winding was once
+    reversed: OBJ/PLY viewers culled that face, and normals read from the files flipped)."""
+    t = LEAFLET_VERTS[LEAFLET_FACES]
+    a, b = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    assert np.all(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] > 0)
+
+
+@pytest.mark.parametrize("crop", CROPS)
+def test_every_organ_is_wound_consistently(crop):
+    """No directed edge is used twice: faces that share an edge agree on which side is their
+    front, so exported meshes read with consistent normals (trimesh's winding check)."""
+    m = small(crop, draws(crop, 1, seed=3)[2], seed=1).mesh
+    f = m.faces.astype(np.int64)
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed)
 
 
 @pytest.mark.parametrize("crop", CROPS)

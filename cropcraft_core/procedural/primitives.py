@@ -29,7 +29,7 @@ def _leaflet_template() -> tuple[np.ndarray, np.ndarray]:
         left, right = 1 + 2 * k, 2 + 2 * k
         faces += [[left, right, right + 2], [left, right + 2, left + 2]]
     tip = len(v) - 1
-    faces.append([tip - 2, tip, tip - 1])
+    faces.append([tip - 2, tip - 1, tip])
     return v, np.array(faces, dtype=np.int32)
 
 
