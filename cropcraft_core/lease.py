@@ -42,7 +42,7 @@ from typing import Any
 
 from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 
-__all__ = ["LEASE_NAME", "LOCK_NAME", "SceneLease", "hold_scene"]
+__all__ = ["LEASE_NAME", "LOCK_NAME", "SceneLease", "hold_scene", "scene_holder"]
 
 log = logging.getLogger(__name__)
 
@@ -297,3 +297,39 @@ def hold_scene(
         yield lease
     finally:
         lease.release()
+
+
+def scene_holder(store: SceneStore, scene: SceneKey) -> dict[str, Any] | None:
+    """Who holds the scene's lease now, read without taking it (``cropcraft status``): the
+    holder's description, or None where no run holds it. Local store: the lock file names its
+    holder until release; a holder on this host whose process is gone no longer holds it (the
+    kernel dropped its lock), one on another host is taken as holding it. Object storage: the
+    lease object, within its ``ttl_s`` of its last renewal."""
+    if store._local:
+        path = os.path.join(store._full(scene_prefix(scene)), LOCK_NAME)
+        try:
+            with open(path) as fh:
+                holder = _parse(fh.read())
+        except OSError:
+            return None
+        if not holder:
+            return None
+        pid = holder.get("pid")
+        if holder.get("host") == socket.gethostname() and isinstance(pid, int):
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return None
+            except OSError:  # someone else's process: it is there
+                pass
+        return holder
+    key = f"{scene_prefix(scene)}/{LEASE_NAME}"
+    try:
+        data, _, age = store._read_tagged(key)
+    except Exception:
+        return None
+    if data is None:
+        return None
+    holder = _parse(data.decode("utf-8", "replace"))
+    ttl = float(holder.get("ttl_s") or DEFAULT_TTL_S)
+    return holder if age is None or age <= ttl else None

@@ -534,6 +534,12 @@ class Manifest(BaseModel):
     """{store key: sha256} of what the last write to each artefact key put there, whichever
     run and config wrote it; unlike ``stages`` it survives a config change, so a cached stage
     record can be checked against what the store really holds."""
+    writing: dict[str, str] = Field(default_factory=dict)
+    """{attempt name: store folder} of every stage attempt that began and has not yet been
+    recorded (done or failed): one whose run died in between (killed, out of memory, its record
+    refused) may have written there unseen by ``written``. The next run hashes those folders
+    into ``written`` before it trusts any cached record (:meth:`SceneStore.settle_writing`), and
+    ``cropcraft status`` counts records there as not cached. Survives a config change too."""
     created: _dt.datetime | None = None
     updated: _dt.datetime | None = None
 
@@ -814,7 +820,10 @@ class SceneStore:
         return f"SceneStore({self.root!r})"
 
     def __reduce__(self):
-        return (SceneStore, (self._raw_root, self._storage_options))
+        # a local root as resolved here: a relative one would name another folder in a
+        # process started elsewhere (a worker, a spawned seed)
+        root = self.fs.unstrip_protocol(self._root_path) if self._local else self._raw_root
+        return (SceneStore, (root, self._storage_options))
 
     def describe(self) -> dict[str, Any]:
         """Root and storage options with secrets redacted (for logs and reports)."""
@@ -842,6 +851,14 @@ class SceneStore:
             yield
         except CropCraftError:
             raise
+        except (IsADirectoryError, NotADirectoryError, FileExistsError) as exc:
+            what = (
+                "it is a folder, not an object"
+                if isinstance(exc, IsADirectoryError)
+                else "an object stands where the key's folder would be, or a folder where the "
+                "object would be"
+            )
+            raise InputError(f"cannot {action} {self.url(key)}: {what}") from exc
         except FileNotFoundError as exc:
             where = self.url(key)
             if reading:
@@ -984,6 +1001,8 @@ class SceneStore:
             src = open(local_path, "rb")
         except FileNotFoundError as exc:
             raise InputError(f"cannot store {local_path!r}: no such local file") from exc
+        except OSError as exc:  # a folder, no permission
+            raise InputError(f"cannot store {local_path!r}: {exc.strerror or exc}") from exc
         with src, self.open_write(key) as f:
             shutil.copyfileobj(src, f, _CHUNK)
         assert f.sha256 is not None
@@ -1004,11 +1023,15 @@ class SceneStore:
         if not root.is_dir():
             raise InputError(f"cannot store folder {os.fspath(local_dir)!r}: not a directory")
         prefix = _check_key(prefix)
-        out: dict[str, str] = {}
+        files = {}
         for path in sorted(root.rglob("*")):
             rel = path.relative_to(root).as_posix()
             if path.is_file() and not any(p.startswith(".") for p in rel.split("/")):
-                out[f"{prefix}/{rel}"] = self.put_file(path, f"{prefix}/{rel}")
+                try:  # every name first: a bad one stops the copy before it replaced anything
+                    files[_check_key(f"{prefix}/{rel}")] = path
+                except ConfigError as exc:
+                    raise InputError(f"cannot store {os.fspath(path)!r}: {exc}") from None
+        out = {key: self.put_file(path, key) for key, path in files.items()}
         if prune:
             for key in self.list(prefix):
                 if key not in out and key != prefix:
@@ -1093,6 +1116,10 @@ class SceneStore:
             for chunk in iter(lambda: f.read(_CHUNK), b""):
                 digest.update(chunk)
         return digest.hexdigest()
+
+    def hashes(self, prefix: str) -> dict[str, str]:
+        """{key: sha256} of every object under the folder ``prefix`` (:meth:`list`'s keys)."""
+        return {k: self.sha256(k) for k in self.list(prefix)}
 
     # ---- listing and deleting ---------------------------------------------------------------
 
@@ -1433,11 +1460,17 @@ class SceneStore:
         key = manifest_key(scene)
         return self._parse_manifest(key, self.get_bytes(key))
 
-    def _parse_manifest(self, key: str, data: bytes) -> Manifest:
+    def _parse_manifest(self, key: str, data: bytes, scene: SceneKey | None = None) -> Manifest:
+        """The manifest in ``data`` (read from ``key``); with ``scene``, it describes that
+        scene whatever its fields say (a scene folder copied or moved under another date
+        keeps its manifest: an update must not go to, or name, the scene it came from)."""
         try:
-            return Manifest.model_validate(json.loads(data))
+            manifest = Manifest.model_validate(json.loads(data))
         except ValueError as exc:  # JSON's and pydantic's errors both
             raise InputError(f"{self.url(key)} is not a valid manifest: {exc}") from exc
+        if scene is not None and manifest.scene != scene:
+            manifest.site, manifest.crop, manifest.date = scene.site, scene.crop, scene.date
+        return manifest
 
     @staticmethod
     def _manifest_bytes(manifest: Manifest) -> bytes:
@@ -1457,24 +1490,28 @@ class SceneStore:
     _CAS_ATTEMPTS = 16
 
     def _change_manifest(
-        self, scene: SceneKey, change: Callable[[bytes | None], Manifest]
-    ) -> Manifest:
+        self, scene: SceneKey, change: Callable[[bytes | None], Manifest | None]
+    ) -> Manifest | None:
         """Read-modify-write of one scene's manifest with no lost update: ``change(current
-        bytes or None)`` returns the new manifest. Within a process a thread lock serialises
-        the writers; across processes a local store holds an ``flock``, and S3 replaces only the
-        version that was read (a conditional PUT) and runs ``change`` again on the newer one."""
+        bytes or None)`` returns the new manifest, or None to leave it as it is (then None is
+        returned). Within a process a thread lock serialises the writers; across processes a
+        local store holds an ``flock``, and S3 replaces only the version that was read (a
+        conditional PUT) and runs ``change`` again on the newer one."""
         key = manifest_key(scene)
         with self._manifest_lock(scene):
             self._require_conditional(key)
             if not self.conditional:
                 current = self.get_bytes(key) if self.isfile(key) else None
                 manifest = change(current)
-                self.save_manifest(manifest)
+                if manifest is not None:  # to the key read and locked
+                    self.put_bytes(key, self._manifest_bytes(manifest))
                 return manifest
             rng = np.random.default_rng()
             for attempt in range(self._CAS_ATTEMPTS):
                 current, tag, _ = self._read_tagged(key)
                 manifest = change(current)
+                if manifest is None:
+                    return None
                 if self._write_if(key, self._manifest_bytes(manifest), tag) is not None:
                     return manifest
                 time.sleep(float(rng.uniform(0.0, 0.05 * 1.5**attempt)))
@@ -1504,10 +1541,16 @@ class SceneStore:
             raise InputError(f"scene config for {scene} must be a mapping, got {type(config)}")
         chash = config_hash(data)
         key = manifest_key(scene)
+        # no manifest, but artefacts (it was deleted): start ``written`` from what is there, as
+        # for a damaged one, so no cached record is served over files it did not write (the
+        # inbox's photos are inputs, not artefacts: a first run reads nothing more)
+        lost = None if self.isfile(key) else self._scene_objects(scene, skip=("images",))
 
         def change(current: bytes | None) -> Manifest:
             recovered: dict[str, str] | None = None
             old = None
+            if current is None and lost:
+                recovered = lost
             if current is not None:
                 try:
                     old = self._parse_manifest(key, current)
@@ -1526,6 +1569,7 @@ class SceneStore:
             if old is not None:
                 manifest.created = old.created
                 manifest.written = old.written  # the store's files do not change with the config
+                manifest.writing = old.writing  # nor do the writes of a run that died
                 if old.inputs == manifest.inputs and old.config_hash == chash:
                     manifest.stages = old.stages
             elif recovered is not None:
@@ -1545,8 +1589,14 @@ class SceneStore:
         aside = f"{scene.prefix}/manifest.unreadable-{stamp}.json"
         self.put_bytes(aside, damaged)
         log.warning("%s is unreadable: kept as %s, replaced", self.url(key), self.url(aside))
-        skip = f"{scene.prefix}/manifest"
-        return {k: self.sha256(k) for k in self.list(scene.prefix) if not k.startswith(skip)}
+        return self._scene_objects(scene)
+
+    def _scene_objects(self, scene: SceneKey, skip: tuple[str, ...] = ()) -> dict[str, str]:
+        """{key: sha256} of every object of ``scene`` but its manifests and the folders in
+        ``skip``."""
+        passed = tuple(f"{scene.prefix}/{p}" for p in ("manifest", *(f"{s}/" for s in skip)))
+        keys = [k for k in self.list(scene.prefix) if not k.startswith(passed)]
+        return {k: self.sha256(k) for k in keys}  # the skipped folders are not read
 
     @contextlib.contextmanager
     def _manifest_lock(self, scene: SceneKey) -> Iterator[None]:
@@ -1585,13 +1635,18 @@ class SceneStore:
         error: str | BaseException | None = None,
         seconds: float | None = None,
         environment: Mapping[str, str] | None = None,
+        writing: Mapping[str, str | None] | None = None,
     ) -> Manifest:
         """Read-modify-write one stage record of a scene's manifest, replaced atomically.
 
         * ``status="running"`` starts a new attempt: ``started`` = now; ``artefacts``,
           ``finished``, ``seconds`` and ``error`` are cleared.
         * ``status="done"`` or ``"failed"`` sets ``finished`` = now and ``seconds`` (from
-          ``started`` unless given); ``error`` is redacted and cut to one line.
+          ``started`` unless given); ``error`` is redacted and cut to one line; ``done``
+          clears an earlier attempt's error.
+        * ``writing``: {attempt name: store folder} entries to set in
+          :attr:`Manifest.writing` (an attempt about to write there), or to remove (None: the
+          attempt is recorded).
         * ``artefacts`` and ``inputs`` are merged into the record; ``config_hash`` replaces it.
         * ``environment`` (the computing process's :func:`environment_versions`) replaces it.
 
@@ -1611,7 +1666,7 @@ class SceneStore:
                     f"cannot update {self.url(key)}: no such object; the scene's run writes it "
                     "first (init_manifest)"
                 )
-            manifest = self._parse_manifest(key, current)
+            manifest = self._parse_manifest(key, current, scene)
             rec = manifest.stages.get(stage) or StageRecord()
             now = _now()
             took = seconds  # per attempt: a retried change starts from the caller's value
@@ -1620,6 +1675,8 @@ class SceneStore:
             elif status in ("done", "failed"):
                 rec.status = status
                 rec.finished = now
+                if status == "done":
+                    rec.error = None
                 if took is None and rec.started is not None:
                     took = (now - rec.started).total_seconds()
             elif status is not None:
@@ -1641,9 +1698,72 @@ class SceneStore:
                     why = f"{type(error).__name__}: {error}"
                 rec.error = redact(" ".join(str(why).split()))[:2000]
             manifest.stages[stage] = rec
+            for name, folder in (writing or {}).items():
+                if folder is None:
+                    manifest.writing.pop(name, None)
+                else:
+                    manifest.writing[name] = _check_key(folder)
             return manifest
 
         return self._change_manifest(scene, change)
+
+    def note_sources(
+        self,
+        scene: SceneKey,
+        sources: Mapping[str, str | None],
+        *,
+        inputs: Mapping[str, str],
+        config_hash: str,
+    ) -> bool:
+        """Set the manifest's ``sources`` only where it still holds ``inputs`` and
+        ``config_hash`` (checked and written as one change, so a run of other settings that
+        starts meanwhile is not stamped with these); True where it was set."""
+        key = manifest_key(scene)
+
+        def change(current: bytes | None) -> Manifest | None:
+            if current is None:
+                return None
+            manifest = self._parse_manifest(key, current, scene)
+            if manifest.inputs != dict(inputs) or manifest.config_hash != config_hash:
+                return None
+            if manifest.sources == dict(sources):
+                return None
+            manifest.sources = dict(sources)
+            return manifest
+
+        return self._change_manifest(scene, change) is not None
+
+    def settle_writing(self, scene: SceneKey) -> dict[str, str]:
+        """Account for the attempts :attr:`Manifest.writing` still lists (their runs died
+        between writing and recording): hash every object in their folders into ``written``
+        and clear the entries. Returns {key: sha256} of the objects whose hash changed there.
+        Call it holding the scene's lease, before any cached record is judged; a scene without
+        a manifest has nothing to settle."""
+        key = manifest_key(scene)
+        try:
+            pending = dict(self.load_manifest(scene).writing)
+        except InputError:
+            return {}
+        if not pending:
+            return {}
+        folders = sorted(set(pending.values()))
+        found = {k: h for folder in folders for k, h in self.hashes(folder).items()}
+        changed: dict[str, str] = {}
+
+        def change(current: bytes | None) -> Manifest:
+            if current is None:
+                raise InputError(f"cannot update {self.url(key)}: no such object")
+            manifest = self._parse_manifest(key, current, scene)
+            changed.clear()
+            changed.update({k: h for k, h in found.items() if manifest.written.get(k) != h})
+            manifest.written.update(changed)
+            for name, folder in pending.items():
+                if manifest.writing.get(name) == folder:
+                    del manifest.writing[name]
+            return manifest
+
+        self._change_manifest(scene, change)
+        return dict(changed)
 
     def stage_is_current(
         self,

@@ -145,6 +145,13 @@ def _print_summary(out: str, metrics: dict) -> None:
     print(f"written to {Path(out).resolve()}")
 
 
+def initial_evals(n_evals: int) -> int:
+    """The random initial design for ``n_evals`` evaluations: the paper's 200 of 500, and the
+    same 40 % of a smaller budget (at least 2). Clipping 200 to a budget of 200 or fewer
+    made every evaluation a random one: a random search under the name ``bo``."""
+    return max(2, min(200, round(0.4 * n_evals)))
+
+
 def _fit_config(args: argparse.Namespace):
     from cropcraft_core.fit import FitConfig
     from flows.service_cli import parse_params
@@ -154,7 +161,7 @@ def _fit_config(args: argparse.Namespace):
         method=args.method,
         n_seeds=args.seeds,
         n_evals=args.evals,
-        n_initial=min(args.initial, args.evals),
+        n_initial=initial_evals(args.evals) if args.initial is None else args.initial,
         combine=args.combine,
         polish_evals=args.polish_evals,
         canopies_per_eval=args.canopies,  # None: the crop's
@@ -301,7 +308,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--seeds", type=int, default=10, help="optimiser seeds (paper: 10)")
     f.add_argument("--evals", type=int, default=500, help="evaluations per seed (paper: 500)")
-    f.add_argument("--initial", type=int, default=200, help="random initial evaluations (200)")
+    f.add_argument(
+        "--initial",
+        type=int,
+        default=None,
+        help="random initial evaluations (200; 40 %% of a budget under 500); at most --evals",
+    )
     f.add_argument(
         "--workers",
         type=int,

@@ -19,6 +19,7 @@ scene in about a second.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
@@ -33,6 +34,7 @@ from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.lease import SceneLease, hold_scene
+from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
 from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
 from tasks.common import fingerprint, get_task, stage_key
@@ -147,6 +149,8 @@ def _set_dotted(cfg: dict, dotted: str, value: Any) -> None:
             raise ConfigError(f"setting {section}.{head} is not a mapping")
         target[rest] = value
     else:
+        if head in _OPEN_KEYS and not isinstance(value, Mapping):
+            raise ConfigError(f"setting {dotted!r} must be a mapping of settings, got {value!r}")
         cfg[section][head] = value
 
 
@@ -279,7 +283,13 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         default_layout(crop, **cfg["layout"])
     except TypeError as exc:
         raise ConfigError(f"invalid layout override {cfg['layout']}: {exc}") from None
-    FitConfig(**cfg["fit"]).validate().param_box(crop)
+    fit = FitConfig(**cfg["fit"]).validate()
+    fit.param_box(crop)
+    if fit.method == "bo":  # the optimiser's own settings, checked here not at the seeds
+        fit.bo_config(crop).validate()
+    n_points = cfg["surfaces"]["n_points"]
+    if not isinstance(n_points, int) or isinstance(n_points, bool) or n_points < 1:
+        raise ConfigError(f"surfaces.n_points must be a whole number >= 1, got {n_points!r}")
     if cfg["fit"]["method"] == "mlp":  # refused here, not at the seeds after SfM and surfaces
         raise ConfigError(
             "fit.method=mlp: the scene flow maps optimiser seeds (bo, trust-region, random); "
@@ -513,8 +523,8 @@ def read_known(images_uri: str, crop: str) -> dict[str, Any]:
         raw = fs.cat_file(path)
     except FileNotFoundError:
         return {}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read {uri}: {exc}") from exc
+    except Exception as exc:  # s3fs lets botocore's credential and endpoint errors through
+        raise InputError(f"cannot read {uri}: {type(exc).__name__}: {exc}") from exc
     try:
         known = json.loads(raw)
     except ValueError as exc:
@@ -542,15 +552,16 @@ def note_sources(req: SceneRequest, images: str | None, poses: str | None) -> No
     ``sources``), as a flow run does: the season judges a date's inbox by them. Only where
     the manifest holds this request's inputs and settings (then its stage records stand)."""
     st = SceneStore(req.store_root)
-    try:
-        m = st.load_manifest(req.scene)
-    except InputError:
-        return
-    inputs = manifest_inputs(req.inputs)
     sources = {"images": _located(images), "poses": _located(poses)}
-    if m.sources == sources or m.inputs != inputs or m.config_hash != config_hash(req.config):
+    try:  # checked and set as one change: a run of other settings may start meanwhile
+        st.note_sources(
+            req.scene,
+            sources,
+            inputs=manifest_inputs(req.inputs),
+            config_hash=config_hash(req.config),
+        )
+    except InputError:  # a manifest unreadable now: the next run sets it aside
         return
-    st.init_manifest(req.scene, inputs, req.config, sources=sources)
 
 
 def prepare(
@@ -576,6 +587,21 @@ def prepare(
     cfg = resolve_config(crop, overrides)
     st = SceneStore.connect(store, timeout_s=timeout_s)
     uri, poses_uri, inputs, known = scene_inputs(st, scene, images, poses)
+    photos = [n for n in inputs["images"] if n.lower().endswith(IMAGE_EXTENSIONS)]
+    need = int(cfg["ingest"]["min_images"])
+    if len(photos) < need:  # ingest would refuse it, after Prefect and the lease
+        raise InputError(f"{uri} holds {len(photos)} JPEG/PNG photo(s); at least {need} are needed")
+    cd = cfg["poses"]["camera_distance"]
+    if cd is not None:  # the poses stage would refuse them after SfM (matched as it matches)
+        from cropcraft_core.sfm.frame import photo_stem
+
+        stems = {photo_stem(n) for n in photos}
+        gone = [p for p in cd[:2] if p not in photos and photo_stem(p) not in stems]
+        if gone or photo_stem(cd[0]) == photo_stem(cd[1]):
+            raise InputError(
+                f"poses.camera_distance names {', '.join(map(repr, gone or cd[:1]))}: give two "
+                f"different photos of {uri} (e.g. {', '.join(photos[:2])})"
+            )
     if known:
         notes = {f"fit.box.{k}": v for k, v in known.items()}
         cfg = resolve_config(crop, {**notes, **dict(overrides or {})})
@@ -686,19 +712,26 @@ class _Stored:
 
     written: Mapping[str, str]
     present: frozenset[str] | None
+    writing: tuple[str, ...] = ()
+    """Folders of attempts that began and were never recorded (``Manifest.writing``): judged
+    only where nothing settles them first (a cache walk; a run settles them at its start)."""
 
 
-def _stored(store: SceneStore, scene: SceneKey) -> _Stored:
-    """The store's :class:`_Stored` of ``scene`` now (one manifest read, one listing)."""
+def _stored(store: SceneStore, scene: SceneKey, *, pending: bool = False) -> _Stored:
+    """The store's :class:`_Stored` of ``scene`` now (one manifest read, one listing);
+    ``pending``: with the folders of unrecorded attempts (a cache walk's: a run settles them
+    before it judges any record, and then lists only its own)."""
     try:
-        written = store.load_manifest(scene).written
+        manifest = store.load_manifest(scene)
+        written = manifest.written
+        writing = tuple(sorted(set(manifest.writing.values()))) if pending else ()
     except InputError:
-        written = {}
+        written, writing = {}, ()
     try:
         present: frozenset[str] | None = frozenset(store.list(scene.prefix))
     except Exception:  # judged on ``written`` alone; the stage's own reads will say why
         present = None
-    return _Stored(written, present)
+    return _Stored(written, present, writing)
 
 
 def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
@@ -709,11 +742,33 @@ def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
     is there. Such a record is recomputed, not served: the store must hold what a run
     reports."""
     hashes = rec["hashes"]
+    if any(k.startswith(f"{folder}/") for k in hashes for folder in stored.writing):
+        return True
     if stored.present is not None:
         inside = f"{scene.prefix}/"
         if any(k.startswith(inside) and k not in stored.present for k in hashes):
             return True
     return any(stored.written.get(k, h) != h for k, h in hashes.items())
+
+
+def _forget_failure(store: SceneStore, state: Any) -> None:
+    """Remove what Prefect persisted of a failed stage: its exception, under a random key at
+    the result storage's root, which is the store's root, outside every scene (nothing swept
+    it, so each failure of a season's nights left an object at the bucket's root). The run
+    reports the error and the manifest keeps it. Only an object of that form, directly at the
+    root, is removed; best effort."""
+    import re
+
+    key = getattr(getattr(getattr(state, "data", None), "metadata", None), "storage_key", None)
+    if not key:
+        return
+    key = str(key).replace("\\", "/")
+    parent, _, name = key.rpartition("/")
+    root = store.fs._strip_protocol(store.root).rstrip("/")
+    if not re.fullmatch(r"[0-9a-f]{32}", name) or (parent and parent.rstrip("/") != root):
+        return
+    with contextlib.suppress(Exception):
+        store.fs.rm_file(f"{root}/{name}")
 
 
 def _left_behind(store: SceneStore, scene: SceneKey, stage: str) -> dict[str, str]:
@@ -726,8 +781,7 @@ def _left_behind(store: SceneStore, scene: SceneKey, stage: str) -> dict[str, st
 
     try:
         written = _stored(store, scene).written
-        keys = store.list(f"{scene.prefix}/{STAGE_FOLDERS[stage]}")
-        current = {k: store.sha256(k) for k in keys}
+        current = store.hashes(f"{scene.prefix}/{STAGE_FOLDERS[stage]}")
     except Exception:  # the failure's own cause (e.g. the store) is what gets reported
         get_run_logger().warning("could not check what the failed %s left in the store", stage)
         return {}
@@ -742,7 +796,8 @@ class _CacheWalk:
         self.store = SceneStore(req.store_root)
         self.base = self.store.fs._strip_protocol(self.store.root).rstrip("/")
         self.states: dict[str, str] = {}
-        self.stored = _stored(self.store, req.scene)  # a walk writes nothing: read it once
+        # a walk writes nothing: read it once
+        self.stored = _stored(self.store, req.scene, pending=True)
 
     def _read(self, key: str) -> dict:
         from prefect._internal.result_records import ResultRecord
@@ -853,6 +908,7 @@ class _PrefectRun:
         scene = self.req.scene
         chash = config_hash(self.req.stages[stage])
         name = _manifest_stage(stage, row)
+        recorded = {_state_name(stage, row): None}  # the attempt is accounted for
         if error is not None:  # rec: what the failed attempt left written (see _left_behind)
             self.store.update_stage(
                 scene,
@@ -861,6 +917,7 @@ class _PrefectRun:
                 config_hash=chash,
                 error=error,
                 artefacts=(rec or {}).get("hashes"),
+                writing=recorded,
             )
             return
         assert rec is not None
@@ -873,11 +930,29 @@ class _PrefectRun:
             artefacts=rec["hashes"],
             seconds=rec["seconds"],
             environment=rec.get("environment"),
+            writing=recorded,
+        )
+
+    def _begin(self, stage: str, row: int | None) -> None:
+        """Note in the manifest that ``stage`` (of ``row``) may write from now until it is
+        recorded (``Manifest.writing``): should this run die in between, the next one hashes
+        that folder before it trusts a cached record. The scene's own stages start a new
+        attempt of their record (``running``: an earlier attempt's error and seconds go); a
+        neighbour row's stages share the ``rows`` record, which they only add to."""
+        from tasks.common import stage_folder
+
+        self._check_lease()
+        self.store.update_stage(
+            self.req.scene,
+            _manifest_stage(stage, row),
+            status="running" if row is None else None,
+            config_hash=config_hash(self.req.stages[stage]),
+            writing={_state_name(stage, row): stage_folder(self.req.scene.prefix, stage, row)},
         )
 
     def _submit(self, stage: str, upstream: dict, refresh: bool = False, **kwargs: Any) -> Any:
         """The stage's task submitted (not waited for)."""
-        self._check_lease()
+        self._begin(stage, kwargs.get("row"))
         return self._task(stage, refresh).submit(
             store_root=self.req.store_root,
             scene=self.req.scene.prefix,
@@ -924,6 +999,7 @@ class _PrefectRun:
                 rec = fut.result()
         except Exception as exc:
             self.states[name] = fut.state.name
+            _forget_failure(self.store, fut.state)
             left = _left_behind(self.store, self.req.scene, stage)
             self._record(stage, upstream, {"hashes": left}, exc, row)
             raise
@@ -936,7 +1012,7 @@ class _PrefectRun:
         self, upstream: dict, seeds: list[int], row: int | None, refresh: bool = False
     ) -> dict[int, Any]:
         """Submit ``seeds`` of one row's fit (not waited for)."""
-        self._check_lease()
+        self._begin("fit_seed", row)
         futures = self._task("fit_seed", refresh).map(
             store_root=unmapped(self.req.store_root),
             scene=unmapped(self.req.scene.prefix),
@@ -983,6 +1059,7 @@ class _PrefectRun:
                     out[row][f"seed-{s}"] = fut.result()
                 except Exception as exc:
                     failed.append((s, exc))
+                    _forget_failure(self.store, fut.state)
             done = {
                 "hashes": _flatten(out[row]),
                 "environment": _merged_environment(out[row].values()),
@@ -1194,6 +1271,15 @@ def reconstruct_scene(
             sources={"images": _located(images), "poses": _located(poses)},
         )
         ex = _PrefectRun(req, result_storage(req.store_root), refresh=refresh, lease=lease)
+        # what a run that died between its writes and its records left: before any cached
+        # record is judged against ``written``
+        settled = st.settle_writing(req.scene)
+        if settled:
+            ex.log.info(
+                "%s: %d objects written by a run that ended before recording them",
+                req.scene.prefix,
+                len(settled),
+            )
         try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
             swept = st.sweep_tmp(req.scene.prefix)
             if swept:
@@ -1233,7 +1319,8 @@ def run_scene(
 
     Validation happens here first, so bad input fails before Prefect starts.
     """
-    prepare(site, crop, date, images, poses, with_backend(overrides, surfaces_backend), store)
+    req = prepare(site, crop, date, images, poses, with_backend(overrides, surfaces_backend), store)
+    warn_local_paths_on_a_remote_cluster(runner, req)
     return reconstruct_scene.with_options(task_runner=make_task_runner(runner))(
         site=site,
         crop=crop,
@@ -1247,12 +1334,67 @@ def run_scene(
     )
 
 
+def warn_local_paths_on_a_remote_cluster(runner: str | None, req: SceneRequest) -> None:
+    """A ``dask://HOST:PORT`` runner on another machine runs every stage on that cluster's
+    workers, which read and write their own disks: a local store or local photos there are
+    other folders (or none), unless they are a mount every worker shares. Warned of, not
+    refused, for that reason."""
+    import socket
+    import warnings
+
+    from flows.runners import parse_runner
+
+    kind, address = parse_runner(runner)
+    if kind != "dask" or address is None:
+        return
+    host = address.removeprefix("tcp://").rpartition(":")[0].strip("[]")
+    if host in ("localhost", "127.0.0.1", "::1", socket.gethostname(), socket.getfqdn()):
+        return
+    local = [
+        what
+        for what, uri in (("store", req.store_root), ("photos", req.images), ("poses", req.poses))
+        if uri and ("://" not in str(uri) or str(uri).startswith("file://"))
+    ]
+    if local:
+        warnings.warn(
+            f"the Dask cluster at {host} runs the stages on its own workers, but the "
+            f"{' and '.join(local)} are local paths here: unless every worker mounts them at "
+            "the same path, give them as URLs the workers reach (s3://...)",
+            UserWarning,
+            stacklevel=2,
+        )
+
+
+@flow(name="process-scene", persist_result=False, validate_parameters=True)
+def process_scene(
+    site: str,
+    crop: str,
+    date: str,
+    images: str | None = None,
+    poses: str | None = None,
+    overrides: dict[str, Any] | None = None,
+    store: str | None = None,
+    refresh: bool = False,
+    surfaces_backend: SurfacesBackend | None = None,
+    runner: str = DEFAULT_RUNNER,
+) -> dict[str, Any]:
+    """One scene with its stages on ``runner`` (``processes``, ``threads``, ``dask`` or
+    ``dask://HOST:PORT``): :func:`reconstruct_scene` as a subflow on that task runner, after
+    :func:`run_scene`'s validation. The deployment an ad hoc run from the UI takes to a Dask
+    cluster (``reconstruct_scene``'s own run on the worker's process pool: its task runner is
+    fixed when its file loads). Returns :func:`reconstruct_scene`'s record."""
+    return run_scene(
+        site, crop, date, images, poses, overrides, store, runner, refresh, surfaces_backend
+    )
+
+
 __all__ = [
     "DEFAULTS",
     "SceneRequest",
     "cache_walk",
     "cached_result",
     "prepare",
+    "process_scene",
     "reconstruct_scene",
     "resolve_config",
     "result_storage",

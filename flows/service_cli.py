@@ -38,7 +38,8 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             default="processes",  # flows.runners.DEFAULT_RUNNER (not imported: it loads Prefect)
             metavar="RUNNER",
             help="processes (default: one spawned process per core, at most 8), threads, "
-            "dask (a local 2-worker cluster) or dask://HOST:PORT",
+            "dask (a local cluster: one single-threaded worker a core, at most 8) or "
+            "dask://HOST:PORT",
         )
         p.add_argument(
             "--set",
@@ -336,7 +337,7 @@ class _BelowWarning:
 def _task_runs_off_console():
     """Keep Prefect's task-run INFO records (each task's "Finished in state Completed()", the
     fit's own 10 % lines) off this process's console, as the ``processes`` runner's workers
-    already do (they start with ``PREFECT_LOGGING_LEVEL=WARNING``, :func:`_quiet_prefect`).
+    already do (they start with ``PREFECT_LOGGING_LEVEL=WARNING``, :func:`_before_flow_run`).
     The flow's stage lines stay; the records still reach the Prefect API."""
     from prefect.logging.handlers import PrefectConsoleHandler
 
@@ -351,11 +352,38 @@ def _task_runs_off_console():
             h.removeFilter(quiet)
 
 
-def _quiet_prefect() -> None:
-    """Prefect's INFO logging off the console of processes started from here on (the
-    ``processes`` runner's workers; this process configured its logging when Prefect loaded,
-    and :func:`run_progress` quiets its task runs)."""
+def _before_flow_run() -> None:
+    """What a command does before it starts a flow run: the Prefect server it would report to
+    checked (:func:`check_prefect_api`), and Prefect's INFO logging off the console of
+    processes started from here on (the ``processes`` runner's workers; this process
+    configured its logging when Prefect loaded, and :func:`run_progress` quiets its task
+    runs)."""
+    check_prefect_api()
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+
+def check_prefect_api() -> None:
+    """Where ``PREFECT_API_URL`` is set, a ConfigError unless that server answers its health
+    check: a stopped server or a mistyped URL gave three tracebacks (~115 lines) from inside
+    the flow's start. Unset, runs start a temporary server of their own."""
+    from prefect.settings import PREFECT_API_URL
+
+    url = PREFECT_API_URL.value()
+    if not url:
+        return
+    from prefect.client.orchestration import get_client
+
+    try:
+        with get_client(sync_client=True) as client:
+            failure = client.api_healthcheck()
+    except Exception as exc:
+        failure = exc
+    if failure is not None:
+        raise ConfigError(
+            f"the Prefect server at PREFECT_API_URL={url} does not answer "
+            f"({type(failure).__name__}: {failure}); start it (prefect server start) or unset "
+            "PREFECT_API_URL to run on a temporary server"
+        )
 
 
 def _print_summary(out: Mapping[str, Any]) -> None:
@@ -430,7 +458,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         note_sources(req, args.images, args.poses)
         _print_summary(hit)
         return 0
-    _quiet_prefect()
+    _before_flow_run()
     with run_progress(not args.no_progress):
         out = run_scene(
             scene.site,
@@ -455,7 +483,7 @@ def cmd_season(args: argparse.Namespace) -> int:
     from flows.season import run_season
 
     site, _, crop = args.site_crop.strip("/").partition("/")
-    _quiet_prefect()
+    _before_flow_run()
     with run_progress(not args.no_progress):
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
@@ -473,7 +501,8 @@ def cmd_season(args: argparse.Namespace) -> int:
 
 
 def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list[dict[str, Any]]:
-    """Per stage: manifest status (done/failed/running/pending), whether its result for the
+    """Per stage: manifest status (done/failed/running/pending; ``interrupted``: recorded as
+    running but no run holds the scene now), whether its result for the
     photos the last run read (``Manifest.sources``: the inbox, a folder or a URL) and its
     recorded config (or ``overrides``) is cached (``fit_seed``: how many seeds, the best
     row's and then the neighbour rows', e.g. ``10+20 seeds``), its time and error."""
@@ -506,6 +535,9 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
         except Exception:  # inputs moved: report the manifest only
             states = {}
     neighbours = ((manifest.config if manifest else {}).get("rows") or {}).get("neighbours", 0)
+    from cropcraft_core.lease import scene_holder
+
+    live = manifest is not None and scene_holder(store, scene) is not None
     rows = []
     for stage in STAGES:
         rec = manifest.stages.get(stage) if manifest else None
@@ -517,6 +549,8 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
         else:
             cached = "yes" if states.get(stage) == "Cached" else "no"
         status = rec.status if rec else "pending"
+        if status == "running" and not live:  # its run ended before recording it
+            status = "interrupted"
         if rec is None and stage in ("observe_rows", "rows") and not neighbours:
             status = "off"  # the scene is fitted over its best row only (rows.neighbours = 0)
         rows.append(
@@ -625,19 +659,22 @@ def _seed_range(trait: Mapping[str, Any] | None) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     """``cropcraft demo``: the built-in synthetic soybean scene through the whole scene flow."""
     from cropcraft_core.store import SceneStore
-    from flows.scene import cached_result, note_sources, prepare, run_scene
+    from flows.runners import parse_runner
+    from flows.scene import cached_result, note_sources, prepare, resolve_config, run_scene
 
     t0 = time.perf_counter()
     site, crop, date = DEMO_SCENE
     store = SceneStore.connect(args.store)
     overrides = {**DEMO_OVERRIDES, **overrides_of(args)}
+    resolve_config(crop, overrides)  # bad settings and runners: before the scene is made
+    parse_runner(args.runner)
     ensure_demo_inputs(store)
     req = prepare(site, crop, date, None, None, overrides, args.store)
     out = cached_result(req)
     if out is not None:
         note_sources(req, None, None)
     else:
-        _quiet_prefect()
+        _before_flow_run()
         with run_progress(not args.no_progress):
             out = run_scene(site, crop, date, None, None, overrides, args.store, args.runner)
     truth = store.get_json(f"{site}/{crop}/{date}/truth/metrics.json")

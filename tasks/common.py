@@ -107,6 +107,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # observation itself; before, the low leaves it drops counted on the predicted side only
     "fit_seed": 2,
     "aggregate": 2,
+    # 2: the soybean leaflet's tip face wound like its other faces (canopy.ply's normals);
+    # the depth renders, and so every fit, are the same to the bit
+    "generate": 2,
     # 2: n_faces_total counts the generated canopy's faces, not those of the wider canopy the
     # gap-fraction rays cross; the sensors' seed defaults to the canopy's (as in generate)
     "metrics": 2,
@@ -302,14 +305,20 @@ def load_observation(store: SceneStore, upstream: Mapping[str, Any]):
         raise InputError(f"{store.url(key)}: {exc}") from exc
 
 
+def stage_folder(scene: str, stage: str, row: int | None = None) -> str:
+    """Store folder (key) of ``stage``'s artefacts: ``{scene}/{folder}``, for a neighbour row
+    ``row`` ``{scene}/{folder}/row_p1`` (:func:`artefact`)."""
+    if row is None:
+        return f"{scene}/{STAGE_FOLDERS[stage]}"
+    from cropcraft_core.rowfit.neighbours import row_label
+
+    return f"{scene}/{STAGE_FOLDERS[stage]}/{row_label(row)}"
+
+
 def artefact(scene: str, stage: str, name: str, row: int | None = None) -> str:
     """Store key of an artefact of ``stage`` (``{scene}/{folder}/{name}``); for a neighbour row
     ``row`` (±k, see ``cropcraft_core.rowfit.neighbours``) ``{scene}/{folder}/row_p1/{name}``."""
-    if row is None:
-        return f"{scene}/{STAGE_FOLDERS[stage]}/{name}"
-    from cropcraft_core.rowfit.neighbours import row_label
-
-    return f"{scene}/{STAGE_FOLDERS[stage]}/{row_label(row)}/{name}"
+    return f"{stage_folder(scene, stage, row)}/{name}"
 
 
 def make_record(
@@ -361,10 +370,28 @@ def workdir(prefix: str) -> Iterator[Path]:
 
 
 def checkpoint_dir() -> Path:
-    """Local folder for per-seed optimiser checkpoints (``$CROPCRAFT_WORK`` or the temp dir)."""
-    base = os.environ.get("CROPCRAFT_WORK") or os.path.join(tempfile.gettempdir(), "cropcraft")
+    """Local folder for per-seed optimiser checkpoints: ``$CROPCRAFT_WORK/checkpoints``, by
+    default the temp folder's ``cropcraft-<user id>/checkpoints``, the user's own (mode 0700):
+    a folder every user shared belonged to whoever made it first, so the next user's seeds
+    failed on a bare PermissionError, and could resume another user's checkpoint of the same
+    cache key. A folder this process cannot write is a ConfigError naming the setting."""
+    base = os.environ.get("CROPCRAFT_WORK")
+    if not base:
+        who = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")
+        base = os.path.join(tempfile.gettempdir(), f"cropcraft-{who}")
     path = Path(base) / "checkpoints"
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(
+            f"cannot create the optimiser's checkpoint folder {path}: {exc}; set "
+            "CROPCRAFT_WORK to a folder this user can write"
+        ) from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"the optimiser's checkpoint folder {path} is not writable by this user; set "
+            "CROPCRAFT_WORK to a folder this user can write"
+        )
     return path
 
 
@@ -382,8 +409,6 @@ class Timer:
 
 # --------------------------------------------------------------------------- input fingerprints
 
-PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png")
-
 
 def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
     """``{name: identity}`` of the files at a folder or file URI (local path or fsspec URL).
@@ -398,11 +423,15 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
     """
     from fsspec.core import url_to_fs
 
+    from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS, UNSUPPORTED_EXTENSIONS, is_listed_file
+
     try:
         fs, path = url_to_fs(os.fspath(uri))
         with contextlib.suppress(Exception):
             fs.invalidate_cache(path)
         root = str(path).rstrip("/")
+        if fs.isfile(path) and what == "images":
+            raise InputError(f"image source {uri!r} is a file, not a folder of photos")
         if fs.isfile(path):
             infos = {root.rsplit("/", 1)[-1]: fs.info(path)}
             ply = named_ply(fs, root) if what == "poses" else None
@@ -414,18 +443,25 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
             infos = {
                 str(name)[len(root) + 1 :]: i
                 for name, i in fs.find(path, maxdepth=depth, detail=True).items()
-                if i.get("type") == "file" and str(name).startswith(root + "/")
+                if is_listed_file(fs, i) and str(name).startswith(root + "/")
             }
+            for name, i in list(infos.items()):
+                if i.get("islink") and getattr(fs, "local_file", False):  # the target's size, time
+                    infos[name] = {**i, **fs.info(os.path.realpath(i["name"]))}
     except FileNotFoundError:
         infos = {}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot list {what} at {uri!r}: {exc}") from exc
+    except InputError:
+        raise
+    except Exception as exc:  # s3fs lets botocore's credential and endpoint errors through
+        raise InputError(f"cannot list {what} at {uri!r}: {type(exc).__name__}: {exc}") from exc
     out: dict[str, str] = {}
     for name, info in infos.items():
         if any(part.startswith(".") for part in name.split("/")):
             continue
-        if what == "images" and not name.lower().endswith(PHOTO_EXTENSIONS):
-            continue
+        if what == "images" and not name.lower().endswith(
+            IMAGE_EXTENSIONS + UNSUPPORTED_EXTENSIONS
+        ):
+            continue  # an unsupported photo is part of the input: ingest names it
         tag = (
             info.get("ETag")
             or info.get("etag")
@@ -438,11 +474,33 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
         )
         out[name] = f"{info.get('size')}:{str(tag).strip(chr(34))}"
     if not out:
+        deeper = _photos_below(uri) if what == "images" else None
+        hint = f"; the photos are in {deeper!r} below it: give that folder" if deeper else ""
         raise InputError(
             f"no {what} found at {uri!r}: check the URI (a folder of JPEG/PNG photos, or a "
-            "poses file / COLMAP model folder)"
+            f"poses file / COLMAP model folder){hint}"
         )
     return dict(sorted(out.items()))
+
+
+def _photos_below(uri: str, depth: int = 3) -> str | None:
+    """The first subfolder (relative path, up to ``depth`` levels down) of ``uri`` that holds
+    JPEG/PNG photos: a camera's card copied whole keeps them in ``DCIM/100MEDIA``, and only
+    the folder itself is read. None where there is none (or it cannot be listed)."""
+    from fsspec.core import url_to_fs
+
+    from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
+
+    try:
+        fs, path = url_to_fs(os.fspath(uri))
+        root = str(path).rstrip("/")
+        for name in sorted(fs.find(path, maxdepth=depth)):
+            rel = str(name)[len(root) + 1 :]
+            if "/" in rel and rel.lower().endswith(IMAGE_EXTENSIONS):
+                return rel.rsplit("/", 1)[0]
+    except Exception:
+        return None
+    return None
 
 
 def named_ply(fs: Any, path: str, text: str | bytes | None = None) -> tuple[str, str] | None:

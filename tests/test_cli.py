@@ -2,6 +2,7 @@
 exit 2, nothing written)."""
 
 import json
+import socket
 
 import pytest
 
@@ -797,3 +798,59 @@ def test_ctrl_c_ends_the_command_and_its_child_processes(tmp_path):
         assert within <= elapsed < within + 15, elapsed
         assert "interrupted; ending its processes" in proc.stderr.read()
         assert not psutil.pid_exists(child) or psutil.Process(child).status() == "zombie"
+
+
+def test_fit_with_a_small_budget_still_lets_the_optimiser_propose():
+    """``cropcraft fit --evals 100`` clipped the 200 initial evaluations to 100: every one was
+    random, a random search under the name bo. A smaller budget keeps the paper's 40 % initial
+    share; an explicit --initial above --evals is refused, as the scene flow refuses it."""
+    from cropcraft_core.errors import ConfigError
+    from flows.cli import _fit_config, build_parser
+
+    def cfg(*extra):
+        argv = ["fit", "soybean", "--geometry", "g.ply", "--out", "o", *extra]
+        return _fit_config(build_parser().parse_args(argv))
+
+    assert (cfg().n_evals, cfg().n_initial) == (500, 200)
+    assert cfg("--evals", "100").n_initial == 40
+    assert cfg("--evals", "100", "--initial", "30").n_initial == 30
+    with pytest.raises(ConfigError, match="n_initial"):
+        cfg("--evals", "100", "--initial", "200")
+
+
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["--set", "fit.nope=1"], "unknown setting 'fit.nope'"),
+        (["--runner", "bogus"], "bogus"),
+    ],
+)
+def test_demo_names_bad_options_before_it_makes_its_scene(tmp_path, capsys, extra, message):
+    """The demo made and stored its 50-photo scene (~50 s) before it read its options; a bad
+    runner on a cached demo was never read at all."""
+    store = tmp_path / "store"
+    assert main(["demo", "--store", str(store), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cropcraft: error:") and message in err
+    assert not any(p.is_file() for p in store.rglob("*") if "images" in p.parts)
+
+
+def test_run_names_a_prefect_server_that_does_not_answer(tmp_path, capsys):
+    """README has users export PREFECT_API_URL; with that server stopped (or the URL
+    mistyped) a run gave three tracebacks from inside the flow's start, not one line."""
+    from PIL import Image
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        Image.new("RGB", (32, 24), (40 * i, 90, 30)).save(photos / f"p{i}.png")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    argv = ["run", "plotA/soybean/2024-07-01", "--images", str(photos)]
+    with temporary_settings({PREFECT_API_URL: f"http://127.0.0.1:{port}/api"}):
+        assert main([*argv, "--store", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cropcraft: error: the Prefect server at PREFECT_API_URL=")
+    assert "Traceback" not in err and "\n" not in err

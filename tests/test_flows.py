@@ -287,9 +287,9 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     assert out["failed"] == [bad] and out["scenes"][good] == "Completed", out["scenes"]
     assert out["state"] == "Failed"  # the run reads Failed in the UI: its alerts fire
     assert out["misnamed"] == ["2024-7-22"]
-    # the reason, named: ingest's error for the inbox holding two photos
+    # the reason, named before the date's flow starts: its inbox holds two photos
     assert (
-        out["scenes"][bad].startswith("Failed: ") and "at least 3 are needed" in out["scenes"][bad]
+        out["scenes"][bad].startswith("invalid: ") and "at least 3 are needed" in out["scenes"][bad]
     )
     csv = store.get_bytes(f"plotS/{CROP}/season/summary.csv").decode().splitlines()
     assert len(csv) == 2 and csv[1].startswith(good)
@@ -931,11 +931,56 @@ def test_a_stage_that_fails_part_way_does_not_leave_a_cached_record_served(
         with pytest.raises(OSError, match="injected"):
             _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 1})
     assert store.get_bytes(recipe_key) != default  # the failed attempt's recipe is there
+    # ... but not Prefect's record of its exception at the store's root, outside every scene
+    stray = [p.name for p in Path(base_run["store"]).iterdir() if p.is_file()]
+    assert not [n for n in stray if len(n) == 32 and all(c in "0123456789abcdef" for c in n)]
     failed = store.load_manifest(scene).stages["generate"]
     assert failed.status == "failed" and recipe_key in failed.artefacts
     out = _run("plotA", base_run["store"], scene_dir)
     assert "generate" in _executed(out["states"])
     assert store.get_bytes(recipe_key) == default
+    done = store.load_manifest(scene).stages["generate"]  # not the failed attempt's error
+    assert done.status == "done" and done.error is None
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+
+
+def test_a_run_that_dies_before_recording_its_writes_leaves_no_cached_record_served(
+    base_run, scene_dir, monkeypatch
+):
+    """A run with other settings writes generate's files and dies before the manifest hears
+    of them (killed, out of memory, or here its record refused): the next run of the first
+    settings must not serve their cached record over those files. The attempt's note in the
+    manifest (``writing``) outlives the run; the next run hashes its folder first, and the
+    cache walk (``cropcraft run``'s answer without a flow, ``cropcraft status``) misses."""
+    from flows.scene import _PrefectRun
+
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    recipe_key = f"{scene.prefix}/generate/canopy.json"
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    default = store.get_bytes(recipe_key)
+    real = _PrefectRun._record
+
+    def dies(self, stage, upstream, rec, error=None, row=None):
+        if stage == "generate":
+            raise StoreError("the manifest write failed (injected): the run ends here")
+        return real(self, stage, upstream, rec, error, row)
+
+    with monkeypatch.context() as m:
+        m.setattr(_PrefectRun, "_record", dies)
+        with pytest.raises(StoreError, match="injected"):
+            _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "generate.seed": 1})
+    assert store.get_bytes(recipe_key) != default  # the other settings' files are there
+    assert "generate" in store.load_manifest(scene).writing
+    assert _cached(base_run["store"], scene_dir) is None
+    from flows.service_cli import scene_status  # no run holds the scene: not "running"
+
+    listing = {r["stage"]: r["status"] for r in scene_status(str(base_run["store"]), scene.prefix)}
+    assert listing["generate"] == "interrupted"
+    out = _run("plotA", base_run["store"], scene_dir)
+    assert "generate" in _executed(out["states"])
+    assert store.get_bytes(recipe_key) == default
+    assert store.load_manifest(scene).writing == {}
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
@@ -1099,6 +1144,25 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         run_scene("plot A/../x", CROP, DATE, images=str(scene_dir / "images"), store=store)
     with pytest.raises(InputError, match="no images found"):
         run_scene("plotA", CROP, DATE, images=str(tmp_path / "missing"), store=store)
+    card = tmp_path / "card"  # a camera's card copied whole: the photos two levels down
+    shutil.copytree(scene_dir / "images", card / "DCIM" / "100MEDIA")
+    with pytest.raises(InputError, match="the photos are in 'DCIM/100MEDIA' below it"):
+        prepare("plotA", CROP, DATE, str(card), None, None, store)
+    # a photo instead of their folder, and fewer photos than ingest takes: named here, not
+    # after Prefect has started and the scene's lease and manifest are written
+    one = sorted((scene_dir / "images").glob("*.jpg"))[0]
+    with pytest.raises(InputError, match="is a file, not a folder of photos"):
+        prepare("plotA", CROP, DATE, str(one), None, None, store)
+    two = tmp_path / "two"
+    two.mkdir()
+    for p in sorted((scene_dir / "images").glob("*.jpg"))[:2]:
+        shutil.copy(p, two / p.name)
+    with pytest.raises(InputError, match="holds 2 JPEG/PNG photo.s.; at least 3 are needed"):
+        prepare("plotA", CROP, DATE, str(two), None, None, store)
+    for pair in (["IMG_9999.jpg", one.name], [one.name, one.name]):  # not after SfM
+        hint = {"poses.camera_distance": [*pair, 2.5]}
+        with pytest.raises(InputError, match="poses.camera_distance names"):
+            prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, hint, store)
     with pytest.raises(ConfigError, match="unknown setting"):
         prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, {"fit.n_eval": 3}, store)
     with pytest.raises(ConfigError, match="fit.method=mlp: the scene flow maps optimiser seeds"):
@@ -1132,6 +1196,12 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"fit.local_share": "half"}, "local_share must be a number in"),
         ({"poses.imported_metric": "yes"}, "poses.imported_metric must be true, false or auto"),
         ({"generate.seed": 2**32}, "generate.seed must be below 2\\*\\*32"),
+        # the optimiser's, the point cloud's and the presets' (a traceback before)
+        ({"fit.refit_every": 0}, "refit_every=0"),
+        ({"surfaces.n_points": "abc"}, "surfaces.n_points must be a whole number"),
+        ({"surfaces.n_points": -5}, "surfaces.n_points must be a whole number"),
+        ({"observe.preset": 5}, "observe.preset' must be a mapping"),
+        ({"rowfit.preset": []}, "rowfit.preset' must be a mapping"),
     ):
         with pytest.raises(ConfigError, match=match):
             prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, bad, store)
@@ -1142,6 +1212,16 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
     with pytest.raises(StoreError, match="not reachable"):
         run_scene("plotA", CROP, DATE, images=str(scene_dir / "images"), store="s3://nope/x")
     assert time.perf_counter() - t < 30
+    # photos in a bucket whose endpoint is down: one named error, not botocore's traceback
+    import s3fs
+
+    s3fs.S3FileSystem.clear_instance_cache()  # not another test's client, on its endpoint
+    t = time.perf_counter()
+    with pytest.raises(
+        InputError, match="cannot list images at 's3://nope/photos': EndpointConnectionError"
+    ):
+        prepare("plotA", CROP, DATE, "s3://nope/photos", None, None, store)
+    assert time.perf_counter() - t < 60
     assert not (tmp_path / "store").exists() or not any((tmp_path / "store").rglob("*.npz"))
 
 
@@ -1556,3 +1636,39 @@ def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, s
         (photos / "known.json").write_text(text)
         with pytest.raises(InputError, match=message):
             prepare("plotA", CROP, DATE, str(photos), None, OVERRIDES, str(store))
+
+
+def test_the_scene_dask_deployments_flow_runs_the_scene_on_its_runner(base_run, scene_dir):
+    """``process_scene`` (the ``scene-dask`` deployment) runs ``reconstruct_scene`` as a
+    subflow on the runner it is given: here threads, on the computed scene, all cached and the
+    same answer; a bad runner is named before any work."""
+    from flows.scene import process_scene
+
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    images, poses = str(scene_dir / "images"), str(scene_dir / "transforms.json")
+    out = process_scene(
+        "plotA", CROP, DATE, images, poses, OVERRIDES, str(base_run["store"]), runner="threads"
+    )
+    assert _executed(out["states"]) == []
+    assert out["params"] == base_run["first"]["params"]
+    with pytest.raises(ConfigError, match="runner"):
+        process_scene(
+            "plotA", CROP, DATE, images, poses, OVERRIDES, str(base_run["store"]), runner="bogus"
+        )
+
+
+def test_a_remote_cluster_with_local_paths_is_warned_of(scene_dir, tmp_path):
+    """Stages on another machine's Dask workers read and write their own disks: local store
+    and photo paths are warned of (a mount every worker shares is valid), local runners and a
+    cluster on this machine are not."""
+    import warnings
+
+    from flows.scene import prepare, warn_local_paths_on_a_remote_cluster
+
+    req = prepare("plotA", CROP, DATE, str(scene_dir / "images"), None, None, str(tmp_path))
+    with pytest.warns(UserWarning, match="10.0.0.5 runs the stages.*store and photos"):
+        warn_local_paths_on_a_remote_cluster("dask://10.0.0.5:8786", req)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for runner in ("processes", "threads", "dask", "dask://127.0.0.1:8786"):
+            warn_local_paths_on_a_remote_cluster(runner, req)

@@ -16,7 +16,7 @@ import uuid
 
 import pytest
 
-from cropcraft_core.lease import LEASE_NAME, LOCK_NAME, SceneLease, hold_scene
+from cropcraft_core.lease import LEASE_NAME, LOCK_NAME, SceneLease, hold_scene, scene_holder
 from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 from tests import conftest_s3
 from tests.conftest_s3 import S3Server
@@ -180,6 +180,7 @@ def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
         time.sleep(4.0)  # past the time to live: only renewals keep it
         with pytest.raises(SceneBusyError, match="being run by held"):
             SceneLease(store, SCENE, "second").acquire()
+        assert scene_holder(store, SCENE)["owner"].startswith("held")  # read, not taken
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
@@ -187,8 +188,11 @@ def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
         with pytest.raises(SceneBusyError, match="lapses after 3 s"):
             SceneLease(store, SCENE, "too soon").acquire()
         time.sleep(4.5)  # the server's clock counts whole seconds
+    assert scene_holder(store, SCENE) is None  # cropcraft status: its stages were interrupted
     lease = SceneLease(store, SCENE, "next").acquire()
+    assert scene_holder(store, SCENE)["owner"] == "next"
     lease.release()
+    assert scene_holder(store, SCENE) is None
 
 
 def test_a_holder_that_stalled_past_its_lease_learns_it_was_taken_over(s3_server):

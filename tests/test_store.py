@@ -187,6 +187,13 @@ def test_files_and_open_local(store, tmp_path):
     assert sorted(written) == [f"{prefix}/sparse/0/cameras.txt"]
     assert store.list(prefix) == [f"{prefix}/sparse/0/cameras.txt"]
     assert store.get_bytes(f"{prefix}/sparse/0/cameras.txt") == b"cams 2"
+    # a name the store cannot hold (a '\\' is legal in a Linux file name) is named before
+    # anything is replaced: the folder stays as it was, not half the new tree
+    (tree / "a\\b.txt").write_text("x")
+    (tree / "sparse" / "0" / "cameras.txt").write_text("cams 3")
+    with pytest.raises(InputError, match=r"a\\\\b.txt"):
+        store.put_tree(tree, prefix)
+    assert store.get_bytes(f"{prefix}/sparse/0/cameras.txt") == b"cams 2"
     with pytest.raises(InputError), store.open_local("plotA/none"):
         pass
 
@@ -315,6 +322,58 @@ def test_manifest_roundtrip_and_stage_updates(store):
     aside = [k for k in store.list(scene_prefix(SCENE)) if "manifest.unreadable-" in k]
     assert len(aside) == 1 and store.get_bytes(aside[0]) == damaged
     assert store.load_manifest(SCENE) == m
+
+
+def test_an_attempt_never_recorded_is_settled_into_written_by_the_next_run(store):
+    """A run notes each stage attempt's folder before it may write (``writing``) and clears
+    it with the stage's record. A run that dies in between leaves the note, across a config
+    change too; the next run hashes that folder into ``written`` (so a cached record of other
+    settings naming its keys is not served) and clears the note."""
+    key = artefact_key(SCENE, "surfaces", "points.npz")
+    store.init_manifest(SCENE, {}, {"voxel": 0.01})
+    first = store.put_bytes(key, b"settings A")
+    store.update_stage(SCENE, "surfaces", status="done", artefacts={key: first})
+    folder = f"{scene_prefix(SCENE)}/surfaces"
+    store.update_stage(SCENE, "surfaces", status="running", writing={"surfaces": folder})
+    second = store.put_bytes(key, b"settings B")  # ... and the run dies here
+    m = store.init_manifest(SCENE, {}, {"voxel": 0.02})  # the next run, other settings
+    assert m.writing == {"surfaces": folder} and m.written[key] == first
+    assert store.settle_writing(SCENE) == {key: second}
+    m = store.load_manifest(SCENE)
+    assert m.writing == {} and m.written[key] == second
+    assert store.settle_writing(SCENE) == {}  # nothing left to settle
+    # a recorded attempt clears its own note
+    store.update_stage(SCENE, "surfaces", status="running", writing={"surfaces": folder})
+    store.update_stage(SCENE, "surfaces", status="done", writing={"surfaces": None})
+    assert store.load_manifest(SCENE).writing == {}
+
+
+def test_a_stage_done_after_a_failure_keeps_no_error(store):
+    """``cropcraft status`` showed a stage done beside the error of the attempt before."""
+    store.init_manifest(SCENE, {}, {"a": 1})
+    store.update_stage(SCENE, "generate", status="failed", error=OSError("disk full"))
+    store.update_stage(SCENE, "generate", status="done", seconds=1.0)
+    rec = store.load_manifest(SCENE).stages["generate"]
+    assert rec.status == "done" and rec.error is None
+
+
+def test_a_copied_scene_folder_updates_its_own_manifest(tmp_path):
+    """A scene folder copied under another date keeps the manifest that names the first
+    date: updating the copy writes the copy's manifest (and names the copy), never the
+    first scene's."""
+    import shutil
+
+    store = SceneStore(str(tmp_path / "store"))
+    store.init_manifest(SCENE, {}, {"a": 1})
+    store.update_stage(SCENE, "ingest", status="done")
+    copy = SceneKey(SCENE.site, SCENE.crop, "2024-07-02")
+    shutil.copytree(
+        tmp_path / "store" / scene_prefix(SCENE), tmp_path / "store" / scene_prefix(copy)
+    )
+    store.update_stage(copy, "ingest", status="failed", error="bad photo")
+    assert store.load_manifest(SCENE).stages["ingest"].status == "done"
+    m = store.load_manifest(copy)
+    assert m.scene == copy and m.stages["ingest"].status == "failed"
 
 
 def test_concurrent_stage_updates_are_not_lost(store):
@@ -664,3 +723,82 @@ def test_a_transforms_json_brings_the_sparse_points_it_names(tmp_path):
     (src / "transforms.json").write_text(json.dumps({"ply_file_path": "../secret.ply"}))
     (tmp_path / "secret.ply").write_text("outside")
     assert sorted(fingerprint(str(src / "transforms.json"), what="poses")) == ["transforms.json"]
+
+
+def test_the_checkpoint_folder_is_the_users_own_and_a_bad_one_is_named(tmp_path, monkeypatch):
+    """Fit seeds' checkpoints default to a per-user folder of the temp dir (mode 0700): one
+    folder for every user belonged to the first, and the next user's seeds failed on a bare
+    PermissionError. A CROPCRAFT_WORK that cannot hold the folder is named."""
+    import os
+    import stat
+    import tempfile
+
+    from tasks.common import checkpoint_dir
+
+    monkeypatch.delenv("CROPCRAFT_WORK", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    path = checkpoint_dir()
+    assert path == tmp_path / f"cropcraft-{os.getuid()}" / "checkpoints"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o700
+    (tmp_path / "work").mkdir()
+    (tmp_path / "work" / "checkpoints").write_text("not a folder")
+    monkeypatch.setenv("CROPCRAFT_WORK", str(tmp_path / "work"))
+    with pytest.raises(ConfigError, match="CROPCRAFT_WORK"):
+        checkpoint_dir()
+
+
+def test_a_relative_root_pickles_as_the_folder_it_names_here(tmp_path, monkeypatch):
+    """A store opened on a relative root and sent to a process that starts elsewhere (a
+    worker, a spawned seed) must open the same folder, not the relative one over there."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    here.mkdir()
+    there.mkdir()
+    monkeypatch.chdir(here)
+    store = SceneStore("cropcraft-data")
+    store.put_bytes("plotA/soybean/2024-07-01/x.json", b"{}")
+    blob = pickle.dumps(store)
+    monkeypatch.chdir(there)
+    assert pickle.loads(blob).exists("plotA/soybean/2024-07-01/x.json")
+
+
+def test_a_key_that_clashes_with_a_folder_says_so(tmp_path):
+    """Not 'check the store URI, endpoint, credentials and permissions': the key is wrong."""
+    store = SceneStore(str(tmp_path / "store"))
+    store.put_bytes("plotA/soybean/2024-07-01/ingest/images/a.png", b"png")
+    store.put_bytes("plotA/soybean/2024-07-01/fit/fit.json", b"{}")
+    with pytest.raises(InputError, match="it is a folder, not an object"):
+        store.get_json("plotA/soybean/2024-07-01/ingest/images")
+    with pytest.raises(InputError, match="an object stands where"):
+        store.put_bytes("plotA/soybean/2024-07-01/fit/fit.json/x", b"x")
+    with pytest.raises(InputError, match="cannot store"):
+        store.put_file(tmp_path, "plotA/soybean/2024-07-01/x/y")
+
+
+def test_sources_are_noted_only_on_the_settings_they_were_read_for(store):
+    """``cropcraft run`` answered from the cache notes where it read its photos, but only
+    where the manifest still holds its inputs and settings, checked and written as one change:
+    a run of other settings that started meanwhile keeps its own manifest."""
+    inputs = {"images:a.jpg": "1:1"}
+    store.init_manifest(SCENE, inputs, {"a": 1}, sources={"images": "/old"})
+    store.update_stage(SCENE, "ingest", status="done")
+    mine = {"images": "/new", "poses": None}
+    assert not store.note_sources(SCENE, mine, inputs=inputs, config_hash=config_hash({"a": 2}))
+    assert store.load_manifest(SCENE).sources == {"images": "/old"}
+    assert store.note_sources(SCENE, mine, inputs=inputs, config_hash=config_hash({"a": 1}))
+    m = store.load_manifest(SCENE)
+    assert m.sources == mine and m.stages["ingest"].status == "done"
+    assert not store.note_sources(SCENE, mine, inputs=inputs, config_hash=config_hash({"a": 1}))
+
+
+def test_a_deleted_manifest_is_replaced_from_the_files_there(store):
+    """Without its manifest a scene's ``written`` started empty, and a cached record of other
+    settings was served over whatever the store held. Now it starts from the artefacts there
+    (not the inbox's photos, which a first run would otherwise read in full)."""
+    photo = artefact_key(SCENE, "images", "a.jpg")
+    fit = artefact_key(SCENE, "fit", "fit.json")
+    store.put_bytes(photo, b"jpeg")
+    assert store.init_manifest(SCENE, {}, {"a": 1}).written == {}  # a first run: nothing
+    store.update_stage(SCENE, "fit", status="done", artefacts={fit: store.put_json(fit, {"a": 1})})
+    now = store.put_json(fit, {"a": 2})  # another run's answer ...
+    store.delete(f"{scene_prefix(SCENE)}/manifest.json")  # ... and the manifest gone
+    assert store.init_manifest(SCENE, {}, {"a": 1}).written == {fit: now}
