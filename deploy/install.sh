@@ -29,7 +29,11 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ deploy/constraints.
   # at the version deploy/constraints.txt locks (deploy/lock.sh re-resolves it): the fit's
   # answer moves with the numeric libraries, so every fresh machine gets the same ones.
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q "torch==2.13.0" -c deploy/constraints.txt
+  # The CPU build by name: PyPI's torch==2.13.0 is the CUDA one (gigabytes of nvidia-*
+  # wheels and triton), which a constraints file cannot keep out. Its index is extra, so a
+  # machine with the wheel in its own find-links or mirror takes it from there.
+  .venv/bin/python -m pip install -q "torch==2.13.0+cpu" -c deploy/constraints.txt \
+    --extra-index-url https://download.pytorch.org/whl/cpu --retries 1
   .venv/bin/python -m pip install -q -e ".${extra}" -c deploy/constraints.txt
   touch "$stamp"
 fi

@@ -13,7 +13,8 @@ tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
 "$py" -m venv "$tmp/venv"
 "$tmp/venv/bin/python" -m pip install -q --upgrade pip >/dev/null
-"$tmp/venv/bin/python" -m pip install -q "torch==2.13.0"
+"$tmp/venv/bin/python" -m pip install -q "torch==2.13.0+cpu" \
+  --extra-index-url https://download.pytorch.org/whl/cpu --retries 1  # as install.sh
 "$tmp/venv/bin/python" -m pip install -q -e ".[dev]"
 {
   echo "# CropCraft's lock: every package of a fresh '.[dev]' install, resolved by deploy/lock.sh"

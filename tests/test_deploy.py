@@ -112,6 +112,12 @@ def test_prefect_deploy_creates_both_deployments_and_schedule(prefect_server, tm
     assert scene["entrypoint"] == "flows/scene.py:reconstruct_scene"
     assert not scene["schedules"]
 
+    dask = json.loads(
+        _prefect(env, "deployment", "inspect", "process-scene/scene-dask", "--output", "json")
+    )
+    assert dask["entrypoint"] == "flows/scene.py:process_scene"
+    assert dask["parameters"] == {"runner": "dask"}
+
     gpu = json.loads(
         _prefect(
             env, "deployment", "inspect", "reconstruct-scene/scene-nerfacto", "--output", "json"
@@ -145,7 +151,7 @@ def test_prefect_deploy_creates_both_deployments_and_schedule(prefect_server, tm
     # every flow run pins the CPU kernels as the CLI does (its file loads numpy before `flows`)
     from cropcraft_core.kernels import PORTABLE
 
-    for d in (season, scene, gpu, bench):
+    for d in (season, scene, dask, gpu, bench):
         assert d["job_variables"]["env"] == PORTABLE, d["name"]
 
 
