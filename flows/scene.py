@@ -49,6 +49,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "matcher": "auto",
         "sift_peak_threshold": None,  # None: run_sfm's (SIFT_PEAK_THRESHOLD)
         "guided_matching": False,  # epipolar re-matching: slower and less accurate on canopies
+        # each SfM camera starts from the focal length in its photos' EXIF (false: from
+        # COLMAP's guess, 1.2 x the longer side; for photos whose EXIF is known to be wrong)
+        "exif_focal": True,
         "seed": 0,
         "num_threads": 2,
         # imported poses in metres and gravity-aligned: true, false, or "auto" (a

@@ -40,6 +40,7 @@ def ingest(
             "n_images": len(manifest),
             "duplicates": len(manifest.duplicates),
             "ignored": len(manifest.ignored),
+            "n_focal_exif": sum(im.focal_px is not None for im in manifest.images),
             "size_px": [manifest.images[0].width, manifest.images[0].height],
         },
         t.seconds,

@@ -102,6 +102,12 @@ def _fetch(uri: str, dest: Path) -> Path:
     return target
 
 
+def focal_priors(manifest: dict) -> dict[str, float]:
+    """``{written name: focal length (px)}`` of the ingested photos whose EXIF gave one
+    (ingest's ``focal_px``; a manifest written before ingest read them has none)."""
+    return {im["name"]: float(im["focal_px"]) for im in manifest["images"] if im.get("focal_px")}
+
+
 @stage_task("poses")
 def poses(
     store_root: str,
@@ -118,7 +124,9 @@ def poses(
     gravity-aligned (``"auto"``: a ``transforms.json`` of an AR capture is, a COLMAP model or
     a ``transforms.json`` of an SfM project is not). Without:
     :func:`~cropcraft_core.sfm.run_sfm` (config ``matcher``, ``seed``, ``num_threads``,
-    ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``, ``guided_matching``).
+    ``sift_peak_threshold``: None for ``SIFT_PEAK_THRESHOLD``, ``guided_matching``; each
+    camera starts from the focal length ingest read from the photos' EXIF unless
+    ``exif_focal`` is false: the summary's ``focal_prior_px`` and ``n_focal_prior`` say which).
     All are then levelled by :func:`~cropcraft_core.sfm.level_poses` (z up, plot-centred):
     metric imported ones without scaling, up along their frame's gravity axis, a frame
     levelled already kept as it is; the others in metres from ``config["camera_height"]``
@@ -191,6 +199,7 @@ def poses(
                     seed=int(config.get("seed", 0)),
                     sift_peak_threshold=float(peak if peak is not None else SIFT_PEAK_THRESHOLD),
                     guided_matching=bool(config.get("guided_matching", False)),
+                    focal_priors=focal_priors(manifest) if config.get("exif_focal", True) else None,
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)

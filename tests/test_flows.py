@@ -642,6 +642,10 @@ def test_settings_that_change_no_result_keep_the_stages_cached():
     assert key("fit_seed", {"fit.n_seeds": 12}, seed=3) == key("fit_seed", {}, seed=3)
     assert key("fit_seed", {"fit.n_evals": 400}, seed=3) != key("fit_seed", {}, seed=3)
     assert key("aggregate", {"fit.n_seeds": 12}) != key("aggregate", {})
+    # a setting added later keys, at its default, as the stage did before it existed
+    before = {k: v for k, v in default["poses"].items() if k != "exif_focal"}
+    assert stage_key("poses", scene, before, up) == key("poses", {})
+    assert key("poses", {"poses.exif_focal": False}) != key("poses", {})
 
 
 def test_the_row_fit_and_the_report_are_keyed_by_the_summaries_they_read(scene_dir, tmp_path):

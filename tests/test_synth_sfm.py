@@ -1,5 +1,6 @@
 """Synthetic scenes, image ingest, pose formats and real pycolmap SfM on a rendered scene."""
 
+import dataclasses
 import io
 import json
 import math
@@ -24,6 +25,7 @@ from cropcraft_core.sfm import (
     umeyama,
 )
 from cropcraft_core.sfm import poses as sfm_poses
+from cropcraft_core.sfm.ingest import IngestedImage, IngestManifest
 from cropcraft_core.sfm.poses import loop_pairs, quaternion_to_rotation, rotation_to_quaternion
 from cropcraft_core.synth import make_scene
 from cropcraft_core.synth.scene import camera_from_angles
@@ -361,6 +363,74 @@ def test_ingest_dedup_manifest_and_exif(tmp_path):
     assert len(e["sha256_pixels"]) == 64
 
 
+def _exif(orientation=None, **sub):
+    """EXIF bytes: ``orientation`` in IFD0, ``sub`` ({tag: value}) in the Exif sub-IFD."""
+    exif = Image.Exif()
+    if orientation:
+        exif[0x0112] = orientation
+    ifd = exif.get_ifd(0x8769)
+    for tag, value in sub.items():
+        ifd[int(tag, 16)] = value
+    return exif.tobytes()
+
+
+def test_ingest_reads_the_focal_length_from_exif(tmp_path):
+    """``focal_px`` at the written size: a phone's 35 mm equivalent (26 mm on a 40 x 30 photo
+    stored sideways, 50 px of diagonal: 26 * 50 / 43.27 = 30.04 px, whatever the orientation;
+    downscaled to 32 px it is 24.03); a camera's focal length over its sensor's pixel pitch
+    (4 mm at 10 px/mm = 40 px) only where its pixel dimensions are the photo's; none where
+    EXIF has none, or an implausible one (500 mm equivalent: 14 x the photo's width)."""
+    from tasks.poses import focal_priors
+
+    src = tmp_path / "src"
+    src.mkdir()
+    plane = {"920A": 4.0, "A20E": 10.0, "A210": 4}
+    _png((200, 30, 30)).save(src / "a.jpg", exif=_exif(6, A405=26), quality=95)
+    _png((30, 200, 30)).save(src / "b.png", exif=_exif(**plane, A002=40, A003=30))
+    _png((30, 30, 200)).save(src / "c.png", exif=_exif(**plane, A002=4000, A003=3000))
+    _png((90, 90, 90)).save(src / "d.png")
+    _png((10, 90, 190)).save(src / "e.jpg", exif=_exif(A405=500), quality=95)
+    man = ingest_images(str(src), tmp_path / "out")
+    focal = {im.source: im.focal_px for im in man.images}
+    assert focal["a.jpg"] == pytest.approx(26 * 50 / math.hypot(36, 24))
+    assert focal["b.png"] == pytest.approx(40.0)
+    assert focal["c.png"] is focal["d.png"] is focal["e.jpg"] is None
+    small = ingest_images(str(src), tmp_path / "small", max_size=32)
+    assert small.images[0].focal_px == pytest.approx(0.8 * focal["a.jpg"])
+    doc = json.loads((tmp_path / "small" / "manifest.json").read_text())
+    assert focal_priors(doc) == pytest.approx({"a.png": 0.8 * focal["a.jpg"], "b.png": 32.0})
+    assert IngestManifest.read(tmp_path / "small") == small
+
+
+#: ``IngestManifest.identity()`` of the test's three photos, by the code before ``focal_px``.
+IDENTITY_BEFORE_FOCAL = "688d2e43e21db1e0a8875002c5e88be885fc2daa2459ca40886996769f85c8e7"
+
+
+def test_ingest_identity_of_photos_without_exif_focal_is_as_before_it_was_read():
+    """Photos whose EXIF gives no focal length key as they did before ingest read focal lengths
+    (this hash was computed by the code before that change): stored scenes are not recomputed."""
+    images = [
+        IngestedImage(
+            name=f"p{i}.png",
+            source=f"p{i}.jpg",
+            sha256_file="f" * 64,
+            sha256_pixels=str(i) * 64,
+            width=640,
+            height=480,
+            source_width=1280,
+            source_height=960,
+            exif_orientation=1,
+            scale=0.5,
+            format="JPEG",
+        )  # fmt: skip
+        for i in range(3)
+    ]
+    man = IngestManifest(source="s", dest_dir="d", max_size=640, images=images)
+    assert man.identity() == IDENTITY_BEFORE_FOCAL
+    with_focal = dataclasses.replace(images[0], focal_px=500.0)
+    assert dataclasses.replace(man, images=[with_focal, *images[1:]]).identity() != man.identity()
+
+
 def test_ingest_identity_is_what_the_images_are_not_where_they_were_read(tmp_path):
     """The same photos read from another folder, one of them re-saved with new metadata (same
     pixels), give the same identity; a changed photo, a new one or another downscale do not."""
@@ -619,13 +689,44 @@ def test_sfm_small_scene(tmp_path):
         with Image.open(p) as im:
             im = im.transpose(Image.Transpose.ROTATE_90) if i % 2 else im.copy()
         im.save(upright / f"{p.stem}.png")
-    res = run_sfm(upright, tmp_path / "work-upright", num_threads=2, focal_length_px=f0)
+    # ... each camera from its photos' EXIF focal lengths (one photo without: it shares them)
+    names = sorted(p.name for p in upright.iterdir())
+    exif = {n: f0 * (1 + 0.01 * (i % 3)) for i, n in enumerate(names) if i != 2}
+    res = run_sfm(upright, tmp_path / "work-upright", num_threads=2, focal_priors=exif)
     assert res.n_registered == 8
+    assert res.focal_priors == pytest.approx(
+        {n: f0 * (1.01 if i % 2 else 1.0) for i, n in enumerate(names)}
+    )  # medians: landscape 0, 4, 6 (1.0, 1.01, 1.0), upright 1, 3, 5, 7 (1.01, 1.0, 1.02, 1.01)
     sizes = {(c.width, c.height) for c in res.poses.cameras}
     assert sizes == {(640, 480), (480, 640)}
     for c in res.poses.cameras:  # each size's camera refined from the prior, centred on it
         assert c.fx == pytest.approx(truth.cameras[0].fx, rel=0.05)
         assert (c.cx, c.cy) == pytest.approx((c.width / 2, c.height / 2), abs=0.05 * c.width)
+
+
+def test_sfm_stage_starts_each_camera_from_the_photos_exif_focal_length(tmp_path):
+    """Through the ingest and poses stages: the phone's 35 mm equivalent (a whole number of
+    mm, so 0.6 % off here) read at ingest is the camera's prior, which bundle adjustment
+    refines to the truth; the summary says so. A photo without EXIF shares its camera's."""
+    from tasks.ingest import ingest
+    from tasks.poses import poses
+
+    out, truth = _sfm_scene(tmp_path, 8, 20.0, seed=5)
+    src = tmp_path / "phone"
+    src.mkdir()
+    diag = math.hypot(640, 480)
+    f35 = round(truth.cameras[0].fx * math.hypot(36, 24) / diag)
+    for i, p in enumerate(sorted((out / "images").iterdir())):
+        with Image.open(p) as im:
+            im.save(src / p.name, quality=95, exif=_exif(A405=f35) if i else b"")
+    scene, root = "plotA/soybean/2024-07-01", str(tmp_path / "store")
+    ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(src))
+    assert ing["summary"]["n_focal_exif"] == 7
+    rec = poses.fn(root, scene, {"num_threads": 2}, {"ingest": ing})
+    prior = f35 * diag / math.hypot(36, 24)
+    assert rec["summary"]["n_focal_prior"] == 8 == rec["summary"]["n_registered"]
+    assert rec["summary"]["focal_prior_px"] == [pytest.approx(prior, abs=0.01)]
+    assert rec["summary"]["camera_params"][0] == pytest.approx(truth.cameras[0].fx, rel=0.01)
 
 
 def test_sfm_closes_the_loop_before_matching_every_pair(tmp_path, monkeypatch):

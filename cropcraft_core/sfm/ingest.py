@@ -3,7 +3,9 @@
 Every JPEG/PNG file is decoded in full (``Image.load()``), so a corrupt or truncated file fails
 here, named, rather than deep inside SfM. EXIF orientation is applied to the pixels (the written
 images carry no orientation tag), images are optionally downscaled so that their longer side is at
-most ``max_size`` pixels, and exact duplicates are dropped.
+most ``max_size`` pixels, and exact duplicates are dropped. The camera's focal length, where
+EXIF gives it, is kept as ``focal_px`` at the written size (:func:`exif_focal_px`): structure
+from motion starts from it rather than from a guess.
 
 Two hashes per image, both SHA-256:
 
@@ -22,6 +24,7 @@ import contextlib
 import hashlib
 import io
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
@@ -62,6 +65,9 @@ class IngestedImage:
     exif_orientation: int
     scale: float
     format: str
+    focal_px: float | None = None
+    """The focal length in pixels of the written image, from the photo's EXIF
+    (:func:`exif_focal_px`); None where EXIF does not give it."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,9 @@ class IngestManifest:
         modification times, give the same identity, so nothing keyed on it is recomputed.
         """
         images = [{k: v for k, v in asdict(im).items() if k != "sha256_file"} for im in self.images]
+        for im in images:  # photos without one key as before focal lengths were read
+            if im["focal_px"] is None:
+                del im["focal_px"]
         return config_hash({"max_size": self.max_size, "images": images})
 
     @classmethod
@@ -188,9 +197,51 @@ def _orientation(img: Image.Image, label: str) -> int:
         ) from None
 
 
-def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
+#: The diagonal of a 36 x 24 mm frame: a 35 mm-equivalent focal length is the focal length
+#: that gives the photo's diagonal field of view on it (CIPA DC-008, as phones compute it).
+FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+#: EXIF FocalPlaneResolutionUnit -> millimetres (2: inch, 3: cm; 4: mm, 5: um in EXIF 3.0).
+_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+#: A focal length outside this many times the photo's longer side is not believed (a
+#: placeholder value, a lens adapter's, a digital zoom's crop recorded without its factor).
+FOCAL_RANGE = (0.3, 6.0)
+
+
+def exif_focal_px(img: Image.Image) -> float | None:
+    """The focal length in pixels of the decoded photo ``img`` (its stored size; orientation
+    does not change it), from its EXIF, or None.
+
+    From ``FocalLengthIn35mmFilm`` (what phones and drones write): f_px = f35 · diagonal_px /
+    43.27 mm. Otherwise from ``FocalLength`` (mm) and ``FocalPlaneXResolution`` (pixels per
+    unit of the sensor), only where the EXIF pixel dimensions are this photo's (an edited or
+    resized photo keeps the camera's resolution). Values that are missing, zero, unreadable
+    or outside :data:`FOCAL_RANGE` × the longer side give None: a prior is only worth having
+    when it is right, and without one SfM starts from its own guess.
+    """
+    w, h = img.size
+    try:
+        sub = img.getexif().get_ifd(0x8769)
+        f35 = float(sub.get(0xA405) or 0)
+        if f35 > 0:
+            f = f35 * math.hypot(w, h) / FULL_FRAME_DIAGONAL_MM
+        else:
+            f_mm = float(sub.get(0x920A) or 0)
+            res = float(sub.get(0xA20E) or 0)
+            unit = _PLANE_UNIT_MM.get(int(sub.get(0xA210) or 2))
+            dims = (int(sub.get(0xA002) or 0), int(sub.get(0xA003) or 0))
+            if not (f_mm > 0 and res > 0 and unit and dims in ((w, h), (h, w))):
+                return None
+            f = f_mm * res / unit
+    except Exception:  # PIL raises struct.error, TypeError, ZeroDivisionError... on bad EXIF
+        return None
+    lo, hi = FOCAL_RANGE
+    return float(f) if math.isfinite(f) and lo <= f / max(w, h) <= hi else None
+
+
+def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int, float | None]:
     """Fully decode ``data``; return (RGB image with EXIF orientation applied, format, the EXIF
-    orientation tag (1 if none)). Raises ``InputError`` naming ``label``."""
+    orientation tag (1 if none), the focal length in pixels from EXIF or None). Raises
+    ``InputError`` naming ``label``."""
     if not data:
         raise InputError(f"image {label} is empty (0 bytes)")
     if ImageFile.LOAD_TRUNCATED_IMAGES:
@@ -205,6 +256,7 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
             raise InputError(f"image {label} is {fmt}, not JPEG or PNG: convert it first")
         img.load()
         orientation = _orientation(img, label)
+        focal = exif_focal_px(img)
         if orientation in _UPRIGHT:
             img = img.transpose(_UPRIGHT[orientation])
         if img.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit greyscale PNG
@@ -222,7 +274,7 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int]:
         raise InputError(f"image {label} is not a readable JPEG or PNG (corrupt?)") from None
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise InputError(f"image {label} cannot be decoded (corrupt or truncated): {e}") from None
-    return img, fmt, orientation
+    return img, fmt, orientation, focal
 
 
 def ingest_images(
@@ -292,7 +344,7 @@ def ingest_images(
                 data = fh.read()
         except OSError as e:
             raise InputError(f"cannot read image {base} from {source}: {e}") from None
-        img, fmt, orientation = _decode(data, base)
+        img, fmt, orientation, focal = _decode(data, base)
         sw, sh = img.size
         px = hashlib.sha256(f"{sw}x{sh}:".encode() + img.tobytes()).hexdigest()
         if px in seen:
@@ -335,6 +387,7 @@ def ingest_images(
                 exif_orientation=orientation,
                 scale=float(scale),
                 format=fmt,
+                focal_px=None if focal is None else focal * float(scale),
             )
         )
     if len(images) < min_images:
