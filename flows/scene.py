@@ -428,6 +428,9 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     observe = dict(cfg["observe"])
     if observe.get("prediction_blur") == 0:  # unblurred predictions keyed as before the setting
         observe.pop("prediction_blur")
+    poses = dict(cfg["poses"])
+    if poses.get("exif_focal") is True:  # photos without EXIF focal run SfM as before it
+        poses.pop("exif_focal")
     surfaces = dict(cfg["surfaces"])
     if crop is not None and surfaces.get("bbox") == "auto":
         try:
@@ -438,7 +441,7 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
             surfaces["bbox"] = resolve_bbox("auto", crop).tolist()
     return {
         "ingest": dict(cfg["ingest"]),
-        "poses": dict(cfg["poses"]),
+        "poses": poses,
         "surfaces": surfaces,
         "rowfit": {**cfg["rowfit"], **layout},
         # the row fit's colour rule for the photos' plant (None: the crop's)

@@ -164,11 +164,6 @@ def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, s
 #: seed's count of fellow seeds only sizes its threads (seed 3 of 12 is seed 3 of 10), so a fit
 #: raised from 10 to 12 seeds fits two more, not twelve (10: keys as before this existed).
 KEYED_AS: dict[str, dict[str, Any]] = {"fit_seed": {"n_seeds": 10}}
-#: Settings added after stores were filled, keyed only where they differ from these defaults:
-#: at the default a stage keys as it did before the setting existed, so stored scenes are
-#: not recomputed for a setting that does not change their answer (``poses.exif_focal``:
-#: photos without EXIF focal lengths, all that were ingested before it, run SfM as before).
-KEYED_FROM: dict[str, dict[str, Any]] = {"poses": {"exif_focal": True}}
 
 
 def stage_key(
@@ -188,9 +183,6 @@ def stage_key(
     SceneKey.parse(scene)  # validates
     if isinstance(config, Mapping) and stage in KEYED_AS:
         config = {**config, **{k: v for k, v in KEYED_AS[stage].items() if k in config}}
-    if isinstance(config, Mapping) and stage in KEYED_FROM:
-        default = KEYED_FROM[stage]
-        config = {k: v for k, v in config.items() if not (k in default and v == default[k])}
     identity = {
         "stage": stage,
         "version": STAGE_VERSIONS[stage],
