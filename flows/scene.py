@@ -1089,6 +1089,13 @@ class _PrefectRun:
         return out
 
 
+#: The rule by which ``poses.imported_metric="auto"`` reads imported poses, keyed with them so
+#: that a scene whose poses were read by an earlier rule is read again (SfM scenes and poses
+#: read by an explicit true/false keep their keys). 2: a ``transforms.json`` that
+#: ns-process-data made from an SfM project (``applied_transform``) is not metric.
+AUTO_METRIC_RULE = {"auto_metric_rule": "2"}
+
+
 def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     """The scene graph; ``ex`` is :class:`_PrefectRun` or :class:`_CacheWalk`."""
     r: dict[str, Any] = {}
@@ -1096,6 +1103,8 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     up = {"ingest": r["ingest"]}
     if req.poses:
         up["inputs"] = req.inputs["poses"]
+        if req.config["poses"]["imported_metric"] == "auto":
+            up["rule"] = AUTO_METRIC_RULE
     r["poses"] = ex.run("poses", up, poses_uri=req.poses)
     r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
     r["rowfit"] = ex.run(

@@ -692,6 +692,42 @@ def test_the_row_fit_and_the_report_are_keyed_by_the_summaries_they_read(scene_d
     assert keyed(c, "rowfit") == keyed(a, "rowfit") and keyed(c, "report") != keyed(a, "report")
 
 
+def test_imported_poses_read_by_the_auto_rule_are_keyed_by_it(scene_dir, tmp_path):
+    """Poses read as metric or not by ``imported_metric="auto"`` carry the rule's version in
+    their key (so poses read by an earlier rule, e.g. an ns-process-data SfM transforms.json
+    once read as metric, are read again), and only they: SfM scenes and an explicit reading
+    keep their keys."""
+    from flows.scene import AUTO_METRIC_RULE, _wire, prepare
+
+    class Recorder:
+        def __init__(self):
+            self.up = {}
+
+        def run(self, stage, upstream, row=None, **_):
+            self.up[stage] = upstream
+            return {"hashes": {stage: "h"}, "summary": {}}
+
+        def run_rows(self, stage, jobs):
+            return {row: self.run(stage, up, row) for row, up in jobs.items()}
+
+        def map_seeds(self, jobs, seeds):
+            return {row: {f"seed-{s}": self.run("fit_seed", {}) for s in seeds} for row in jobs}
+
+    def poses_upstream(poses, overrides):
+        rec = Recorder()
+        req = prepare(
+            "plotA", CROP, DATE, str(scene_dir / "images"), poses, {**OVERRIDES, **overrides},
+            str(tmp_path),
+        )  # fmt: skip
+        _wire(rec, req)
+        return rec.up["poses"]
+
+    transforms = str(scene_dir / "transforms.json")
+    assert poses_upstream(transforms, {})["rule"] == AUTO_METRIC_RULE
+    assert "rule" not in poses_upstream(transforms, {"poses.imported_metric": True})
+    assert "rule" not in poses_upstream(None, {})
+
+
 def test_the_flows_embedded_defaults_are_the_core_configs_own():
     """The flow's config table writes its defaults out (a user reads them, ``--set`` names
     them, and the flow imports no core module to build it); each is the core default it
