@@ -495,6 +495,11 @@ def test_mlp_baseline_trains_caches_and_predicts(tmp_path, monkeypatch):
     assert len(cached) == 1
     p2 = predict_params(obs, cfg)  # from the cache: same network, same answer
     assert p1 == p2
+    cached[0].write_bytes(cached[0].read_bytes()[:100])  # truncated: trained again, named
+    with pytest.warns(UserWarning, match=r"cached MLP .*maize-.*\.pt cannot be read"):
+        assert predict_params(obs, cfg) == p1
+    assert [p.name for p in (tmp_path / "mlp").iterdir()] == [cached[0].name]  # no temporaries
+    assert predict_params(obs, cfg) == p1
     assert 1.0 <= p1["num_nodes"] <= 18.0
     # the network reads an observation as its training pairs were made: the paper's bins,
     # whatever the observation's own (maize's default fits its depth bins to the canopy), and
@@ -544,6 +549,11 @@ def test_bad_fit_config():
         FitConfig(method="adam").validate()
     with pytest.raises(ConfigError, match="n_initial"):
         FitConfig(n_evals=10, n_initial=20).validate()
+    # BO's initial design is no bound on the baselines, which never read it
+    FitConfig(method="random", n_evals=100).validate()
+    FitConfig(method="trust-region", n_evals=50).validate()
+    with pytest.raises(ConfigError, match="n_evals"):
+        FitConfig(method="random", n_evals=1).validate()
     with pytest.raises(ConfigError, match="local_share"):
         FitConfig(local_share=1.5).validate()
     with pytest.raises(ConfigError, match="gp_output"):

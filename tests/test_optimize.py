@@ -240,6 +240,9 @@ def test_aggregate_mean_and_spread():
     np.testing.assert_allclose(aggregate(rs, use="observed").per_seed, [r.best_x for r in rs])
     with pytest.raises(ConfigError):
         aggregate([])
+    other = run_seed(Noisy(9), np.array([[0.0, 1.0]] * 3), cfg, seed=9)
+    with pytest.raises(ConfigError, match="seed 9 has 3 parameters, seed 0 2"):
+        aggregate([*rs, other])
 
 
 @pytest.mark.parametrize("crop", ["soybean", "maize"])
@@ -304,6 +307,7 @@ def test_trust_region_baseline_end_to_end(tmp_path):
         [[0.0, 0.0]],  # empty side
         [[0.0, 1.0, 2.0]],  # wrong shape
         [[0.0, math.nan]],
+        [[-1e308, 1e308]],  # finite ends, a width that overflows
         [0.0, 1.0],
         "box",
     ],
@@ -328,6 +332,11 @@ def test_bad_bounds_raise_config_error(bad):
         {"blas_threads": 0},
         {"output_transform": "sqrt"},
         {"output_transform": "log", "log_offset": 0.0},
+        # a misparsed setting (YAML's yes, a flag): True is not the number 1
+        {"noise_variance": True},
+        {"xi": True},
+        {"blas_threads": True},
+        {"local_scale": 1e300},
     ],
 )
 def test_bad_config_raises_config_error(kw):

@@ -244,8 +244,13 @@ class FitConfig:
             )
         if self.n_seeds < 1:
             raise ConfigError(f"n_seeds must be at least 1, got {self.n_seeds}")
-        if self.n_evals < 2 or self.n_initial < 2 or self.n_initial > self.n_evals:
-            raise ConfigError(f"need 2 <= n_initial ({self.n_initial}) <= n_evals ({self.n_evals})")
+        if self.n_evals < 2:
+            raise ConfigError(f"n_evals must be at least 2, got {self.n_evals}")
+        if self.method == "bo" and not 2 <= self.n_initial <= self.n_evals:
+            raise ConfigError(
+                f"need 2 <= n_initial ({self.n_initial}) <= n_evals ({self.n_evals}): n_initial "
+                "is BO's initial design"
+            )
         return self
 
     def bo_config(self, crop: str) -> BOConfig:

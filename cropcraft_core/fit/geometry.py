@@ -153,11 +153,17 @@ SPARSE_SPACING_PX = 3.0
 def splat_radius(points: np.ndarray, camera: PinholeCamera, seed: int = 0) -> tuple[int, float]:
     """``(radius in pixels, median nearest-neighbour spacing in pixels)`` for splatting
     ``points`` (world frame) into ``camera``: :data:`SPLAT_SPACINGS` times the points'
-    spacing where the camera sees them (a sample of 20,000 asked of every point in view)."""
+    spacing where the camera sees them (a sample of 20,000 asked of every point in view),
+    among distinct points (exact duplicates, as from two passes or overlapping tiles
+    concatenated, read a spacing of 0 and splatted the cloud 1 px wide)."""
     from scipy.spatial import cKDTree
 
     ok, _, z = _seen(points, camera)
     seen, depth = points[ok], z[ok]
+    _, first = np.unique(seen, axis=0, return_index=True)
+    if len(first) < len(seen):  # a cloud merged with itself: its spacing is not zero
+        keep = np.sort(first)  # in the cloud's order, as without duplicates
+        seen, depth = seen[keep], depth[keep]
     if len(seen) < 2:
         return 2, float("nan")
     pick = np.random.default_rng(seed).choice(len(seen), min(len(seen), 20_000), replace=False)

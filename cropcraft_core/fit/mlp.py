@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -233,20 +234,33 @@ def load_or_train(
         raise ConfigError("MLP training needs at least 2 pairs and 1 epoch")
     path = cache_dir() / f"{crop}-{config_hash(crop, cfg, layout)}.pt"
     if path.exists():
-        blob = torch.load(path, weights_only=False)
-        net = _network(blob["n_in"], blob["n_out"], cfg.hidden)
-        net.load_state_dict(blob["state"])
-        net.eval()
-        return net, blob["mu"], blob["sd"]
+        try:
+            blob = torch.load(path, weights_only=False)
+            net = _network(blob["n_in"], blob["n_out"], cfg.hidden)
+            net.load_state_dict(blob["state"])
+            net.eval()
+            return net, blob["mu"], blob["sd"]
+        except Exception as e:  # truncated, empty, another format: trained again over it
+            warnings.warn(
+                f"the cached MLP {path} cannot be read ({type(e).__name__}: {e}); training it "
+                "again",
+                stacklevel=2,
+            )
+    from cropcraft_core.export.atomic import atomic_path
+
     x, y = training_pairs(crop, cfg, layout, executor=executor)
     net, mu, sd = train(x, y, cfg)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".tmp-{os.getpid()}")
-    torch.save(
-        {"state": net.state_dict(), "mu": mu, "sd": sd, "n_in": x.shape[1], "n_out": y.shape[1]},
-        tmp,
-    )
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:  # fsynced, and no partial file left on failure
+        torch.save(
+            {
+                "state": net.state_dict(),
+                "mu": mu,
+                "sd": sd,
+                "n_in": x.shape[1],
+                "n_out": y.shape[1],
+            },
+            tmp,
+        )
     return net, mu, sd
 
 

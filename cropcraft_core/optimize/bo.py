@@ -161,7 +161,7 @@ class BOConfig:
                 f"BOConfig.local_evals={self.local_evals} exceeds the "
                 f"{self.n_evals - self.n_initial} evaluations after the initial design"
             )
-        if not (isinstance(self.local_step, int | float) and 0 < self.local_step <= 0.5):
+        if not (_number(self.local_step) and 0 < self.local_step <= 0.5):
             raise ConfigError(f"BOConfig.local_step={self.local_step!r}: must be in (0, 0.5]")
         if self.output_transform not in OUTPUT_TRANSFORMS:
             raise ConfigError(
@@ -169,26 +169,28 @@ class BOConfig:
                 f"choose one of {', '.join(OUTPUT_TRANSFORMS)}"
             )
         if not (
-            isinstance(self.log_offset, int | float)
-            and math.isfinite(self.log_offset)
-            and self.log_offset > 0
+            _number(self.log_offset) and math.isfinite(self.log_offset) and self.log_offset > 0
         ):
             raise ConfigError(
                 f"BOConfig.log_offset={self.log_offset!r}: must be a finite number > 0"
             )
         for name in ("xi", "local_scale"):
             v = getattr(self, name)
-            if not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            if not _number(v) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"BOConfig.{name}={v!r}: must be a finite number >= 0")
+        if self.local_scale > 1:  # a fraction of the box's side
+            raise ConfigError(f"BOConfig.local_scale={self.local_scale!r}: must be at most 1")
         if self.noise_variance is not None and not (
-            isinstance(self.noise_variance, int | float)
+            _number(self.noise_variance)
             and gpmod.NOISE_VARIANCE_BOUNDS[0] <= self.noise_variance <= 10.0
         ):
             raise ConfigError(
                 f"BOConfig.noise_variance={self.noise_variance!r}: None (learned) or in [1e-6, 10]"
             )
         if self.blas_threads is not None and (
-            not isinstance(self.blas_threads, int) or self.blas_threads < 1
+            not isinstance(self.blas_threads, int)
+            or isinstance(self.blas_threads, bool)
+            or self.blas_threads < 1
         ):
             raise ConfigError(f"BOConfig.blas_threads={self.blas_threads!r}: None or >= 1")
         return self
@@ -225,6 +227,11 @@ class BOConfig:
         return z if self.output_transform == "none" else math.exp(z) - self.log_offset
 
 
+def _number(v: Any) -> bool:
+    """A real number, not a boolean (``True`` passed for 1.0 where a setting was misparsed)."""
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
 def check_bounds(bounds: Any) -> np.ndarray:
     """Validate a parameter box: finite, shape (d, 2), low < high. Returns it as float64."""
     try:
@@ -239,6 +246,11 @@ def check_bounds(bounds: Any) -> np.ndarray:
     if bad.size:
         i = int(bad[0])
         raise ConfigError(f"bounds[{i}] = [{b[i, 0]:g}, {b[i, 1]:g}]: low must be < high")
+    with np.errstate(over="ignore"):
+        wide = np.flatnonzero(~np.isfinite(b[:, 1] - b[:, 0]))
+    if wide.size:
+        i = int(wide[0])
+        raise ConfigError(f"bounds[{i}] = [{b[i, 0]:g}, {b[i, 1]:g}]: its width overflows")
     return b
 
 
@@ -440,6 +452,13 @@ def aggregate(seed_results: list[SeedResult], *, use: str = "reported") -> Aggre
             rows.append(r.best_x_posterior)
         else:
             rows.append(r.reported_x)
+    first = seed_results[0]
+    for r, row in zip(seed_results, rows, strict=True):
+        if np.shape(row) != np.shape(rows[0]):
+            raise ConfigError(
+                f"seed {r.seed} has {np.size(row)} parameters, seed {first.seed} "
+                f"{np.size(rows[0])}: seeds of one fit share its parameter box"
+            )
     P = np.vstack(rows)
     std = P.std(0, ddof=1) if P.shape[0] > 1 else np.zeros(P.shape[1])
     return Aggregate(P.mean(0), std, P)
