@@ -1,13 +1,15 @@
 """Row fitting on point clouds sampled from real procedural canopies (area-weighted on the faces,
 green) plus noisy brown soil on z = 0, moved into a random similarity frame like an SfM scene."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from cropcraft_core.config.layout import default_layout
-from cropcraft_core.errors import ConfigError, CropCraftError
+from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.procedural.canopy import generate_canopy
 from cropcraft_core.rowfit import (
     RowFitError,
@@ -341,7 +343,107 @@ def test_named_errors():
         fit_ground_and_rows(soil[:50], scol[:50], "soybean", p, rng=0)
     with pytest.raises(RowFitError, match="too few points"):  # everything outside the box
         fit_ground_and_rows(soil + [0, 0, 1.0], scol, "soybean", rng=0)
+    with pytest.raises(ConfigError, match="box_center and box_size must be three numbers"):
+        preset("soybean", box_size=2.0, box_center=0.0)
+    with pytest.raises(ConfigError, match="must be a positive number"):
+        fit_ground_and_rows(soil, scol, "soybean", p, scale=True)
+    rows, rcol, _ = rows_cloud()
+    fit_ground_and_rows(rows, rcol, "soybean", p, scale=np.float32(1.0), rng=0)  # numpy's scale
     assert issubclass(RowFitError, CropCraftError)
+
+
+def rows_cloud(az_deg=0.0, n_rows=3, half=0.95, seed=0, density=20000, z0=0.0):
+    """Leaf points in rows 0.76 m apart (0.5 m tall, 6 cm wide) over a soil plane at ``z0``,
+    cut to a ``half``-wide square; colours as floats in [0, 1]. Returns (points, colours,
+    number of leaf points)."""
+    rng = np.random.default_rng(seed)
+    a = math.radians(az_deg)
+    along, across = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+    leaves = []
+    for k in range(-(n_rows // 2), n_rows // 2 + 1):
+        m = int(0.3 * density)
+        t, off, h = rng.uniform(-3, 3, m), rng.normal(0, 0.06, m), rng.uniform(0, 0.5, m)
+        xy = t[:, None] * along + (0.76 * k + off)[:, None] * across
+        leaves.append(np.column_stack([xy, z0 + h]))
+    leaf = np.vstack(leaves)
+    leaf = leaf[np.all(np.abs(leaf[:, :2]) <= half, axis=1)]
+    xs, ys = rng.uniform(-half, half, density), rng.uniform(-half, half, density)
+    soil = np.column_stack([xs, ys, z0 + rng.normal(0, 0.005, density)])
+    col = np.vstack(
+        [GREEN + rng.normal(0, 0.02, (len(leaf), 3)), BROWN + rng.normal(0, 0.02, (density, 3))]
+    )
+    return np.vstack([leaf, soil]), np.clip(col, 0, 1), len(leaf)
+
+
+def test_colours_are_read_in_their_own_range():
+    """A 0-1 cloud with one value a hair over 1 (an averaged, fused colour) was read as 0-255:
+    every point black, no ground found; 16-bit colours were clipped to white."""
+    pts, col, n_leaf = rows_cloud()
+    p = preset("soybean", box_size=None)
+    want = fit_ground_and_rows(pts, col, "soybean", p, rng=0).diagnostics
+    over = col.copy()
+    over[0, 1] = 1.0001
+    got = fit_ground_and_rows(pts, over, "soybean", p, rng=0).diagnostics
+    assert (got["n_plant"], got["n_ground"]) == (want["n_plant"], want["n_ground"])
+    for c in (np.round(col * 65535).astype(np.uint16), np.round(col * 255).astype(np.uint8)):
+        got = fit_ground_and_rows(pts, c, "soybean", p, rng=0).diagnostics  # rounded: a few
+        assert got["n_plant"] == pytest.approx(want["n_plant"], rel=0.005)  # points on the line
+    assert want["n_plant"] > 0.9 * n_leaf and want["n_ground"] > 10_000  # 20,000 soil points
+    np.testing.assert_allclose(
+        srgb_to_lab(np.array([[65535, 0, 0]], np.uint16)), srgb_to_lab(np.array([[1.0, 0, 0]]))
+    )
+    with pytest.raises(InputError, match="colour values reach 5332"):
+        fit_ground_and_rows(pts, col * 1e6, "soybean", p, rng=0)
+
+
+def test_far_floaters_leave_the_row_fit_as_it_was():
+    """Thirty stray points 100,000 km away (no scene box to cut them): the lateral profile's
+    1 cm bins reached across them, a 74 GiB allocation; now they are left out of it."""
+    pts, col, _ = rows_cloud()
+    p = preset("soybean", box_size=None)
+    near = fit_ground_and_rows(pts, col, "soybean", p, rng=0)
+    far = np.array([[1e8, 3e7, 0.3]]) + np.random.default_rng(1).normal(0, 0.01, (30, 3))
+    fit = fit_ground_and_rows(
+        np.vstack([pts, far]), np.vstack([col, np.tile(GREEN, (30, 1))]), "soybean", p, rng=0
+    )
+    assert fit.best_row.azimuth_deg == pytest.approx(near.best_row.azimuth_deg, abs=0.5)
+
+
+def test_an_unconfirmed_row_spacing_scale_falls_back_to_the_assumed_one():
+    """The first, wide estimate of the scale can take a wrong peak (here x0.648 of a true
+    x0.8); the refit at that scale then finds no row period within 15 % of the spacing. That
+    fit was returned labelled "row_spacing"; the scale-1 fit is, labelled "assumed_metric"."""
+    pts, col, _ = rows_cloud(az_deg=45.0, n_rows=5, half=0.7, density=30000, z0=-1.5)
+    fit = fit_rows_with_scale(
+        pts * 1.25, col, "soybean", preset("soybean", box_size=None), rng=0,
+        known_row_spacing=0.76,
+    )  # fmt: skip
+    factors = fit.diagnostics["scale_factors"]
+    assert fit.scale == 1.0 and fit.scale_source == "assumed_metric"
+    assert len(factors) == 2 and factors[0] != pytest.approx(1.0, abs=0.1)
+    assert "not confirmed" in fit.diagnostics["scale_fallback"]
+
+
+def test_the_direction_is_refined_within_its_span_of_the_ransac_row(monkeypatch):
+    """``refine_direction_deg`` bounds the search: the 0.02° search ran 1° either side of the
+    best 0.5° step (0.24° off at a span of 0.1°), and a span under 0.5° left one coarse angle,
+    not the RANSAC row's own."""
+    import cropcraft_core.rowfit.fit as rf
+
+    seen = {}
+    refine = rf._refine_row
+
+    def spy(xy, row, p, **kw):
+        out = refine(xy, row, p, **kw)
+        seen["in"], seen["out"] = (math.atan2(*r.direction[1::-1]) for r in (row, out[0]))
+        return out
+
+    monkeypatch.setattr(rf, "_refine_row", spy)
+    pts, col, _ = rows_cloud()
+    for span in (0.1, 0.3):
+        p = preset("soybean", refine_direction_deg=span, box_size=None)
+        fit_ground_and_rows(pts, col, "soybean", p, rng=0)
+        assert abs(math.degrees(seen["out"] - seen["in"])) <= span + 1e-9
 
 
 def on_voxel_edges(pts, voxel, rng):

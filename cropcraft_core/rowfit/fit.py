@@ -35,6 +35,7 @@ user's camera height), ``"user_hint"`` (a scale given by the user),
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -42,7 +43,7 @@ import numpy as np
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.geometry.camera import PinholeCamera
-from cropcraft_core.rowfit.lab import srgb_to_lab
+from cropcraft_core.rowfit.lab import colour_range, srgb_to_lab
 from cropcraft_core.rowfit.presets import RowFitPreset
 from cropcraft_core.rowfit.presets import preset as make_preset
 
@@ -383,8 +384,14 @@ def fit_ground_and_rows(
         raise ConfigError(
             f"scale_source must be one of {', '.join(SCALE_SOURCES)}, got {scale_source!r}"
         )
-    if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
-        raise ConfigError(f"scale (metres per scene unit) must be positive, got {scale!r}")
+    if not (
+        isinstance(scale, numbers.Real)
+        and not isinstance(scale, bool)
+        and math.isfinite(scale)
+        and scale > 0
+    ):
+        raise ConfigError(f"scale (metres per scene unit) must be a positive number, got {scale!r}")
+    scale = float(scale)
     rng = _as_rng(rng)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -392,12 +399,12 @@ def fit_ground_and_rows(
     col = np.asarray(colors)
     if col.shape != pts.shape:
         raise InputError(f"colors must have the same shape as points {pts.shape}, got {col.shape}")
-    lab_max = 255.0 if np.issubdtype(col.dtype, np.integer) else None
+    integer = np.issubdtype(col.dtype, np.integer) or np.issubdtype(col.dtype, np.bool_)
     col = col.astype(np.float64)
     finite = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(col), axis=1)
     pts, col = pts[finite], col[finite]
-    if lab_max is None:  # the scale from the points kept: one inf colour made every colour dark
-        lab_max = 255.0 if col.size and float(col.max()) > 1.0 else 1.0
+    # the range from the points kept: one inf colour made every colour dark
+    lab_max = colour_range(col, integer=integer)
     diag: dict = {"n_input": int(len(finite)), "n_finite": int(finite.sum())}
 
     # 1. scene box and sampling
@@ -598,6 +605,14 @@ def _sequential_rows(
         remaining = remaining[~inl]
 
 
+#: The widest lateral profile binned as it is (metres; 1 cm bins): a field a kilometre across.
+#: Wider, the points beyond half of it from their median are stray ones (a NeRF's or SfM's
+#: floaters far from the plot, with no scene box to cut them) and are left out: their
+#: distance made the profile's time and memory grow without bound (10 km: 10 s per fit;
+#: 1e5 km: a 74 GiB allocation).
+PROFILE_SPAN_M = 1000.0
+
+
 def _lateral_profile(u: np.ndarray, period_bins: int, sigma_bins: float = 2.0) -> np.ndarray:
     """The row-scale part of the lateral profile of offsets ``u`` (m): their 1 cm-bin histogram
     less its moving average over ``period_bins`` bins (the plot's envelope, a closed canopy's
@@ -605,6 +620,8 @@ def _lateral_profile(u: np.ndarray, period_bins: int, sigma_bins: float = 2.0) -
     that: a TSDF's voxel lattice, single leaf edges)."""
     from scipy.ndimage import gaussian_filter1d, uniform_filter1d
 
+    if u.size and float(u.max() - u.min()) > PROFILE_SPAN_M:  # far floaters: left out
+        u = u[np.abs(u - np.median(u)) <= 0.5 * PROFILE_SPAN_M]
     h = np.bincount(np.floor((u - u.min()) / 0.01).astype(np.int64)).astype(float)
     return gaussian_filter1d(h - uniform_filter1d(h, period_bins, mode="nearest"), sigma_bins)
 
@@ -697,7 +714,11 @@ def _refine_row(
     dxy = rel if direction_xy is None else direction_xy - direction_xy.mean(axis=0)
     # high-pass at the row period: the known planting spacing, else a typical row's 4 line widths
     period = p.row_spacing if p.row_spacing is not None else 4 * p.line_threshold
-    coarse = base + np.arange(-span, span + 1e-12, math.radians(0.5))
+    step = math.radians(0.5)
+    # every 0.5° within the span, the RANSAC row's own direction among them however narrow
+    coarse = base + (
+        np.arange(-span, span + 1e-12, step) if span >= step else np.r_[-span, 0, span]
+    )
     periodic, normalised, energy = _direction_scores(dxy, coarse, period)
     k = int(np.argmax(periodic))
     # the rows' period where it shows (as strong as the scale estimate needs) along a sharp
@@ -715,6 +736,8 @@ def _refine_row(
     use = 0 if periodic_ok else 2
     a0 = float(coarse[k] if use == 0 else coarse[int(np.argmax(energy))])
     fine = a0 + np.radians(np.arange(-1.0, 1.0 + 1e-9, 0.02))
+    if span < math.pi / 2:  # within the span (at 90° either side every direction is in it)
+        fine = np.clip(fine, base - span, base + span)
     a = float(fine[int(np.argmax(_direction_scores(dxy, fine, period)[use]))])
     d = np.array([math.cos(a), math.sin(a)])
     u = rel @ np.array([-d[1], d[0]])
@@ -943,8 +966,9 @@ def fit_rows_with_scale(
     2. ``scale_hint`` (a user-given metres per scene unit) → ``"user_hint"``;
     3. ``known_row_spacing`` (metres): fit at scale 1, measure the row spacing, rescale and refit
        until the correction is within ``tolerance`` (at most ``max_passes`` refits) →
-       ``"row_spacing"``; if the spacing cannot be measured the last fit is returned with
-       ``"assumed_metric"`` and ``diagnostics["scale_fallback"]`` explains why;
+       ``"row_spacing"``; if the spacing cannot be measured, or a refit at the estimated
+       scale does not confirm it, the scale-1 fit is returned with ``"assumed_metric"`` and
+       ``diagnostics["scale_fallback"]`` explains why;
     4. nothing → scale 1, ``"assumed_metric"``.
 
     The row-spacing route needs the first pass to find several rows: the metric thresholds
@@ -968,6 +992,7 @@ def fit_rows_with_scale(
     seed = int(rng.integers(2**63 - 1))
     scale = 1.0
     fit = fit_ground_and_rows(points, colors, crop, preset, np.random.default_rng(seed), scale=1.0)
+    first = fit
     history = []
     for i in range(max_passes):
         # later passes only refine: a wide window could hop to another peak each pass
@@ -975,9 +1000,21 @@ def fit_rows_with_scale(
             fit, known_row_spacing, search=(0.6, 1.6) if i == 0 else (0.85, 1.15)
         )
         history.append(est.factor)
-        if est.method == "fallback_unchanged":
+        if est.method == "fallback_unchanged" and i == 0:
             diag = {**fit.diagnostics, "scale_fallback": "row spacing could not be measured"}
             return replace(fit, diagnostics=diag)
+        if est.method == "fallback_unchanged":  # the first estimate is not confirmed: the
+            # refit at its scale shows no rows within 15 % of the spacing, so it was a wrong
+            # peak; the scale-1 fit stands, as where the spacing is not found at all
+            diag = {
+                **first.diagnostics,
+                "scale_fallback": (
+                    f"row spacing not confirmed: the fit rescaled by {scale:.4g} shows no row "
+                    "period within 15 % of the known spacing"
+                ),
+                "scale_factors": history,
+            }
+            return replace(first, diagnostics=diag)
         scale *= est.factor
         fit = _seeded_fit(points, colors, crop, preset, seed, scale, "row_spacing")
         if abs(est.factor - 1.0) <= tolerance:

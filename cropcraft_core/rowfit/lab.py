@@ -27,21 +27,34 @@ _EPS = (6.0 / 29.0) ** 3
 _KAPPA = 1.0 / (3.0 * (6.0 / 29.0) ** 2)
 
 
+def colour_range(colors: np.ndarray, *, integer: bool) -> float:
+    """The value of full intensity of ``colors``, read from their largest value: 0–255 for
+    8-bit values, 0–65535 for 16-bit ones (a PLY's ``ushort`` colours); floats are 0–1 up to
+    a largest value of 2 (a fused or averaged colour a hair over 1, an exposure-corrected
+    render's 1.02: dividing those by 255 made every point black), 0–255 up to 255, else
+    0–65535. Larger values are refused: they are no colours."""
+    top = float(np.nanmax(colors)) if np.size(colors) else 0.0
+    if top > 65535.0:
+        raise InputError(f"colour values reach {top:g}: not 0-1, 0-255 or 0-65535 colours")
+    if top > 255.0:
+        return 65535.0
+    if integer or top > 2.0:
+        return 255.0
+    return 1.0
+
+
 def srgb_to_lab(rgb: np.ndarray, max_value: float | None = None) -> np.ndarray:
     """(..., 3) sRGB colours → (..., 3) float64 CIELAB (L*, a*, b*), D65 white.
 
-    max_value: the value of full intensity. ``None`` infers it: integer arrays are 0–255; float
-    arrays are 0–1 unless some value exceeds 1, then 0–255. Values are clipped to
-    [0, max_value].
+    max_value: the value of full intensity. ``None`` infers it (:func:`colour_range`). Values
+    are clipped to [0, max_value].
     """
     a = np.asarray(rgb)
     if a.shape[-1:] != (3,):
         raise InputError(f"colours must have shape (..., 3), got {a.shape}")
     if max_value is None:
-        if np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_):
-            max_value = 255.0
-        else:
-            max_value = 255.0 if a.size and float(np.nanmax(a)) > 1.0 else 1.0
+        integer = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_)
+        max_value = colour_range(a, integer=integer)
     if not max_value > 0:
         raise InputError(f"max_value must be positive, got {max_value}")
     c = np.clip(a.astype(np.float64) / float(max_value), 0.0, 1.0)

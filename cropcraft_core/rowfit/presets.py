@@ -209,6 +209,12 @@ class RowFitPreset:
         if (self.box_center is None) != (self.box_size is None):
             raise ConfigError("box_center and box_size must both be given or both be None")
         if self.box_size is not None:
+            three = (tuple, list)
+            if not (isinstance(self.box_size, three) and isinstance(self.box_center, three)):
+                raise ConfigError(
+                    f"box_center and box_size must be three numbers each (x, y, z), got "
+                    f"{self.box_center!r} and {self.box_size!r}"
+                )
             if len(self.box_size) != 3 or len(self.box_center) != 3:
                 raise ConfigError("box_center and box_size must have three entries each")
             for v in self.box_size:
