@@ -649,6 +649,23 @@ def test_save_load_round_trip_is_exact(obs, tmp_path):
             Observation.load(io.BytesIO(damaged))
 
 
+def test_a_directory_save_stopped_between_its_files_loads_the_new_observation_whole(obs, tmp_path):
+    """A save into a directory writes the npz, then the json: stopped between the two, the
+    new arrays stood beside the old record, loaded as one with the old statistics (a loss of
+    5.0 of the observation against its own depth). The npz holds its record too, read where
+    the json's digest is of other arrays."""
+    obs.save(tmp_path)
+    old_json = (tmp_path / "observation.json").read_text()
+    other = Observation.from_depth(
+        "soybean", np.clip(obs.depth * 0.9, 0.0, None), obs.camera, preset=obs.preset
+    )
+    other.save(tmp_path)
+    (tmp_path / "observation.json").write_text(old_json)  # as the stopped save left it
+    back = Observation.load(tmp_path)
+    assert back.equals(other) and back.stats.equals(other.stats)
+    assert back.loss_of(other.depth).total == 0.0
+
+
 def test_load_recomputes_stats_when_the_stored_preset_was_edited(obs, tmp_path):
     obs.save(tmp_path)
     rec = json.loads((tmp_path / "observation.json").read_text())

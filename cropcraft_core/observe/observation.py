@@ -450,8 +450,10 @@ class Observation:
     def save(self, target: str | os.PathLike | BinaryIO) -> Path | None:
         """Write the observation.
 
-        target: a directory (created; gets ``observation.npz`` + ``observation.json``), a path
-        ending in ``.npz`` (one file, JSON record inside), or a binary file object (one npz).
+        target: a directory (created; gets ``observation.npz`` with the record inside, as every
+        form has it, and ``observation.json``, the record a person reads and may edit, with
+        the digest of the arrays it was written beside), a path ending in ``.npz`` (one file,
+        JSON record inside), or a binary file object (one npz).
         Returns the path written, ``None`` for a file object. ``OutputError`` if it cannot be
         written.
         """
@@ -466,9 +468,13 @@ class Observation:
                 _atomic_npz(path, {"record": np.array(text), **self._arrays()})
             else:
                 path.mkdir(parents=True, exist_ok=True)
-                _atomic_npz(path / NPZ_NAME, self._arrays())
-                tmp = path / (JSON_NAME + ".tmp")
-                tmp.write_text(text + "\n")
+                # the record in the npz too, which load reads first: a save stopped between
+                # the two files left new arrays beside the old statistics, loaded as one
+                arrays = self._arrays()
+                _atomic_npz(path / NPZ_NAME, {"record": np.array(text), **arrays})
+                beside = {**self.record(), "arrays_sha256": _arrays_digest(arrays)}
+                tmp = path / f".{JSON_NAME}.{os.getpid()}.tmp"
+                tmp.write_text(json.dumps(beside, indent=1, allow_nan=False) + "\n")
                 os.replace(tmp, path / JSON_NAME)
         except OSError as e:
             raise OutputError(f"cannot write observation to {path}: {e}") from None
@@ -484,11 +490,13 @@ class Observation:
         else:
             path = Path(source)
             if path.is_dir():
-                arrays, _ = _read_npz(path / NPZ_NAME, str(path / NPZ_NAME))
+                arrays, inside = _read_npz(path / NPZ_NAME, str(path / NPZ_NAME))
                 try:
                     text = (path / JSON_NAME).read_text()
                 except OSError as e:
                     raise InputError(f"cannot read {path / JSON_NAME}: {e}") from None
+                if inside is not None and _torn(text, arrays):
+                    text = inside  # a save stopped between its two files: the npz's own
             elif path.is_file():
                 arrays, text = _read_npz(path, str(path))
             else:
@@ -665,3 +673,26 @@ __all__ = [
     "predicted_mask",
     "rgb_to_lab",
 ]
+
+
+def _arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 of an observation's arrays (names, dtypes, shapes and bytes)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _torn(text: str, arrays: dict[str, np.ndarray]) -> bool:
+    """Whether a directory's ``observation.json`` was written beside other arrays than its
+    npz's (a save stopped between the two files: the new arrays, the old record and
+    statistics). A record without a digest (older, or edited without one) is not judged."""
+    try:
+        digest = json.loads(text).get("arrays_sha256")
+    except (ValueError, AttributeError):
+        return False  # load names what is wrong with it
+    return digest is not None and digest != _arrays_digest(arrays)
