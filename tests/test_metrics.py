@@ -665,3 +665,20 @@ def test_a_scene_fitted_over_several_rows_answers_with_their_mean_or_its_best_ro
         rows_answer(fits, "median")
     with pytest.raises(InputError, match="best row"):
         rows_answer({1: fits[1]}, "mean")
+
+
+def test_a_canopy_built_for_part_of_the_plot_measures_the_ground_of_its_plants():
+    """A region cutting the plot builds fewer of its plants: their ground, not the whole plot's,
+    is what LAI divides by (the whole plot's read a 1 m square of the default plot 6x low)."""
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.metrics import canopy_metrics
+    from cropcraft_core.procedural import generate_canopy
+
+    lay = default_layout("soybean")
+    full = generate_canopy("soybean", None, lay, seed=0)
+    part = generate_canopy("soybean", None, lay, seed=0, region=(-0.5, 0.5, -0.5, 0.5))
+    density = full.n_plants / full.ground_area
+    assert part.n_plants < full.n_plants / 4
+    assert part.n_plants / part.ground_area == pytest.approx(density)
+    a, b = (canopy_metrics(c, gap_fraction=False)["lai"] for c in (full, part))
+    assert b == pytest.approx(a, rel=0.15)

@@ -17,7 +17,8 @@ unless ``leaf_only``), and clumping lowers the reading below the true LAI (Ω < 
 rings' weights are exact for randomly inclined leaves (G = 0.5: 2 · Σ 0.5 · W_i = 0.999) but not
 for flat ones: horizontal leaves (G = cos θ) read 2 · Σ cos θ_i · W_i = 1.24 times their LAI. So
 the reading falls on either side of the truth; the default soybean canopy (mean leaf inclination
-15°) reads +5 % on its leaves alone and +22 % with every organ (session 88). Averaging: by
+15°) reads +5 to +12 % on its leaves alone and +22 to +30 % with every organ (canopy seeds 0–2,
+each with its own sensors' draw: sessions 88, 89). Averaging: by
 default T_i is pooled over every ray of the ring from every sensor (the LAI-2000's "log of the
 mean"); ``log_average=True`` takes −ln T per sensor first and averages those (the LAI-2200's
 mean of logs, more sensitive to clumping). T = 0 (no ray escaped) has no logarithm: T is clipped

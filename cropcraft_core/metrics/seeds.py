@@ -5,9 +5,9 @@ A scene's answer combines the best parameters of several independent optimiser s
 and canopy seed: only the parameters differ) whose traits are measured as for ``metrics.json``
 (without the gap-fraction reading). Their spread is not a confidence interval: it is how far
 equally good searches of the same observation land apart, which on a loss surface with broad
-valleys can be wide (the demo scene's ten seeds read LAI 1.12 to 2.11 around its answer of 1.50,
-benchmarks/RESULTS.md *#seed-traits*). A user reads it as how firmly the observation pins each
-trait down, beside the answer itself.
+valleys can be wide (the demo scene's ten seeds read LAI 1.10 to 1.63 around its answer of 1.44,
+README; 1.12 to 2.11 around 1.50 when benchmarks/RESULTS.md *#seed-traits* was measured).
+A user reads it as how firmly the observation pins each trait down, beside the answer itself.
 """
 
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 Every measured number is a ``Trait(name, value, unit, method)`` record (PlantCV style), so the flat
 dictionary that ends up in ``metrics.json`` can carry a ``definitions`` block saying what each
-number is and how it was obtained. Only plants whose base lies in the measured plot
-(``Canopy.plant_in_plot``) count; the others are planted border. Lengths and areas are SI (m, m²)
-throughout; angles are radians inside and degrees only in the output dictionary.
+number is and how it was obtained. Only plants planted in the measured plot
+(``Canopy.plant_in_plot``: by row and in-row slot) count; the others are planted border.
+Lengths and areas are SI (m, m²) throughout; angles are radians inside and degrees only in the
+output dictionary.
 
 Leaf inclination θ of a leaf face is the angle between its normal and the vertical,
 θ = arccos |n_z| (0° for a horizontal leaf, 90° for a vertical one); statistics over faces are
@@ -264,7 +265,7 @@ def canopy_traits(
         tops, height = np.zeros(0), math.nan
 
     traits = [
-        Trait("n_plants", int(n_plants), "1", "plants whose base lies in the measured plot"),
+        Trait("n_plants", int(n_plants), "1", "plants planted in the measured plot (row, slot)"),
         Trait("n_faces", int(plot.n_faces), "1", "mesh faces (all organs) of the in-plot plants"),
         Trait(
             "n_faces_total", int(mesh.n_faces), "1", "mesh faces of the whole canopy incl. border"

@@ -154,7 +154,10 @@ def generate_canopy(
         mesh = type(mesh)(mesh.vertices @ rot.T, mesh.faces, mesh.organ, mesh.plant, mesh.node)
         base = base @ rot.T
         nodes.xyz = nodes.xyz @ rot.T
-    ground_area = len(plot_rows) * s * len(plot_slots) * d
+    # the ground of the plot's plants built: a region cutting the plot builds fewer of them
+    # (its ground was the whole plot's, so a 1 m square of the default plot read LAI 6x low)
+    full = len(plot_rows) * len(plot_slots)
+    ground_area = len(plot_rows) * s * len(plot_slots) * d * (int(in_plot.sum()) / full)
     return Canopy(
         crop=crop,
         params=params,

@@ -15,8 +15,10 @@ class Canopy:
     """A procedural canopy.
 
     Plants (p of them): ``plant_xy`` (p, 2) base positions (m), ``plant_in_plot`` (p,) bool, true
-    for the plants whose base lies in the measured plot (metrics use only these; the others are the
-    planted border). Plant ids in ``mesh.plant`` index these arrays.
+    for the plants planted in the measured plot: the rows whose centre line lies in it (edges
+    included; always an odd number, centred on the plot) and the in-row positions whose slot
+    does, before their jitter (metrics use only these; the others are the planted border).
+    Plant ids in ``mesh.plant`` index these arrays.
 
     Nodes (k of them, every node of every plant): ``node_plant`` (k,) int32, ``node_id`` (k,)
     int32 (the id faces carry in ``mesh.node``), ``node_stem`` (k,) int16 (-1 main stem, b ≥ 0
@@ -24,8 +26,10 @@ class Canopy:
     ``node_internode`` (k,) length of the stem segment below the node (m; for a branch's first node,
     the segment from the main stem).
 
-    ``ground_area`` (m²): the ground the in-plot plants stand for, n_rows × row spacing ×
-    plants per row × in-row spacing, so LAI = leaf area of in-plot plants / ground_area.
+    ``ground_area`` (m²): the ground the in-plot plants built stand for, their number × row
+    spacing × in-row spacing, so LAI = leaf area of in-plot plants / ground_area. It is the
+    planted rows' ground, which is not the plot's area (a 1.52 m wide plot of 0.76 m rows
+    plants three rows: 2.28 m of ground across).
     """
 
     crop: str
