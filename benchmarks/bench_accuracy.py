@@ -165,14 +165,14 @@ def scene_observation(
     return _record(params, canopy), obs
 
 
-def combine_scene(crop: str, rows, results, seconds: float, observation=None) -> dict:
+def combine_scene(crop: str, rows, results, seconds: float, observation=None, layout=None) -> dict:
     """One scene's answer under each of ``rows`` ((row name, FitConfig)) from its seeds'
     ``results`` (combined in seed order, as ``fit_observation`` would), ``seconds`` the seeds'
     summed compute: ``{row: (params, seconds of fitting incl. any re-scoring)}``. Re-scoring
     rows need the scene's ``observation``; rows with the same re-scoring options share one
     re-scoring (it is deterministic), and each row still counts its seconds. A ``floors`` row
     also counts the seeds' own polishes (``SeedResult.floor``), which the other rows do not
-    use."""
+    use. ``layout``: the planting layout the seeds were fitted with (None: the crop's)."""
     results = sorted(results, key=lambda r: r.seed)
     out, made, polished_by = {}, {}, {}
     for row, cfg in rows:
@@ -182,7 +182,7 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
             continue
         if cfg.combine_rule(crop) == "floors":  # no re-scoring; the seeds' polishes count here
             polishes = sum(float(r.floor["seconds"]) for r in results if r.floor is not None)
-            f = combine(crop, results, cfg, seconds + polishes, observation)
+            f = combine(crop, results, cfg, seconds + polishes, observation, layout)
             out[row] = (f.params, f.seconds)
             continue
         box = cfg.param_box(crop)
@@ -195,7 +195,7 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
         key = (cfg.reevaluate_canopies, cfg.polish_starts, cfg.polish_evals, box.names)
         if key not in made and observation is not None:  # (without one, combine names the error)
             made[key] = select(
-                ForwardModel(observation),
+                ForwardModel(observation, layout),
                 results,
                 cfg.reevaluate_canopies,
                 cfg.polish_starts,
@@ -204,7 +204,7 @@ def combine_scene(crop: str, rows, results, seconds: float, observation=None) ->
             )
             if cfg.polish_evals > 0:
                 polished_by[(*key[:2], box.names)] = made[key]
-        f = combine(crop, results, cfg, seconds, observation, selection=made.get(key))
+        f = combine(crop, results, cfg, seconds, observation, layout, selection=made.get(key))
         out[row] = (f.params, f.seconds)
     return out
 
@@ -986,6 +986,14 @@ def main(argv: list[str] | None = None) -> int:
 
         default_methods = ",".join(SEED_METHODS)
     methods = [m.strip() for m in (a.methods or default_methods).split(",") if m.strip()]
+    known = default_methods.split(",")
+    unknown = [m for m in methods if m not in known]
+    if unknown or not methods:  # not after the first methods have fitted every scene
+        ap.error(
+            f"--methods {a.methods!r}: "
+            + (f"unknown method(s) {', '.join(unknown)}; " if unknown else "no method; ")
+            + f"choose from {', '.join(known)}"
+        )
     overrides = {
         "n_seeds": a.seeds,
         "n_evals": a.evals,

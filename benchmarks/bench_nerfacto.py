@@ -35,7 +35,6 @@ from PIL import Image
 # all (deploy/gpu_check_run.sh does, before anything starts); the compare half's (Open3D, the
 # truth mesh) stay inside it.
 from benchmarks.options import at_least, output_file, parse_kv, seeds_by_evals, write_json
-from cropcraft_core.config import default_layout
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.observe import Observation
 from cropcraft_core.rowfit import fit_rows_with_scale
@@ -224,7 +223,9 @@ def train(a: argparse.Namespace) -> dict:
     np.savez_compressed(out / "points.npz", points=points, colors=colors)
 
     t = time.perf_counter()
-    layout = default_layout(crop)
+    from benchmarks.bench_pipeline import scene_layout
+
+    layout = scene_layout(root, crop)  # the scene's own rows, not the crop's default
     pre = rowfit_preset(crop, row_spacing=layout.row_spacing, box_center=None, box_size=None)
     try:
         fit = fit_rows_with_scale(

@@ -89,6 +89,46 @@ def scene_crop(root: Path, asked: str | None) -> str:
     return asked or "soybean"
 
 
+def check_settings(ap: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    """The settings the run reads after the scene, ingest and SfM, checked before any of them:
+    ``--sfm`` and ``--surfaces`` keys, ``--bbox``, ``--prediction-blur``, and a reused scene's
+    true traits where ``--fit`` scores against them."""
+    import inspect
+
+    from cropcraft_core.errors import CropCraftError
+    from cropcraft_core.observe import check_prediction_blur
+    from cropcraft_core.sfm import run_sfm
+    from cropcraft_core.surfaces import CROP_SURFACES, SurfacesConfig, resolve_bbox
+
+    root = Path(a.scene_dir) if a.scene_dir else None
+    crop = scene_crop(root, a.crop) if root else a.crop or "soybean"
+    sfm_keys = set(inspect.signature(run_sfm).parameters) - {"image_dir", "work_dir"}
+    try:
+        sfm = parse_kv(a.sfm)
+        unknown = sorted(set(sfm) - sfm_keys)
+        if unknown:
+            raise ValueError(f"--sfm {unknown[0]}: not a setting of run_sfm")
+        SurfacesConfig(**{**CROP_SURFACES[crop], **parse_kv(a.surfaces)})
+        resolve_bbox(a.bbox, crop)
+        check_prediction_blur(a.prediction_blur)
+    except (CropCraftError, TypeError, ValueError) as e:
+        ap.error(str(e))
+    if a.fit and root is not None and (root / "scene.json").is_file():
+        truth_metrics(root)
+
+
+def scene_layout(root: Path, crop: str):
+    """The planting layout the scene at ``root`` was made with (its ``scene.json``'s: ``cropcraft
+    synth --row-spacing/--density/--plot``), else ``crop``'s default: the row fit's known
+    spacing, the row errors' true rows and the fitted canopy are all of it."""
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.config.layout import CanopyLayout
+
+    f = root / "scene.json"
+    given = json.loads(f.read_text()).get("layout") if f.is_file() else None
+    return CanopyLayout(**given) if given else default_layout(crop)
+
+
 #: Depth shift (fraction of the render height) whose L1 the bench prints as the metric's scale.
 SHIFT_REL = 0.005
 
@@ -254,7 +294,6 @@ def _scene_from_true(poses, truth_poses) -> np.ndarray:
 
 def run(a: argparse.Namespace) -> dict:
 
-    from cropcraft_core.config import default_layout
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
     from cropcraft_core.rowfit.truth import row_fit_errors
@@ -285,7 +324,7 @@ def run(a: argparse.Namespace) -> dict:
     out["views"], out["resolution"] = len(made["images"]), list(made["resolution"])
     out["scene_dir"] = str(root)
     out["crop"] = crop
-    layout = default_layout(crop)
+    layout = scene_layout(root, crop)
     truth_poses = import_transforms_json(root / "transforms.json")
 
     with tempfile.TemporaryDirectory(prefix="bench_pipe_work_") as tmp:
@@ -617,13 +656,16 @@ def _truth_depth(truth, fit, scene_from_true: np.ndarray, image_scale: float) ->
     return np.where(np.isfinite(d), d, np.nan)
 
 
-def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None, **options) -> tuple[dict, dict]:
+def fit_rules(
+    obs, budget: str, checkpoint_dir: Path | None = None, layout=None, **options
+) -> tuple[dict, dict]:
     """BO at ``SEEDSxEVALS`` on ``obs``, its seeds combined by every rule at no extra fitting
     cost (``bench_accuracy.rules``: the crop's default first as ``bo``, then the other rules as
     ``bo-<rule>`` and the re-scoring's unpolished answer), as ``bench accuracy`` compares them:
     ``({row: params}, {"params_std": the seeds' spread, "seeds": each seed's best point and
     loss})``. Each seed resumes from ``checkpoint_dir/seed-N.json`` where given, so a killed run
-    continues where it stopped. ``options``: further ``FitConfig`` fields (e.g. the re-scoring's
+    continues where it stopped. ``layout``: the scene's planting layout (None: the crop's
+    default). ``options``: further ``FitConfig`` fields (e.g. the re-scoring's
     ``reevaluate_canopies``)."""
     from benchmarks.bench_accuracy import combine_scene, rules, seed_seconds
     from cropcraft_core.fit import FitConfig, fit_seed
@@ -634,11 +676,11 @@ def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None, **options) -
     if checkpoint_dir is not None:
         checkpoint_dir.mkdir(parents=True, exist_ok=True)
     results = [
-        fit_seed(obs, s, cfg, None, checkpoint_dir / f"seed-{s}.json" if checkpoint_dir else None)
+        fit_seed(obs, s, cfg, layout, checkpoint_dir / f"seed-{s}.json" if checkpoint_dir else None)
         for s in range(seeds)
     ]
     seconds = sum(seed_seconds(r) for r in results)
-    answers = combine_scene(obs.crop, rules(obs.crop, "bo", cfg), results, seconds, obs)
+    answers = combine_scene(obs.crop, rules(obs.crop, "bo", cfg), results, seconds, obs, layout)
     box = cfg.param_box(obs.crop)
     seeds_rec = [
         {"seed": r.seed, "params": box.params(r.reported_x), "loss": float(r.best_y)}
@@ -646,6 +688,18 @@ def fit_rules(obs, budget: str, checkpoint_dir: Path | None = None, **options) -
     ]
     spread = {"params_std": box.spread(aggregate(results).std_x), "seeds": seeds_rec}
     return {row: params for row, (params, _) in answers.items()}, spread
+
+
+def truth_metrics(root: Path) -> Path:
+    """The scene's ``truth/metrics.json``, which a fit is scored against; a scene made without
+    it (``bench surfaces`` makes its scenes so) is named before any fitting."""
+    f = root / "truth" / "metrics.json"
+    if not f.is_file():
+        raise SystemExit(
+            f"{f} is missing: the scene was made without its true traits (as bench surfaces "
+            "makes them); --fit needs a scene made by cropcraft synth or bench pipeline"
+        )
+    return f
 
 
 #: The sides ``fit_and_compare`` can ask whose miss an answer is of.
@@ -673,20 +727,20 @@ def fit_and_compare(
     and every seed's best point (``seeds``) ride along, so one fit compares the rules on a
     photo observation as ``bench accuracy`` does on renders. ``options``: further
     ``FitConfig`` fields (:func:`fit_rules`)."""
-    from cropcraft_core.config import default_layout
     from cropcraft_core.metrics import canopy_metrics
     from cropcraft_core.procedural import generate_canopy
 
     if attribute not in ATTRIBUTE_SIDES:
         raise ValueError(f"attribute must be one of {ATTRIBUTE_SIDES}, got {attribute!r}")
-    t = time.perf_counter()
-    answers, spread = fit_rules(obs, budget, checkpoint_dir, **options)
-    seconds = time.perf_counter() - t
-    true = json.loads((root / "truth" / "metrics.json").read_text())
+    true = json.loads(truth_metrics(root).read_text())  # before the fit: it may be missing
     true_params = json.loads((root / "truth" / "params.json").read_text())
+    layout = scene_layout(root, obs.crop)
+    t = time.perf_counter()
+    answers, spread = fit_rules(obs, budget, checkpoint_dir, layout, **options)
+    seconds = time.perf_counter() - t
 
     def traits(params: dict) -> dict:
-        canopy = generate_canopy(obs.crop, params, default_layout(obs.crop), seed=0)
+        canopy = generate_canopy(obs.crop, params, layout, seed=0)
         est = canopy_metrics(canopy, gap_fraction=False)
         return {k: {"estimated": est.get(k), "true": true.get(k)} for k in FIT_TRAITS if k in true}
 
@@ -1066,6 +1120,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.fit_true_mesh and not a.fit:
         ap.error("--fit-true-mesh needs --fit SEEDSxEVALS (the budget of both fits)")
+    check_settings(ap, a)
     out = run(a)
     out.pop("_observation")
     _print(out)

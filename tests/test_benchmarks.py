@@ -58,6 +58,13 @@ def test_json_results_are_strict_json(tmp_path):
         (["optimizer", "--methods", "random,foo"], "unknown method(s) foo"),
         (["optimizer", "--n", "10", "--n-initial", "20"], "--n-initial 20 exceeds --n 10"),
         (["pipeline", "--fit", "10"], "not SEEDSxEVALS"),
+        (["accuracy", "--crop", "soybean", "--methods", "random,bogus"], "unknown method(s) bogus"),
+        (["accuracy", "--crop", "soybean", "--methods", ","], "no method"),
+        (["accuracy", "--crop", "soybean", "--runner", "threads", "--methods", "mlp"], "mlp"),
+        (["pipeline", "--surfaces", "bogus=1"], "unexpected keyword argument 'bogus'"),
+        (["pipeline", "--sfm", "bogus=1"], "--sfm bogus: not a setting of run_sfm"),
+        (["pipeline", "--bbox", "[1, 2]"], "surfaces bbox must be"),
+        (["pipeline", "--prediction-blur", "-1"], "prediction blur must be"),
         (["fit-speed", "--initial", "30", "--evals", "20"], "--initial 30 exceeds --evals 20"),
         (["fit-speed", "--arms", "ours,nope"], "unknown arm(s) ['nope']"),
         (["fit-speed", "--arms", "ours+local"], "--arms ours+local needs --local-share"),
@@ -145,3 +152,26 @@ def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, c
     assert [got["compare"][k][0]["local_evals"] for k in ("ours", "ours+local")] == [0, 4]
     printed = capsys.readouterr().out
     assert "ours+local" in printed and "ratio" not in printed
+
+
+def test_a_reused_scene_is_scored_on_its_own_layout_and_needs_its_true_traits_to_fit(
+    tmp_path, capsys
+):
+    """``bench pipeline``/``nerfacto train`` took the crop's default layout for a reused scene
+    made with another (``cropcraft synth --row-spacing``): the row fit's known spacing, the
+    true rows and the fitted canopy were of rows the scene does not have. And ``--fit`` on a
+    scene without ``truth/metrics.json`` (``bench surfaces`` makes them so) failed after the
+    whole fit."""
+    import dataclasses
+
+    from benchmarks.bench_pipeline import scene_layout
+    from cropcraft_core.config import default_layout
+
+    narrow = dataclasses.replace(default_layout("soybean"), row_spacing=0.38)
+    (tmp_path / "scene.json").write_text(
+        json.dumps({"crop": "soybean", "layout": narrow.to_dict()})
+    )
+    assert scene_layout(tmp_path, "soybean") == narrow
+    assert scene_layout(tmp_path / "none", "maize") == default_layout("maize")
+    with pytest.raises(SystemExit, match=r"truth/metrics\.json is missing"):
+        main(["bench", "pipeline", "--scene-dir", str(tmp_path), "--fit", "1x5"])

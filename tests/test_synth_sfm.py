@@ -824,3 +824,28 @@ def test_make_scene_names_a_bad_setting(tmp_path, bad, match):
     kw = dict(resolution=(64, 48), shadows=False, walk_arc_deg=40, supersample=1, views=2)
     with pytest.raises(CropCraftError, match=match):
         make_scene("soybean", tmp_path, metrics=False, **{**kw, **bad})
+
+
+def test_make_scene_refuses_bad_arguments_before_it_replaces_a_scene(tmp_path):
+    """A scene already in the folder stays whole when the new one is refused: a bad seed or
+    walk arc (checked after the old files were removed: all 15 lost), and a plot too large
+    for a walk, whose views looking down 45-70 degrees from its edge miss its centre (a
+    6 m plot: none of 50 saw it)."""
+    import dataclasses
+
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.errors import ConfigError
+
+    out = tmp_path / "scene"
+    make_scene("soybean", out, views=2, resolution=(32, 24), metrics=False, supersample=1)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    big = dataclasses.replace(default_layout("soybean"), plot_width=6.0, plot_length=6.0)
+    for kw, match in (
+        ({"seed": -1}, "seed must be a whole number"),
+        ({"walk_arc_deg": 0.0}, "walk arc must be in"),
+        ({"layout": big, "views": 20}, r"6 x 6 m plot is too large for the walk"),
+    ):
+        args = {"views": 2, "resolution": (32, 24), "metrics": False, **kw}
+        with pytest.raises(ConfigError, match=match):
+            make_scene("soybean", out, **args)
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

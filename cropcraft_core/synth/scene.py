@@ -100,6 +100,11 @@ def camera_from_angles(
     return PinholeCamera.from_vfov(size[0], size[1], vfov_deg, m)
 
 
+#: The share of a walk's views that must see the plot's centre: a walker at the plot's edge
+#: looking down 45-70° sees 2 m plots whole (50 of 50 views), 3 m ones in 32 of 50, 6 m in none.
+WALK_MIN_CENTRE_VIEWS = 0.8
+
+
 def walk_trajectory(
     layout: CanopyLayout,
     n_views: int,
@@ -148,6 +153,17 @@ def walk_trajectory(
         pitch = float(np.clip(pitch + rng.normal(0, math.radians(1)), *np.radians([45, 70])))
         roll = rng.normal(0, math.radians(2))
         cams.append(camera_from_angles(pos, yaw, pitch, roll, size, vfov_deg))
+    centre = np.array([[0.0, 0.0, 0.5 * canopy_top]])
+    seen = 0
+    for cam in cams:
+        uv, z = cam.project(centre)
+        seen += bool(z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
+    if seen < WALK_MIN_CENTRE_VIEWS * len(cams):  # the pitch limit looks short of the plot
+        raise ConfigError(
+            f"a {layout.plot_width:g} x {layout.plot_length:g} m plot is too large for the walk "
+            f"trajectory: looking down at 45-70 degrees from its edge, only {seen} of "
+            f"{len(cams)} views see the plot's centre; use the drone trajectory or a smaller plot"
+        )
     return cams
 
 
@@ -682,15 +698,17 @@ def make_scene(
         raise ConfigError(f"supersample must be a whole number ≥ 1, got {supersample!r}")
     if not (isinstance(vfov_deg, int | float) and 1.0 <= vfov_deg <= 120.0):
         raise ConfigError(f"vfov_deg must be a number of degrees in [1, 120], got {vfov_deg!r}")
+    if not (_whole(seed) and 0 <= int(seed) < 2**32):  # checked here, before the old scene goes
+        raise ConfigError(f"seed must be a whole number in [0, 2**32), got {seed!r}")
+    if trajectory == "walk" and not (
+        isinstance(walk_arc_deg, int | float) and 0 < walk_arc_deg <= 360
+    ):
+        raise ConfigError(f"walk arc must be in (0, 360] degrees, got {walk_arc_deg!r}")
+    if layout is not None and not isinstance(layout, CanopyLayout):
+        raise ConfigError(f"layout must be a CanopyLayout, got {type(layout).__name__}")
     params = resolve_params(crop, params)
     layout = layout or default_layout(crop)
     out = Path(out_dir)
-    try:
-        _clear_scene(out)
-        for sub in ("images", "depth", "colmap/sparse/0", "truth"):
-            (out / sub).mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OutputError(f"cannot create the scene folder {out}: {e}") from None
 
     ss = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, 0x5C3E])
     rng_traj, rng_sun, rng_noise = (np.random.default_rng(s) for s in ss.spawn(3))
@@ -715,6 +733,12 @@ def make_scene(
         ) from None
     canopy = generate_canopy(crop, params, layout, seed=seed, region=region)
     mesh = canopy.mesh
+    try:  # only now: every check above leaves a scene already in the folder as it was
+        _clear_scene(out)
+        for sub in ("images", "depth", "colmap/sparse/0", "truth"):
+            (out / sub).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create the scene folder {out}: {e}") from None
     t_gen = time.perf_counter() - t_start
 
     sun_el = math.radians(rng_sun.uniform(45, 62))
