@@ -17,6 +17,10 @@ from tasks.common import (
     workdir,
 )
 
+#: The backends whose stereo reads each photo's depths of the scene box (nerfacto trains on
+#: every photo, the box only bounding its samples).
+STEREO_BACKENDS = ("tsdf", "points")
+
 
 def _surfaces_api():
     try:
@@ -61,7 +65,9 @@ def surfaces(
     """
     Poses, pinhole_photos = core("surfaces", "cropcraft_core.sfm", "Poses", "pinhole_photos")
     SurfacesConfig, make_backend = _surfaces_api()
-    from cropcraft_core.surfaces import resolve_bbox
+    from prefect import get_run_logger
+
+    from cropcraft_core.surfaces import resolve_bbox, views_in_box
 
     store = open_store(store_root)
     cfg = dict(config)
@@ -75,7 +81,18 @@ def surfaces(
         if cfg.get("backend") == "nerfacto" and not cfg.get("workdir"):
             cfg["workdir"] = str(tmp / "nerfacto")  # its photos and checkpoints go with tmp
         backend = make_backend(SurfacesConfig.from_dict(cfg))
-        backend.fit(images, poses.cameras, bbox, progress=_progress(scene))
+        cams, names = poses.cameras, poses.names
+        away: list[str] = []
+        if backend.name in STEREO_BACKENDS and cfg.get("depth_range") is None:
+            keep = views_in_box(names, cams, bbox)  # the others have no depths of the plot
+            away = [n for i, n in enumerate(names) if i not in set(keep)]
+            if away:
+                get_run_logger().warning(
+                    "surfaces: %d of %d photos do not see the scene box and are left out: %s",
+                    len(away), len(cams), ", ".join(away),
+                )  # fmt: skip
+                images, cams = [images[i] for i in keep], [cams[i] for i in keep]
+        backend.fit(images, cams, bbox, progress=_progress(scene))
         points, colors = backend.point_cloud(n_points)
         backend.save(tmp / "model")
         hashes.update(store.put_tree(tmp / "model", artefact(scene, "surfaces", "model")))
@@ -87,6 +104,11 @@ def surfaces(
         scene,
         {"model": artefact(scene, "surfaces", "model"), "points": key},
         hashes,
-        {"backend": backend.name, "n_points": int(len(points)), "timings": timings},
+        {
+            "backend": backend.name,
+            "n_points": int(len(points)),
+            "timings": timings,
+            **({"photos_left_out": away} if away else {}),
+        },
         t.seconds,
     )

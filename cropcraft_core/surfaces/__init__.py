@@ -16,6 +16,7 @@ from cropcraft_core.surfaces.base import (
     make_backend,
     prediction_blur_m,
     resolve_bbox,
+    views_in_box,
 )
 
 __all__ = [
@@ -29,4 +30,5 @@ __all__ = [
     "make_backend",
     "prediction_blur_m",
     "resolve_bbox",
+    "views_in_box",
 ]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import os
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -158,6 +158,10 @@ Progress = Callable[[str, float], None]
 
 class SurfacesError(CropCraftError, RuntimeError):
     """The surfaces stage cannot run (missing backend dependency, no GPU, fit failed)."""
+
+
+#: nerfstudio-data's ``--orientation-method`` choices.
+NERF_ORIENTATIONS = ("pca", "up", "vertical", "none")
 
 
 @dataclass(frozen=True)
@@ -421,13 +425,35 @@ class SurfacesConfig:
             object.__setattr__(self, "depth_range", (near, far))
         if int(self.nerf_iterations) < 1:
             raise ConfigError(f"nerf_iterations must be ≥ 1, got {self.nerf_iterations}")
-        if isinstance(self.nerf_args, str):
+        if not isinstance(self.nerf_args, list | tuple):
             raise ConfigError(f"nerf_args must be a list of options, not {self.nerf_args!r}")
         object.__setattr__(self, "nerf_args", tuple(str(x) for x in self.nerf_args))
-        if self.nerf_max_seconds is not None and not float(self.nerf_max_seconds) > 0:
-            raise ConfigError(f"nerf_max_seconds must be > 0, got {self.nerf_max_seconds}")
-        if self.nerf_far_margin is not None and not float(self.nerf_far_margin) >= 1:
-            raise ConfigError(f"nerf_far_margin must be ≥ 1, got {self.nerf_far_margin}")
+
+        def number(name: str, v: Any, ok: Callable[[float], bool], says: str) -> None:
+            """An optional nerfacto number: None, or a finite number for which ``ok`` holds
+            (refused here, not in ns-train on the GPU worker after the photos were sent)."""
+            real = isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v)
+            if v is not None and not (real and ok(v)):
+                raise ConfigError(f"surfaces {name} must be null or {says}, got {v!r}")
+
+        number("nerf_max_seconds", self.nerf_max_seconds, lambda v: v > 0, "a number > 0")
+        number("nerf_far_margin", self.nerf_far_margin, lambda v: v >= 1, "a number ≥ 1")
+        number("near_plane", self.near_plane, lambda v: v >= 0, "a number ≥ 0")
+        number("far_plane", self.far_plane, lambda v: v > 0, "a number > 0")
+        if self.near_plane is not None and self.far_plane is not None:
+            if not self.near_plane < self.far_plane:
+                raise ConfigError(
+                    f"surfaces near_plane {self.near_plane} must be below far_plane "
+                    f"{self.far_plane}"
+                )
+        hd = self.hidden_dim
+        if hd is not None and not (isinstance(hd, int) and not isinstance(hd, bool) and hd > 0):
+            raise ConfigError(f"surfaces hidden_dim must be null or a whole number > 0, got {hd!r}")
+        if self.orientation not in NERF_ORIENTATIONS:
+            raise ConfigError(
+                f"surfaces orientation must be one of {', '.join(NERF_ORIENTATIONS)} "
+                f"(nerfstudio's --orientation-method), got {self.orientation!r}"
+            )
 
     @classmethod
     def for_crop(cls, crop: str, **overrides: Any) -> SurfacesConfig:
@@ -512,6 +538,32 @@ def depth_limits(
     return max(0.05, float(lo[ok].min())), float(hi[ok].max())
 
 
+def views_in_box(
+    names: Sequence[str], cameras: Sequence[PinholeCamera], bbox: np.ndarray | None
+) -> list[int]:
+    """The indices of the views whose camera sees some of the scene box (:func:`depth_limits`
+    finds depths of it in front of the camera; every camera sees "no box"). A photo looking
+    away from the plot (one more drone pass along the field, a walker's glance up it) has no
+    depths of the box for the stereo, which :func:`depth_limits` refuses: it is left out by
+    its caller. Fewer than two views seeing the box is an ``InputError`` naming the others."""
+    keep = []
+    for i, cam in enumerate(cameras):
+        try:
+            if bbox is not None:
+                depth_limits(cam, bbox, None)
+        except InputError:
+            continue
+        keep.append(i)
+    if len(keep) < 2:
+        away = [n for i, n in enumerate(names) if i not in keep]
+        raise InputError(
+            f"only {len(keep)} of {len(cameras)} photos see the scene box "
+            f"{np.round(bbox, 2).tolist()}: check surfaces.bbox and the poses' frame (photos "
+            f"that do not: {', '.join(away[:8])}{', ...' if len(away) > 8 else ''})"
+        )
+    return keep
+
+
 class SurfaceBackend(ABC):
     """A fitted model of the visible surfaces of a scene."""
 
@@ -536,7 +588,9 @@ class SurfaceBackend(ABC):
 
         images: n (H, W, 3) uint8 RGB photos.  cameras: their n ``PinholeCamera`` poses (world
         frame, metres).  bbox: (2, 3) [min corner, max corner] of the region of interest (m), or
-        None for everything the views see.  progress: optional ``progress(stage, fraction)``.
+        None for no region: the stereo backends then search z-depths of 0.2-8 m in every view
+        (``SurfacesConfig.depth_range`` sets others; a drone's 13 m needs one).  progress:
+        optional ``progress(stage, fraction)``.
         """
 
     @abstractmethod
@@ -612,10 +666,17 @@ class SurfaceBackend(ABC):
             "bbox": None if self.bbox is None else self.bbox.tolist(),
             "timings_s": self.timings,
             "payload": payload,
+            # the files this record was written with: a save over an earlier one that stopped
+            # between its files and this record left one save's mesh under the other's cameras
+            "files_sha256": _payload_hashes(out, payload),
         }
-        tmp = out / (META_FILE + ".tmp")
-        tmp.write_text(json.dumps(meta, indent=1), encoding="utf-8")
-        os.replace(tmp, out / META_FILE)
+        tmp = out / f".{META_FILE}.{os.getpid()}.tmp"
+        try:
+            tmp.write_text(json.dumps(meta, indent=1), encoding="utf-8")
+            os.replace(tmp, out / META_FILE)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise SurfacesError(f"cannot write {out / META_FILE}: {e}") from None
         return out
 
     @classmethod
@@ -644,8 +705,32 @@ class SurfaceBackend(ABC):
             raise InputError(f"{where} is damaged: bbox {meta['bbox']!r}")
         if not obj.cameras:
             raise InputError(f"{where} is damaged: it holds no cameras")
+        named = {v for v in payload.values() if isinstance(v, str)}
+        recorded = {k: v for k, v in (meta.get("files_sha256") or {}).items() if k in named}
+        if recorded != _payload_hashes(folder, payload, only=recorded):
+            raise InputError(
+                f"{folder}'s surface files are not the ones {META_FILE} records (changed since, or "
+                "a save over an earlier one stopped before its record): fit and save them again"
+            )
         obj._load_payload(folder, payload)
         return obj
+
+
+def _payload_hashes(
+    folder: Path, payload: Mapping[str, Any], only: Mapping[str, str] | None = None
+) -> dict[str, str]:
+    """sha256 of each file a backend's payload names (of those in ``only`` where given)."""
+    import hashlib
+
+    names = [v for v in payload.values() if isinstance(v, str) and (folder / v).is_file()]
+    out = {}
+    for name in names if only is None else [n for n in only if (folder / n).is_file()]:
+        h = hashlib.sha256()
+        with open(folder / name, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        out[name] = h.hexdigest()
+    return out
 
 
 def read_meta(folder: Path) -> dict:

@@ -724,7 +724,11 @@ def _match_views(
             near, far, int(n_depths), int(cfg.window), float(cfg.sgm_p1),
             float(cfg.sgm_p2), heights, int(cfg.best_sources), bool(cfg.shiftable_windows),
         )  # fmt: skip
-        depth[score < cfg.min_ncc] = np.nan
+        # -1: no match (no source saw the pixel, or the best plane was the first or last), which
+        # min_ncc = -1, the setting's least, kept
+        depth[(score < cfg.min_ncc) | (score <= -1.0)] = np.nan
+        if cfg.depth_range is not None:  # horizontal planes span the box's heights, not it
+            depth[(depth < near) | (depth > far)] = np.nan
         raw.append(depth)
         say(stage, (i + 1) / len(small))
     stereo_s = time.perf_counter() - t0
@@ -1000,7 +1004,11 @@ class TsdfSurfaces(SurfaceBackend):
             coords.append(bc.numpy())
             frames.append((depth_img, o3d.t.geometry.Image(rgb), intr, extr, far, bc))
         if not frames:
-            raise SurfacesError("no view has a usable depth map: nothing to fuse")
+            raise SurfacesError(
+                "no view has a usable depth map: nothing to fuse (the depths searched: "
+                "surfaces.depth_range, else the scene box's in each view, else 0.2-8 m without "
+                "a box)"
+            )
         blocks = np.unique(np.concatenate(coords), axis=0)
         vbg = o3d.t.geometry.VoxelBlockGrid(
             ("tsdf", "weight", "color"),
