@@ -123,7 +123,9 @@ def test_metric_poses_of_a_walk_along_one_side_are_levelled_on_gravity(arc):
     kw = dict(metric=True, prior_camera_height_m=1.4, gravity_axis_deg=GRAVITY_AXIS_DEG)
     out, _, frame = level_poses(arkit, None, **kw)
     assert frame.up_source == "input_axis"
-    assert _truth_error(out, cams)[0] < 1e-6  # no tilt at all
+    # no tilt at all: acos of a cosine a few ulp below 1 reads 1e-6 degrees (1.7e-6 on
+    # another CPU's rounding), so the bound is that floor's, not a measured tilt's
+    assert _truth_error(out, cams)[0] < 1e-5
 
 
 def test_cameras_only_walk_and_drone_with_points():
