@@ -274,6 +274,42 @@ def test_glb_structure_and_open3d_load(tmp_path: Path, mesh: CanopyMesh) -> None
     assert np.isclose(loaded.get_surface_area(), mesh.face_areas().sum(), rtol=1e-4)
 
 
+def test_a_georeferenced_canopy_keeps_its_leaves_in_float32_files(tmp_path, mesh) -> None:
+    """float32 resolves 0.5 m at 4,000 km: a UTM canopy's GLB had zero-area leaves (now stored
+    about its centre, given as the asset's extras), and write_ply(float32=True) wrote a file
+    that read_ply refuses (now refused when written)."""
+    import open3d as o3d
+
+    utm = CanopyMesh(
+        mesh.vertices + [500_000.0, 4_000_000.0, 0.0], mesh.faces, mesh.organ, mesh.plant,
+        mesh.node,
+    )  # fmt: skip
+    gltf = _glb_json(write_glb(tmp_path / "utm.glb", utm))
+    assert gltf["extras"]["offset_m"][1] == pytest.approx(4_000_000.0, abs=5)
+    loaded = o3d.io.read_triangle_mesh(str(tmp_path / "utm.glb"))
+    assert np.isclose(loaded.get_surface_area(), mesh.face_areas().sum(), rtol=1e-4)
+    with pytest.raises(GeometryError, match="beyond what 32-bit floats resolve"):
+        write_ply(tmp_path / "utm.ply", utm, float32=True)
+    assert "extras" not in _glb_json(write_glb(tmp_path / "near.glb", mesh))
+
+
+def test_ply_header_ends_at_its_own_end_header_line(tmp_path: Path) -> None:
+    """A comment that ends in "end_header" ended the header there ("no vertex element")."""
+    text = (
+        "ply\nformat ascii 1.0\ncomment written before end_header\nelement vertex 3\n"
+        "property float x\nproperty float y\nproperty float z\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    )
+    (tmp_path / "c.ply").write_text(text)
+    assert read_ply(tmp_path / "c.ply").n_faces == 1
+
+
+def test_a_mesh_of_float_face_indices_is_refused(mesh: CanopyMesh) -> None:
+    """1.9 and 2.6 were cut to 1 and 2 by the writers, and failed as raw IndexErrors."""
+    with pytest.raises(GeometryError, match="faces must be integer vertex indices"):
+        CanopyMesh(mesh.vertices, mesh.faces + 0.5, mesh.organ, mesh.plant, mesh.node)
+
+
 def test_glb_loads_with_trimesh(tmp_path: Path, mesh: CanopyMesh) -> None:
     trimesh = pytest.importorskip("trimesh", reason="trimesh is not installed in this env")
     scene = trimesh.load(write_glb(tmp_path / "canopy.glb", mesh))

@@ -143,6 +143,10 @@ def test_georeferenced_coordinates_in_single_precision_are_refused(tmp_path):
     (tmp_path / "utm.ply").write_bytes(head.encode() + pts.astype("<f4").tobytes())
     with pytest.raises(InputError, match="utm.ply: coordinates stored as 32-bit floats reach"):
         load_geometry(tmp_path / "utm.ply")
+    big = head.replace("binary_little_endian", "binary_big_endian")  # '>f4' is not == float32
+    (tmp_path / "utm_be.ply").write_bytes(big.encode() + pts.astype(">f4").tobytes())
+    with pytest.raises(InputError, match="utm_be.ply: coordinates stored as 32-bit floats"):
+        load_geometry(tmp_path / "utm_be.ply")
     # as text (ASCII PLY), the digits are all there: read in double precision
     assert len(load_geometry(_write_points(tmp_path / "utm.txt.ply", pts)).points) >= 500
 

@@ -419,3 +419,27 @@ def test_depth_to_rgb_and_save_png_errors(tmp_path):
         save_png(tmp_path / "x.png", rgb.astype(np.float32))
     with pytest.raises(OutputError):
         save_png(tmp_path / "missing" / "x.png", rgb)
+
+
+def test_a_camera_pose_must_be_rigid_and_above_the_ground_it_frames():
+    """A transforms.json whose rotation was scaled by 2 put a point 4 m away at 16 m; a mirror
+    or a bad last row passed too. A camera under the ground read a mirrored footprint, and a
+    record of 640.7 pixels was cut to 640."""
+    from cropcraft_core.errors import ConfigError
+
+    cam = PinholeCamera.look_down(height_m=1.0, size=(64, 48))
+    for bad in (2.0 * np.eye(4), np.diag([1.0, 1.0, -1.0, 1.0])):
+        m = cam.cam_to_world.copy()
+        m[:3, :3] = m[:3, :3] @ bad[:3, :3]
+        with pytest.raises(ConfigError, match="must be a rigid transform"):
+            PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, m)
+    m = cam.cam_to_world.copy()
+    m[3, 0] = 0.1
+    with pytest.raises(ConfigError, match="must be a rigid transform"):
+        PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, m)
+    with pytest.raises(ConfigError, match="is not above the ground"):
+        cam.ground_footprint(ground_z=2.0)
+    with pytest.raises(ConfigError, match="whole number of pixels, got 640.7"):
+        PinholeCamera.from_dict({**cam.to_dict(), "width": 640.7})
+    with pytest.raises(ConfigError, match="camera record is malformed"):
+        PinholeCamera.from_dict({**cam.to_dict(), "fx": "wide"})

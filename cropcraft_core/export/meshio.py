@@ -138,6 +138,14 @@ def write_ply(path: PathLike, mesh: CanopyMesh, *, float32: bool = False) -> Pat
     ``node`` (int).
     """
     _check_mesh(mesh)
+    if float32 and len(mesh.vertices):
+        reach = float(np.abs(mesh.vertices).max())
+        if reach > FLOAT32_REACH_M:  # read_ply refuses it: written so, the leaves are lost
+            raise GeometryError(
+                f"{path}: coordinates reach {reach:,.0f}, beyond what 32-bit floats resolve "
+                f"(FLOAT32_REACH_M = {FLOAT32_REACH_M:,.0f}): write doubles, or subtract an "
+                "offset near the plot first"
+            )
     vtype, vdt = ("float", "<f4") if float32 else ("double", "<f8")
     n, m = len(mesh.vertices), mesh.n_faces
     header = (
@@ -197,7 +205,7 @@ def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
     """(format, elements, byte offset of the body) of a PLY file's bytes."""
     if not data.startswith(b"ply"):
         raise InputError(f"{path} is not a PLY file (it does not start with 'ply')")
-    m = re.search(rb"end_header[ \t]*\r?\n", data[: 1 << 20])
+    m = re.search(rb"(?:^|\n)end_header[ \t]*\r?\n", data[: 1 << 20])  # a line of its own
     if m is None:
         raise InputError(f"{path}: PLY header has no 'end_header' line")
     try:
@@ -516,7 +524,9 @@ def read_geometry(path: PathLike, empty_faces_as_points: bool = True) -> CanopyM
         raise InputError(f"{p}: PLY file has no vertex element with x, y, z")
     if any(isinstance(vertex[k], list) for k in ("x", "y", "z")):
         raise InputError(f"{p}: PLY vertex coordinates must be scalar properties")
-    single = [k for k in ("x", "y", "z") if np.asarray(vertex[k]).dtype == np.float32]
+    single = [  # either byte order: a big-endian '>f4' is not np.float32 to ==
+        k for k in ("x", "y", "z") if np.asarray(vertex[k]).dtype.newbyteorder("=") == np.float32
+    ]
     xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
     if single:
         reach = float(
@@ -660,16 +670,24 @@ def write_glb(
     Each organ's faces become one triangle primitive with its own compacted float32 POSITION
     accessor (z-up metres) and uint32 indices; the organ nodes hang under a root node ``canopy``
     rotated into glTF's y-up frame. Materials are double-sided, non-metallic, with the organ
-    colour (``ORGAN_COLORS`` updated by ``colors``). Plant and node ids are not stored.
+    colour (``ORGAN_COLORS`` updated by ``colors``). Plant and node ids are not stored. A
+    canopy beyond ``FLOAT32_REACH_M`` (georeferenced) is stored about its rounded centre, given
+    in z-up metres as the asset's ``extras.offset_m``.
     """
     _check_mesh(mesh)
     rgb = _organ_colors(colors)
+    # float32 positions resolve 8 mm at 100 km: a georeferenced canopy is stored about its
+    # centre (a UTM leaf had no area left), recorded in the root node's extras; a translation
+    # would bring the loss back in every viewer that composes it in float32
+    far = len(mesh.vertices) and float(np.abs(mesh.vertices).max()) > FLOAT32_REACH_M
+    offset = np.round(mesh.vertices.mean(axis=0)) if far else np.zeros(3)
     blob = bytearray()
     gltf: dict = {
         "asset": {"version": "2.0", "generator": "CropCraft"},
         "scene": 0,
         "scenes": [{"name": "canopy", "nodes": [0]}],
         "nodes": [{"name": "canopy", "rotation": _Y_UP, "children": []}],
+        **({"extras": {"offset_m": offset.astype(float).tolist()}} if far else {}),
         "meshes": [],
         "materials": [],
         "accessors": [],
@@ -688,7 +706,7 @@ def write_glb(
         if not mask.any():
             continue
         sub = mesh.select(mask)
-        pos = np.ascontiguousarray(sub.vertices, dtype="<f4")
+        pos = np.ascontiguousarray(sub.vertices - offset, dtype="<f4")
         idx = np.ascontiguousarray(sub.faces.ravel(), dtype="<u4")
         gltf["accessors"].append(
             {

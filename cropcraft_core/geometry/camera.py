@@ -19,6 +19,11 @@ ROW_CAMERA_SIZE = (994, 738)
 ROW_CAMERA_VFOV_DEG = 50.0
 
 
+#: How far a pose's rotation may be from orthonormal (max |RᵀR − I|): float32 poses written
+#: by phones' AR tracking are off by ~1e-7; a scaled or sheared one is refused.
+RIGID_TOLERANCE = 1e-4
+
+
 @dataclass(frozen=True, eq=False)
 class PinholeCamera:
     width: int
@@ -49,6 +54,16 @@ class PinholeCamera:
         m = np.asarray(self.cam_to_world, dtype=np.float64)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise ConfigError("cam_to_world must be a finite (4, 4) matrix")
+        r = m[:3, :3]
+        if (
+            np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9
+            or np.abs(r.T @ r - np.eye(3)).max() > RIGID_TOLERANCE
+            or np.linalg.det(r) <= 0
+        ):  # a scaled or mirrored pose put a point 4 m away at 16 m: depths, points, LAI
+            raise ConfigError(
+                "cam_to_world must be a rigid transform (an orthonormal rotation of determinant "
+                f"+1, last row 0 0 0 1), got {np.round(m, 4).tolist()}"
+            )
         object.__setattr__(self, "cam_to_world", m)
 
     # ----------------------------------------------------------------- construction
@@ -196,6 +211,8 @@ class PinholeCamera:
         c = self.center
         if np.any(dw[:, 2] >= 0):
             raise ConfigError("camera does not look down onto the ground at every image corner")
+        if c[2] <= ground_z:  # its rays meet the plane behind it: a mirrored footprint
+            raise ConfigError(f"camera at z = {c[2]:.3f} is not above the ground z = {ground_z}")
         t = (ground_z - c[2]) / dw[:, 2]
         return c[:2] + dw[:, :2] * t[:, None]
 
@@ -215,8 +232,8 @@ class PinholeCamera:
     def from_dict(cls, d: dict) -> PinholeCamera:
         try:
             return cls(
-                int(d["width"]),
-                int(d["height"]),
+                d["width"],  # checked as whole numbers there: int() cut 640.7 to 640
+                d["height"],
                 float(d["fx"]),
                 float(d["fy"]),
                 float(d["cx"]),
@@ -225,6 +242,8 @@ class PinholeCamera:
             )
         except KeyError as e:
             raise ConfigError(f"camera record is missing {e}") from None
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"camera record is malformed: {e}") from None
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())

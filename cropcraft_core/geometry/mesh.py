@@ -45,6 +45,9 @@ class CanopyMesh:
             raise GeometryError(f"vertices must be (n, 3), got {self.vertices.shape}")
         if self.faces.ndim != 2 or self.faces.shape[1] != 3:
             raise GeometryError(f"faces must be (m, 3), got {self.faces.shape}")
+        if len(self.faces) and not np.issubdtype(self.faces.dtype, np.integer):
+            # float indices were cut (1.9 -> 1) by the writers and failed as raw IndexErrors
+            raise GeometryError(f"faces must be integer vertex indices, got {self.faces.dtype}")
         for name in ("organ", "plant", "node"):
             if getattr(self, name).shape != (m,):
                 raise GeometryError(f"{name} must have one entry per face ({m})")
