@@ -145,15 +145,9 @@ def _print_summary(out: str, metrics: dict) -> None:
     print(f"written to {Path(out).resolve()}")
 
 
-def initial_evals(n_evals: int) -> int:
-    """The random initial design for ``n_evals`` evaluations: the paper's 200 of 500, and the
-    same 40 % of a smaller budget (at least 2). Clipping 200 to a budget of 200 or fewer
-    made every evaluation a random one: a random search under the name ``bo``."""
-    return max(2, min(200, round(0.4 * n_evals)))
-
-
 def _fit_config(args: argparse.Namespace):
     from cropcraft_core.fit import FitConfig
+    from cropcraft_core.fit.fitting import initial_evals
     from flows.service_cli import parse_params
 
     cfg = FitConfig(

@@ -269,6 +269,13 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     for k, v in (overrides or {}).items():
         _set_dotted(cfg, str(k), v)
     _check_kinds(cfg)
+    given = dict(overrides or {})
+    if "fit.n_initial" not in given and "n_initial" not in (given.get("fit") or {}):
+        from cropcraft_core.fit.fitting import initial_evals
+
+        # 40 % of the budget, the paper's 200 of 500: a budget of 200 kept 200 random points
+        # and no GP step (a random search named bo), and one under 200 was refused
+        cfg["fit"]["n_initial"] = initial_evals(cfg["fit"]["n_evals"])
     if SurfacesConfig is not None and cfg["surfaces"].get("backend") == "nerfacto":
         # the paper's settings and the far-plane margin, under the user's own; written out so
         # that the stage's key holds them (surfaces trained with nerfstudio's far plane, before
@@ -286,10 +293,13 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         default_layout(crop, **cfg["layout"])
     except TypeError as exc:
         raise ConfigError(f"invalid layout override {cfg['layout']}: {exc}") from None
-    fit = FitConfig(**cfg["fit"]).validate()
-    fit.param_box(crop)
-    if fit.method == "bo":  # the optimiser's own settings, checked here not at the seeds
-        fit.bo_config(crop).validate()
+    try:
+        fit = FitConfig(**cfg["fit"]).validate()
+        fit.param_box(crop)
+        if fit.method == "bo":  # the optimiser's own settings, checked here not at the seeds
+            fit.bo_config(crop).validate()
+    except ConfigError as exc:  # named as the user sets them
+        raise ConfigError(f"fit settings (fit.*): {exc}") from None
     n_points = cfg["surfaces"]["n_points"]
     if not isinstance(n_points, int) or isinstance(n_points, bool) or n_points < 1:
         raise ConfigError(f"surfaces.n_points must be a whole number >= 1, got {n_points!r}")
@@ -1191,6 +1201,11 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         },
         # the surfaces against the photos at the photos' cameras (older stores: None)
         "consistency": _consistency(records.get("consistency")),
+        # photos the run left out: without a pose in the imported poses, or not seeing the box
+        "photos_left_out": {
+            "unposed": records["poses"]["summary"].get("unposed", []),
+            "outside_box": records["surfaces"]["summary"].get("photos_left_out", []),
+        },
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,

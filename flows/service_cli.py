@@ -396,9 +396,24 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
     _print_coverage(out)
+    _print_left_out(out)
     _print_rows(out)
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
+
+
+def _print_left_out(out: Mapping[str, Any]) -> None:
+    """The photos the run left out, by name: without a pose in the imported poses (a photo
+    added after the capture was posed), or not seeing the scene box."""
+    left = out.get("photos_left_out") or {}
+    for key, why in (
+        ("unposed", "have no pose in the imported poses"),
+        ("outside_box", "do not see the scene box"),
+    ):
+        names = left.get(key) or []
+        if names:
+            more = f" (+{len(names) - 8} more)" if len(names) > 8 else ""
+            print(f"WARNING  {len(names)} photo(s) {why}, left out: {', '.join(names[:8])}{more}")
 
 
 def _print_rows(out: Mapping[str, Any]) -> None:

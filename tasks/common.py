@@ -166,6 +166,20 @@ def upstream_hashes(upstream: Mapping[str, Any] | None) -> dict[str, dict[str, s
 KEYED_AS: dict[str, dict[str, Any]] = {"fit_seed": {"n_seeds": 10}}
 
 
+def stage_log() -> Any:
+    """The run's logger inside a Prefect run (its records in the UI), else the ``cropcraft``
+    logger: a stage task called as a plain function (``task.fn``) still says what it warns."""
+    import logging
+
+    from prefect import get_run_logger
+    from prefect.exceptions import MissingContextError
+
+    try:
+        return get_run_logger()
+    except MissingContextError:
+        return logging.getLogger("cropcraft")
+
+
 def stage_key(
     stage: str,
     scene: str,

@@ -16,6 +16,7 @@ from tasks.common import (
     make_record,
     named_ply,
     open_store,
+    stage_log,
     stage_task,
     workdir,
 )
@@ -139,7 +140,7 @@ def poses(
         "poses", "cropcraft_core.sfm", "import_poses", "run_sfm", "level_poses"
     )
     from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG, PRIOR_CAMERA_HEIGHT_M
-    from cropcraft_core.sfm.poses import SIFT_PEAK_THRESHOLD
+    from cropcraft_core.sfm.poses import MIN_REGISTERED_FRACTION, SIFT_PEAK_THRESHOLD
 
     crop = scene.split("/")[1]
     prior = config.get("prior_camera_height") or PRIOR_CAMERA_HEIGHT_M.get(crop, 1.4)
@@ -188,6 +189,19 @@ def poses(
                 "n_registered": len(result),
                 "n_images": len(manifest["images"]),
             }
+            unposed = sorted({im["name"] for im in manifest["images"]} - set(result.names))
+            if unposed:  # a photo added since the capture was posed: said, not dropped quietly
+                if len(result) < MIN_REGISTERED_FRACTION * len(manifest["images"]):
+                    raise InputError(
+                        f"the poses in {poses_uri} cover {len(result)} of the "
+                        f"{len(manifest['images'])} photos (e.g. without a pose: "
+                        f"{', '.join(unposed[:5])}): pose them all, or run SfM without --poses"
+                    )
+                stage_log().warning(
+                    "poses: %d of %d photos have no pose in %s and are left out: %s",
+                    len(unposed), len(manifest["images"]), poses_uri, ", ".join(unposed),
+                )  # fmt: skip
+                summary["unposed"] = unposed
             result, _ = level(result, imported.points, summary, metric=metric)
         else:
             with store.open_local(key_of(ing, "images")) as image_dir:

@@ -13,6 +13,7 @@ from tasks.common import (
     make_record,
     open_store,
     report_stage,
+    stage_log,
     stage_task,
     workdir,
 )
@@ -65,8 +66,6 @@ def surfaces(
     """
     Poses, pinhole_photos = core("surfaces", "cropcraft_core.sfm", "Poses", "pinhole_photos")
     SurfacesConfig, make_backend = _surfaces_api()
-    from prefect import get_run_logger
-
     from cropcraft_core.surfaces import resolve_bbox, views_in_box
 
     store = open_store(store_root)
@@ -87,7 +86,7 @@ def surfaces(
             keep = views_in_box(names, cams, bbox)  # the others have no depths of the plot
             away = [n for i, n in enumerate(names) if i not in set(keep)]
             if away:
-                get_run_logger().warning(
+                stage_log().warning(
                     "surfaces: %d of %d photos do not see the scene box and are left out: %s",
                     len(away), len(cams), ", ".join(away),
                 )  # fmt: skip

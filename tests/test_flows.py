@@ -1713,3 +1713,19 @@ def test_a_remote_cluster_with_local_paths_is_warned_of(scene_dir, tmp_path):
         warnings.simplefilter("error")
         for runner in ("processes", "threads", "dask", "dask://127.0.0.1:8786"):
             warn_local_paths_on_a_remote_cluster(runner, req)
+
+
+def test_a_smaller_fit_budget_keeps_the_papers_share_of_random_points():
+    """``--set fit.n_evals=200`` (the help's own example) kept 200 random points: no GP step,
+    a random search named bo; a budget under 200 was refused, naming n_initial without its
+    section. The initial design is now 40 % of the budget unless given, as `cropcraft fit`'s."""
+    from flows.scene import resolve_config
+
+    def initial(**sets):
+        return resolve_config(CROP, {f"fit.{k}": v for k, v in sets.items()})["fit"]["n_initial"]
+
+    assert (initial(), initial(n_evals=200), initial(n_evals=100)) == (200, 80, 40)
+    assert initial(n_evals=100, n_initial=30) == 30
+    assert resolve_config(CROP, {"fit": {"n_evals": 50, "n_initial": 10}})["fit"]["n_initial"] == 10
+    with pytest.raises(ConfigError, match=r"fit settings \(fit\.\*\): need 2 <= n_initial"):
+        resolve_config(CROP, {"fit.n_evals": 50, "fit.n_initial": 60})

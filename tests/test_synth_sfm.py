@@ -849,3 +849,41 @@ def test_make_scene_refuses_bad_arguments_before_it_replaces_a_scene(tmp_path):
         with pytest.raises(ConfigError, match=match):
             make_scene("soybean", out, **args)
         assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_photos_without_an_imported_pose_are_named_and_too_few_poses_refused(
+    tmp_path, caplog, capsys
+):
+    """A photo added after the capture was posed was dropped without a word (the report's
+    "registered 12 of 13" the only trace), and poses covering 3 of 50 photos reconstructed
+    from 3: the poses stage now names the photos it leaves out, and refuses poses of fewer
+    than half of them, as SfM registering fewer is refused."""
+    import logging
+
+    from flows.service_cli import _print_left_out
+    from tasks.ingest import ingest
+    from tasks.poses import poses
+
+    out = tmp_path / "scene"
+    make_scene("soybean", out, views=4, resolution=(64, 48), metrics=False, supersample=1)
+    photos = tmp_path / "photos"
+    shutil.copytree(out / "images", photos)
+    _png((200, 30, 30), size=(64, 48)).save(photos / "late.png")
+    scene, root = "plotA/soybean/2024-07-01", str(tmp_path / "store")
+    ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(photos))
+    log = logging.getLogger("cropcraft")  # the stage's logger outside a Prefect run
+    log.addHandler(caplog.handler)
+    try:
+        rec = poses.fn(root, scene, {}, {"ingest": ing}, str(out / "transforms.json"))
+    finally:
+        log.removeHandler(caplog.handler)
+    assert rec["summary"]["unposed"] == ["late.png"] and rec["summary"]["n_registered"] == 4
+    assert "1 of 5 photos have no pose" in caplog.text and "late.png" in caplog.text
+    for i in range(4):
+        _png((10 * i, 90, 30), size=(64, 48)).save(photos / f"later{i}.png")
+    ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(photos))
+    with pytest.raises(InputError, match=r"cover 4 of the 9 photos \(e\.g\. without a pose"):
+        poses.fn(root, scene, {}, {"ingest": ing}, str(out / "transforms.json"))
+    _print_left_out({"photos_left_out": {"unposed": ["late.png"], "outside_box": []}})
+    said = capsys.readouterr().out
+    assert said == "WARNING  1 photo(s) have no pose in the imported poses, left out: late.png\n"

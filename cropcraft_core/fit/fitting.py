@@ -96,6 +96,13 @@ DEFAULT_GP_OUTPUT = {"soybean": "none", "maize": "none"}
 CANOPY_SEED_BASE = 7919  # canopy seeds of optimiser seed s: CANOPY_SEED_BASE + s (CRN)
 
 
+def initial_evals(n_evals: int) -> int:
+    """The random initial design for ``n_evals`` evaluations: the paper's 200 of 500, and the
+    same 40 % of a smaller budget (at least 2). Clipping 200 to a budget of 200 or fewer
+    made every evaluation a random one: a random search under the name ``bo``."""
+    return max(2, min(200, round(0.4 * n_evals)))
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """How to fit (paper defaults)."""
