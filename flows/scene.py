@@ -27,7 +27,7 @@ import math
 import os
 import time
 from collections.abc import Iterable, Mapping
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 from prefect import flow, get_run_logger, unmapped
@@ -284,11 +284,19 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
         for k, v in nerf.items():
             cfg["surfaces"].setdefault(k, v)
     from cropcraft_core.config import default_layout
+    from cropcraft_core.config.layout import CanopyLayout
     from cropcraft_core.fit import FitConfig
     from cropcraft_core.observe import check_prediction_blur
     from cropcraft_core.observe import preset as observe_preset
     from cropcraft_core.rowfit import preset as rowfit_preset
 
+    known = {f.name for f in dataclasses.fields(CanopyLayout)}
+    unknown = sorted(set(cfg["layout"]) - known)
+    if unknown:  # named, not CanopyLayout.__init__'s "unexpected keyword argument"
+        raise ConfigError(
+            f"unknown setting layout.{unknown[0]}: the layout's are "
+            + ", ".join(f"layout.{k}" for k in sorted(known))
+        )
     try:
         default_layout(crop, **cfg["layout"])
     except TypeError as exc:
@@ -606,7 +614,17 @@ def prepare(
     photos = [n for n in inputs["images"] if n.lower().endswith(IMAGE_EXTENSIONS)]
     need = int(cfg["ingest"]["min_images"])
     if len(photos) < need:  # ingest would refuse it, after Prefect and the lease
-        raise InputError(f"{uri} holds {len(photos)} JPEG/PNG photo(s); at least {need} are needed")
+        from cropcraft_core.sfm.ingest import UNSUPPORTED_EXTENSIONS
+
+        other = sorted(
+            {PurePosixPath(n).suffix[1:].upper() for n in inputs["images"]}
+            & {e[1:].upper() for e in UNSUPPORTED_EXTENSIONS}
+        )
+        formats = f" (its {', '.join(other)} files CropCraft does not read: convert them)"
+        raise InputError(
+            f"{uri} holds {len(photos)} JPEG/PNG photo(s){formats if other else ''}; at least "
+            f"{need} are needed"
+        )
     cd = cfg["poses"]["camera_distance"]
     if cd is not None:  # the poses stage would refuse them after SfM (matched as it matches)
         from cropcraft_core.sfm.frame import photo_stem

@@ -177,7 +177,9 @@ def process_season(
     dates = pending_dates(st, site, crop)
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
     warnings = []
-    if not dates and not misnamed and not st.list_dates(site, crop):
+    # a scene run from photos kept elsewhere (cropcraft run --images URI) is one too: its date
+    # is in the summary written below, so the warning would contradict it
+    if not dates and not misnamed and not st.list_dates(site, crop, with_runs=True):
         # a worker without CROPCRAFT_STORE reads its own ./cropcraft-data: nothing, every night
         warnings.append(
             f"{site}/{crop} has no dated scene in the store {st.url('')}: is it the store the "

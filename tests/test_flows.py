@@ -317,6 +317,14 @@ def test_a_season_on_a_store_without_the_site_says_which_store_it_read(prefect_h
     assert out["state"] == "Completed" and out["scenes"] == {}
     [warning] = out["warnings"]
     assert f"no dated scene in the store file://{tmp_path}/empty" in warning
+    # a scene run ad hoc from photos kept elsewhere is a dated scene of the site: no warning
+    # (it said "no dated scene" beside a summary that listed the date)
+    from cropcraft_core.store import SceneKey, SceneStore
+
+    SceneStore(str(tmp_path / "empty")).init_manifest(
+        SceneKey("plotZ", CROP, DATE), {"images/a.png": "1"}, {}
+    )
+    assert run_season("plotZ", CROP, str(tmp_path / "empty"), OVERRIDES)["warnings"] == []
 
 
 def test_rerun_is_cached_everywhere(base_run):
@@ -1200,6 +1208,12 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         shutil.copy(p, two / p.name)
     with pytest.raises(InputError, match="holds 2 JPEG/PNG photo.s.; at least 3 are needed"):
         prepare("plotA", CROP, DATE, str(two), None, None, store)
+    heic = tmp_path / "heic"  # a phone's own format: named, not "0 JPEG/PNG photos"
+    heic.mkdir()
+    for i in range(4):
+        (heic / f"IMG_{i}.HEIC").write_bytes(b"\0\0\0\x18ftypheic" + bytes(16))
+    with pytest.raises(InputError, match="holds 0 JPEG/PNG photo.s. .its HEIC files CropCraft"):
+        prepare("plotA", CROP, DATE, str(heic), None, None, store)
     for pair in (["IMG_9999.jpg", one.name], [one.name, one.name]):  # not after SfM
         hint = {"poses.camera_distance": [*pair, 2.5]}
         with pytest.raises(InputError, match="poses.camera_distance names"):
@@ -1223,6 +1237,7 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
         ({"fit.n_seeds": "abc"}, "fit.n_seeds must be a whole number, got 'abc'"),
         ({"fit.n_seeds": 10.5}, "fit.n_seeds must be a whole number"),
         ({"fit.n_evals": math.nan}, "fit.n_evals must be a whole number"),
+        ({"layout.row_spaceing": 0.5}, "unknown setting layout.row_spaceing: the layout's are"),
         ({"fit.n_seeds": True}, "fit.n_seeds must be a whole number"),
         ({"poses.guided_matching": "False"}, "poses.guided_matching must be true or false"),
         ({"fit.common_random_numbers": "no"}, "fit.common_random_numbers must be true or"),
