@@ -527,7 +527,9 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     from tasks.common import STAGES
 
     scene = _parse_scene(scene_text)
-    store = SceneStore.connect(store_uri)
+    store = SceneStore(store_uri)  # read only: connect's probe created a mistyped store's folder
+    if store._local and not store.fs.isdir(store._root_path):
+        raise InputError(f"no store at {store.root}: check --store (or CROPCRAFT_STORE)")
     try:
         manifest = store.load_manifest(scene)
     except InputError:
@@ -588,6 +590,10 @@ def cmd_status(args: argparse.Namespace) -> int:
         sec = f"{r['seconds']:.1f}" if r["seconds"] is not None else "-"
         err = (r["error"] or "")[:100]
         print(f"{r['stage']:<12} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
+    if all(r["status"] in ("pending", "off") and r["cached"] == "no" for r in rows):
+        # a mistyped date or site reads as "not run yet": said, and an exit a script can test
+        print(f"no run recorded for {args.scene} in this store", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -854,3 +854,15 @@ def test_run_names_a_prefect_server_that_does_not_answer(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("cropcraft: error: the Prefect server at PREFECT_API_URL=")
     assert "Traceback" not in err and "\n" not in err
+
+
+def test_status_of_a_mistyped_store_or_scene_says_so_and_writes_nothing(tmp_path, capsys):
+    """``status`` created a mistyped store's folder (and wrote a probe into it), and listed a
+    scene never run as every stage "pending" with exit 0, as if it were waiting."""
+    typo = tmp_path / "stor_typo"
+    assert main(["status", "plotA/soybean/2024-07-01", "--store", str(typo)]) == 2
+    assert "no store at" in capsys.readouterr().err and not typo.exists()
+    (tmp_path / "store").mkdir()
+    assert main(["status", "plotA/soybean/2024-07-01", "--store", str(tmp_path / "store")]) == 1
+    assert "no run recorded for plotA/soybean/2024-07-01" in capsys.readouterr().err
+    assert list((tmp_path / "store").iterdir()) == []
