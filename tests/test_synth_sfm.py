@@ -830,7 +830,7 @@ def test_make_scene_refuses_bad_arguments_before_it_replaces_a_scene(tmp_path):
     """A scene already in the folder stays whole when the new one is refused: a bad seed or
     walk arc (checked after the old files were removed: all 15 lost), and a plot too large
     for a walk, whose views looking down 45-70 degrees from its edge miss its centre (a
-    6 m plot: none of 50 saw it)."""
+    6 m plot: none of 50 saw it; more than 3 m a side is refused)."""
     import dataclasses
 
     from cropcraft_core.config import default_layout
@@ -843,7 +843,7 @@ def test_make_scene_refuses_bad_arguments_before_it_replaces_a_scene(tmp_path):
     for kw, match in (
         ({"seed": -1}, "seed must be a whole number"),
         ({"walk_arc_deg": 0.0}, "walk arc must be in"),
-        ({"layout": big, "views": 20}, r"6 x 6 m plot is too large for the walk"),
+        ({"layout": big, "views": 20}, r"6 x 6 m plot is too large for the walk trajectory"),
     ):
         args = {"views": 2, "resolution": (32, 24), "metrics": False, **kw}
         with pytest.raises(ConfigError, match=match):
