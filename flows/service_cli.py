@@ -535,6 +535,7 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     except InputError:
         manifest = None
     states: dict[str, str] = {}
+    unknown = False  # the cache cannot be judged: the last run's inputs are not readable
     if manifest is not None:
         try:
             recorded = overrides if overrides is not None else manifest.config
@@ -549,8 +550,8 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
                 store_uri,
             )
             states, _ = cache_walk(req)
-        except Exception:  # inputs moved: report the manifest only
-            states = {}
+        except Exception:  # inputs moved: report the manifest only, the cache as unknown
+            states, unknown = {}, True
     neighbours = ((manifest.config if manifest else {}).get("rows") or {}).get("neighbours", 0)
     from cropcraft_core.lease import scene_holder
 
@@ -565,6 +566,8 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
             cached = (f"{n}+{others} seeds" if others else f"{n} seeds") if seeds else "no"
         else:
             cached = "yes" if states.get(stage) == "Cached" else "no"
+        if unknown:  # "no" read as lost results; a rerun from the photos' new place is cached
+            cached = "?"
         status = rec.status if rec else "pending"
         if status == "running" and not live:  # its run ended before recording it
             status = "interrupted"
@@ -590,6 +593,11 @@ def cmd_status(args: argparse.Namespace) -> int:
         sec = f"{r['seconds']:.1f}" if r["seconds"] is not None else "-"
         err = (r["error"] or "")[:100]
         print(f"{r['stage']:<12} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
+    if any(r["cached"] == "?" for r in rows):
+        print(
+            "cached ?: the photos or poses the last run read cannot be read now (moved?), so "
+            "what is cached for them cannot be told; a run given their new place says"
+        )
     if all(r["status"] in ("pending", "off") and r["cached"] == "no" for r in rows):
         # a mistyped date or site reads as "not run yet": said, and an exit a script can test
         print(f"no run recorded for {args.scene} in this store", file=sys.stderr)

@@ -84,7 +84,8 @@ def surfaces(
         away: list[str] = []
         if backend.name in STEREO_BACKENDS and cfg.get("depth_range") is None:
             keep = views_in_box(names, cams, bbox)  # the others have no depths of the plot
-            away = [n for i, n in enumerate(names) if i not in set(keep)]
+            kept = set(keep)
+            away = [n for i, n in enumerate(names) if i not in kept]
             if away:
                 stage_log().warning(
                     "surfaces: %d of %d photos do not see the scene box and are left out: %s",

@@ -866,3 +866,18 @@ def test_status_of_a_mistyped_store_or_scene_says_so_and_writes_nothing(tmp_path
     assert main(["status", "plotA/soybean/2024-07-01", "--store", str(tmp_path / "store")]) == 1
     assert "no run recorded for plotA/soybean/2024-07-01" in capsys.readouterr().err
     assert list((tmp_path / "store").iterdir()) == []
+
+
+def test_status_says_the_cache_is_unknown_when_the_last_runs_photos_have_moved(tmp_path, capsys):
+    """Every stage read "cached no" once the photos the last run read had moved, as if its
+    results were lost; a rerun from their new place is served from the cache."""
+    from cropcraft_core.store import SceneKey, SceneStore
+
+    store = SceneStore(str(tmp_path / "store"))
+    scene = SceneKey("plotA", "soybean", "2024-07-01")
+    gone = str(tmp_path / "moved-away")
+    store.init_manifest(scene, {"images/a.png": "1"}, {}, sources={"images": gone, "poses": None})
+    assert main(["status", scene.prefix, "--store", str(tmp_path / "store")]) == 0
+    out = capsys.readouterr().out
+    assert "ingest       pending  ?" in out
+    assert "cached ?: the photos or poses the last run read cannot be read now" in out
