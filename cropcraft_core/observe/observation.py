@@ -457,7 +457,8 @@ class Observation:
         Returns the path written, ``None`` for a file object. ``OutputError`` if it cannot be
         written.
         """
-        text = json.dumps(self.record(), indent=1, allow_nan=False)
+        record = self.record()
+        text = json.dumps(record, indent=1, allow_nan=False)
         if hasattr(target, "write"):
             np.savez_compressed(target, record=np.array(text), **self._arrays())
             return None
@@ -472,7 +473,7 @@ class Observation:
                 # the two files left new arrays beside the old statistics, loaded as one
                 arrays = self._arrays()
                 _atomic_npz(path / NPZ_NAME, {"record": np.array(text), **arrays})
-                beside = {**self.record(), "arrays_sha256": _arrays_digest(arrays)}
+                beside = {**record, "arrays_sha256": _arrays_digest(arrays)}
                 tmp = path / f".{JSON_NAME}.{os.getpid()}.tmp"
                 tmp.write_text(json.dumps(beside, indent=1, allow_nan=False) + "\n")
                 os.replace(tmp, path / JSON_NAME)

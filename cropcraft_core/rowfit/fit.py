@@ -399,12 +399,12 @@ def fit_ground_and_rows(
     col = np.asarray(colors)
     if col.shape != pts.shape:
         raise InputError(f"colors must have the same shape as points {pts.shape}, got {col.shape}")
-    integer = np.issubdtype(col.dtype, np.integer) or np.issubdtype(col.dtype, np.bool_)
+    stored = col.dtype
     col = col.astype(np.float64)
     finite = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(col), axis=1)
     pts, col = pts[finite], col[finite]
     # the range from the points kept: one inf colour made every colour dark
-    lab_max = colour_range(col, integer=integer)
+    lab_max = colour_range(col, stored)
     diag: dict = {"n_input": int(len(finite)), "n_finite": int(finite.sum())}
 
     # 1. scene box and sampling
@@ -1000,20 +1000,14 @@ def fit_rows_with_scale(
             fit, known_row_spacing, search=(0.6, 1.6) if i == 0 else (0.85, 1.15)
         )
         history.append(est.factor)
-        if est.method == "fallback_unchanged" and i == 0:
-            diag = {**fit.diagnostics, "scale_fallback": "row spacing could not be measured"}
-            return replace(fit, diagnostics=diag)
-        if est.method == "fallback_unchanged":  # the first estimate is not confirmed: the
-            # refit at its scale shows no rows within 15 % of the spacing, so it was a wrong
-            # peak; the scale-1 fit stands, as where the spacing is not found at all
-            diag = {
-                **first.diagnostics,
-                "scale_fallback": (
+        if est.method == "fallback_unchanged":  # the scale-1 fit stands
+            diag = {**first.diagnostics, "scale_fallback": "row spacing could not be measured"}
+            if i:  # the first estimate took a wrong peak: no rows within 15 % at its scale
+                diag["scale_fallback"] = (
                     f"row spacing not confirmed: the fit rescaled by {scale:.4g} shows no row "
                     "period within 15 % of the known spacing"
-                ),
-                "scale_factors": history,
-            }
+                )
+                diag["scale_factors"] = history
             return replace(first, diagnostics=diag)
         scale *= est.factor
         fit = _seeded_fit(points, colors, crop, preset, seed, scale, "row_spacing")

@@ -27,12 +27,15 @@ _EPS = (6.0 / 29.0) ** 3
 _KAPPA = 1.0 / (3.0 * (6.0 / 29.0) ** 2)
 
 
-def colour_range(colors: np.ndarray, *, integer: bool) -> float:
-    """The value of full intensity of ``colors``, read from their largest value: 0–255 for
-    8-bit values, 0–65535 for 16-bit ones (a PLY's ``ushort`` colours); floats are 0–1 up to
-    a largest value of 2 (a fused or averaged colour a hair over 1, an exposure-corrected
-    render's 1.02: dividing those by 255 made every point black), 0–255 up to 255, else
-    0–65535. Larger values are refused: they are no colours."""
+def colour_range(colors: np.ndarray, dtype: np.dtype | None = None) -> float:
+    """The value of full intensity of ``colors`` (stored as ``dtype``, default theirs: a
+    caller that converted them to float first gives the original), read from their largest
+    value: 0–255 for 8-bit values, 0–65535 for 16-bit ones (a PLY's ``ushort`` colours);
+    floats are 0–1 up to a largest value of 2 (a fused or averaged colour a hair over 1, an
+    exposure-corrected render's 1.02: dividing those by 255 made every point black), 0–255 up
+    to 255, else 0–65535. Larger values are refused: they are no colours."""
+    kind = np.asarray(colors).dtype if dtype is None else np.dtype(dtype)
+    integer = np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.bool_)
     top = float(np.nanmax(colors)) if np.size(colors) else 0.0
     if top > 65535.0:
         raise InputError(f"colour values reach {top:g}: not 0-1, 0-255 or 0-65535 colours")
@@ -53,8 +56,7 @@ def srgb_to_lab(rgb: np.ndarray, max_value: float | None = None) -> np.ndarray:
     if a.shape[-1:] != (3,):
         raise InputError(f"colours must have shape (..., 3), got {a.shape}")
     if max_value is None:
-        integer = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_)
-        max_value = colour_range(a, integer=integer)
+        max_value = colour_range(a)
     if not max_value > 0:
         raise InputError(f"max_value must be positive, got {max_value}")
     c = np.clip(a.astype(np.float64) / float(max_value), 0.0, 1.0)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import os
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -668,7 +668,7 @@ class SurfaceBackend(ABC):
             "payload": payload,
             # the files this record was written with: a save over an earlier one that stopped
             # between its files and this record left one save's mesh under the other's cameras
-            "files_sha256": _payload_hashes(out, payload),
+            "files_sha256": _file_hashes(out, _payload_files(payload)),
         }
         tmp = out / f".{META_FILE}.{os.getpid()}.tmp"
         try:
@@ -705,9 +705,9 @@ class SurfaceBackend(ABC):
             raise InputError(f"{where} is damaged: bbox {meta['bbox']!r}")
         if not obj.cameras:
             raise InputError(f"{where} is damaged: it holds no cameras")
-        named = {v for v in payload.values() if isinstance(v, str)}
+        named = set(_payload_files(payload))
         recorded = {k: v for k, v in (meta.get("files_sha256") or {}).items() if k in named}
-        if recorded != _payload_hashes(folder, payload, only=recorded):
+        if recorded != _file_hashes(folder, recorded):
             raise InputError(
                 f"{folder}'s surface files are not the ones {META_FILE} records (changed since, or "
                 "a save over an earlier one stopped before its record): fit and save them again"
@@ -716,15 +716,17 @@ class SurfaceBackend(ABC):
         return obj
 
 
-def _payload_hashes(
-    folder: Path, payload: Mapping[str, Any], only: Mapping[str, str] | None = None
-) -> dict[str, str]:
-    """sha256 of each file a backend's payload names (of those in ``only`` where given)."""
+def _payload_files(payload: Mapping[str, Any]) -> list[str]:
+    """The file names a backend's saved payload record names (its text values)."""
+    return [v for v in payload.values() if isinstance(v, str)]
+
+
+def _file_hashes(folder: Path, names: Iterable[str]) -> dict[str, str]:
+    """sha256 of each of the files ``names`` in ``folder`` that is there."""
     import hashlib
 
-    names = [v for v in payload.values() if isinstance(v, str) and (folder / v).is_file()]
     out = {}
-    for name in names if only is None else [n for n in only if (folder / n).is_file()]:
+    for name in [n for n in names if (folder / n).is_file()]:
         h = hashlib.sha256()
         with open(folder / name, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
