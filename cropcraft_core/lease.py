@@ -258,18 +258,25 @@ class SceneLease:
     # ---- messages -----------------------------------------------------------------------
 
     def _busy_message(self, holder: dict[str, Any], age: float | None) -> str:
-        who = holder.get("owner") or "another run"
-        where = f" on {holder['host']}" if holder.get("host") else ""
-        pid = f" (pid {holder['pid']})" if holder.get("pid") else ""
-        since = f" since {holder['acquired']}" if holder.get("acquired") else ""
-        msg = f"scene {self.scene.prefix} is being run by {who}{where}{pid}{since}"
-        if age is not None:
-            ttl = float(holder.get("ttl_s") or self.ttl_s)
-            msg += (
-                f"; its lease was renewed {age:.0f} s ago and lapses after {ttl:.0f} s "
-                "without renewal"
-            )
-        return msg + ": wait for that run to finish, or stop it, and run this one again"
+        return busy_message(self.scene, holder, age, self.ttl_s)
+
+
+def busy_message(
+    scene: SceneKey, holder: dict[str, Any], age: float | None, ttl_s: float = DEFAULT_TTL_S
+) -> str:
+    """The refusal of a run of ``scene`` while ``holder`` holds it (its lease renewed ``age``
+    seconds ago, on object storage)."""
+    who = holder.get("owner") or "another run"
+    where = f" on {holder['host']}" if holder.get("host") else ""
+    pid = f" (pid {holder['pid']})" if holder.get("pid") else ""
+    since = f" since {holder['acquired']}" if holder.get("acquired") else ""
+    msg = f"scene {scene.prefix} is being run by {who}{where}{pid}{since}"
+    if age is not None:
+        ttl = float(holder.get("ttl_s") or ttl_s)
+        msg += (
+            f"; its lease was renewed {age:.0f} s ago and lapses after {ttl:.0f} s without renewal"
+        )
+    return msg + ": wait for that run to finish, or stop it, and run this one again"
 
 
 def _parse(text: str) -> dict[str, Any]:
@@ -302,34 +309,66 @@ def hold_scene(
 def scene_holder(store: SceneStore, scene: SceneKey) -> dict[str, Any] | None:
     """Who holds the scene's lease now, read without taking it (``cropcraft status``): the
     holder's description, or None where no run holds it. Local store: the lock file names its
-    holder until release; a holder on this host whose process is gone no longer holds it (the
-    kernel dropped its lock), one on another host is taken as holding it. Object storage: the
+    holder until release, and holds it while its lock is held (a run killed without releasing
+    it lost the lock with its process). Object storage: the
     lease object, within its ``ttl_s`` of its last renewal."""
+    return _holder(store, scene)[0]
+
+
+def refuse_if_busy(store: SceneStore, scene: SceneKey) -> None:
+    """:class:`SceneBusyError`, with the message a run's own lease would give, where another
+    run holds ``scene`` now: checked before a run starts its flow, so that a busy scene is
+    refused in one line, not after Prefect has started a flow run that fails. The run still
+    takes the lease itself (:func:`hold_scene`); this only answers early."""
+    holder, age = _holder(store, scene)
+    if holder is not None:
+        raise SceneBusyError(busy_message(scene, holder, age))
+
+
+def _holder(store: SceneStore, scene: SceneKey) -> tuple[dict[str, Any] | None, float | None]:
+    """``(holder, seconds since its last renewal)``; see :func:`scene_holder`."""
     if store._local:
         path = os.path.join(store._full(scene_prefix(scene)), LOCK_NAME)
         try:
             with open(path) as fh:
                 holder = _parse(fh.read())
+                locked = _locked(fh) if holder else None
         except OSError:
-            return None
-        if not holder:
-            return None
+            return None, None
+        if not holder or locked is False:  # released, or its run was killed
+            return None, None
         pid = holder.get("pid")
-        if holder.get("host") == socket.gethostname() and isinstance(pid, int):
+        if locked is None and holder.get("host") == socket.gethostname() and isinstance(pid, int):
             try:
                 os.kill(pid, 0)
             except ProcessLookupError:
-                return None
+                return None, None
             except OSError:  # someone else's process: it is there
                 pass
-        return holder
+        return holder, None
     key = f"{scene_prefix(scene)}/{LEASE_NAME}"
     try:
         data, _, age = store._read_tagged(key)
     except Exception:
-        return None
+        return None, None
     if data is None:
-        return None
+        return None, None
     holder = _parse(data.decode("utf-8", "replace"))
     ttl = float(holder.get("ttl_s") or DEFAULT_TTL_S)
-    return holder if age is None or age <= ttl else None
+    return (holder, age) if age is None or age <= ttl else (None, None)
+
+
+def _locked(fh: Any) -> bool | None:
+    """Whether a run holds the lock on the open lock file ``fh`` (a shared lock tried and
+    given back at once; it cannot succeed while a run holds its exclusive one); None where the
+    filesystem cannot tell (no flock: the holder's pid is read instead)."""
+    import fcntl
+
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return None
+    fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    return False

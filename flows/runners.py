@@ -8,14 +8,21 @@ the ``cropcraft`` package and credentials for the scene store in their own envir
 
 from __future__ import annotations
 
+import copy
+import logging
 import multiprocessing
 import os
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from prefect.task_runners import ProcessPoolTaskRunner
 
 from cropcraft_core.errors import ConfigError
+
+#: Set (by the CLI) where the consoles of a run's worker processes print named errors in one
+#: line (:func:`named_errors_in_one_line`).
+ONE_LINE_ERRORS_ENV = "CROPCRAFT_ONE_LINE_ERRORS"
 
 RUNNERS = ("processes", "threads", "dask", "dask://HOST:PORT")
 
@@ -142,6 +149,38 @@ def _init_worker(api_url: str | None, progress_queue: Any) -> None:
         os.environ["PREFECT_API_URL"] = api_url
 
     set_progress_sink(progress_queue.put_nowait)
+    if os.environ.get(ONE_LINE_ERRORS_ENV):
+        named_errors_in_one_line()
+
+
+def named_errors_in_one_line() -> Callable[[], None]:
+    """Make a named error's record (:class:`~cropcraft_core.errors.CropCraftError`: a corrupt
+    photo, a failed SfM, a busy scene) print on this process's console as its one line,
+    without Prefect's traceback; returns the undo. A CLI user read ~90 lines of Prefect's own
+    frames (the task's record, then the flow's) before the command's one-line error, which
+    says it all. Any other exception (a defect) keeps its traceback on the console, and the
+    Prefect API (the UI) gets every traceback: the record is shortened for the console's
+    formatting only."""
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    from cropcraft_core.errors import CropCraftError
+
+    handlers = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
+    for h in handlers:
+
+        def fmt(record: logging.LogRecord, plain: Callable = h.format) -> str:
+            if record.exc_info and isinstance(record.exc_info[1], CropCraftError):
+                record = copy.copy(record)
+                record.exc_info = record.exc_text = record.stack_info = None
+            return plain(record)
+
+        h.format = fmt  # an instance attribute: removing it brings the class's back
+
+    def undo() -> None:
+        for h in handlers:
+            vars(h).pop("format", None)
+
+    return undo
 
 
 def _relay_progress(queue: Any) -> None:

@@ -33,7 +33,7 @@ from typing import Any, Literal
 from prefect import flow, get_run_logger, unmapped
 
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
-from cropcraft_core.lease import SceneLease, hold_scene
+from cropcraft_core.lease import SceneLease, hold_scene, refuse_if_busy
 from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
 from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
@@ -1365,9 +1365,11 @@ def run_scene(
     """Validate, then run :func:`reconstruct_scene` on ``runner`` (see ``flows.runners``);
     ``refresh`` recomputes every stage.
 
-    Validation happens here first, so bad input fails before Prefect starts.
+    Validation happens here first, so bad input, and a scene another run holds now, fail
+    before Prefect starts.
     """
     req = prepare(site, crop, date, images, poses, with_backend(overrides, surfaces_backend), store)
+    refuse_if_busy(SceneStore(req.store_root), req.scene)
     warn_local_paths_on_a_remote_cluster(runner, req)
     return reconstruct_scene.with_options(task_runner=make_task_runner(runner))(
         site=site,

@@ -278,7 +278,7 @@ def run_progress(bar: bool = True):
 
     set_progress_sink(sink)
     try:
-        with _task_runs_off_console(), above:
+        with _task_runs_off_console(), _named_errors_in_one_line(), above:
             yield
     finally:
         set_progress_sink(None)
@@ -350,6 +350,25 @@ def _task_runs_off_console():
     finally:
         for h in handlers:
             h.removeFilter(quiet)
+
+
+@contextmanager
+def _named_errors_in_one_line():
+    """Named errors print in one line on the console of this process and of the pool's
+    workers it starts meanwhile (:func:`flows.runners.named_errors_in_one_line`)."""
+    from flows.runners import ONE_LINE_ERRORS_ENV, named_errors_in_one_line
+
+    before = os.environ.get(ONE_LINE_ERRORS_ENV)
+    os.environ[ONE_LINE_ERRORS_ENV] = "1"  # the processes runner's workers, spawned from here
+    undo = named_errors_in_one_line()
+    try:
+        yield
+    finally:
+        undo()
+        if before is None:
+            os.environ.pop(ONE_LINE_ERRORS_ENV, None)
+        else:
+            os.environ[ONE_LINE_ERRORS_ENV] = before
 
 
 def _before_flow_run() -> None:

@@ -732,6 +732,7 @@ def test_run_progress_keeps_prefects_task_run_records_off_the_console():
     lines and everything after the fit still print."""
     import logging
 
+    from prefect import flow  # noqa: F401 - Prefect sets its console up on loading (alone: here)
     from prefect.logging.handlers import PrefectConsoleHandler
 
     from flows.service_cli import run_progress
@@ -881,3 +882,94 @@ def test_status_says_the_cache_is_unknown_when_the_last_runs_photos_have_moved(t
     out = capsys.readouterr().out
     assert "ingest       pending  ?" in out
     assert "cached ?: the photos or poses the last run read cannot be read now" in out
+
+
+def test_run_prints_a_named_errors_record_without_prefects_traceback():
+    """During a run the console prints a named error's record (a corrupt photo, a failed SfM)
+    as its one line: Prefect's ~90 lines of its own frames came before the command's one-line
+    error. A defect's record keeps its traceback, and so does every record after the run; the
+    workers the run spawns are told to do the same."""
+    import logging
+    import os
+    import sys
+
+    from prefect import flow  # noqa: F401 - Prefect sets its console up on loading (alone: here)
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    from cropcraft_core.errors import InputError
+    from flows.runners import ONE_LINE_ERRORS_ENV
+    from flows.service_cli import run_progress
+
+    console = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
+    assert console, "Prefect configured no console handler"
+
+    def printed(exc: Exception) -> list[str]:
+        try:
+            raise exc
+        except Exception:
+            info = sys.exc_info()
+        record = logging.LogRecord(
+            "prefect.task_runs", logging.ERROR, __file__, 1, "failed", (), info
+        )
+        record.task_run_name = "ingest-0"
+        return [h.format(record) for h in console]
+
+    assert ONE_LINE_ERRORS_ENV not in os.environ
+    with run_progress(bar=False):
+        assert os.environ[ONE_LINE_ERRORS_ENV] == "1"
+        named = printed(InputError("image a.jpg cannot be decoded"))
+        defect = printed(KeyError("a defect"))
+    assert named and all("Traceback" not in text and text.endswith("failed") for text in named)
+    assert all("Traceback" in text and "KeyError: 'a defect'" in text for text in defect)
+    assert all("Traceback" in text for text in printed(InputError("after the run")))
+    assert ONE_LINE_ERRORS_ENV not in os.environ
+
+
+def test_run_of_a_busy_scene_or_a_corrupt_photo_ends_in_its_one_line_error(tmp_path):
+    """`cropcraft run` in a fresh process: a scene another run holds is refused in one line
+    before Prefect starts (it printed Prefect's start, a failed flow run and 31 lines of
+    traceback); a truncated photo stops the ingest task, and the console names it without a
+    traceback from the task's worker process or the flow."""
+    import os
+    import subprocess
+    import sys
+
+    import numpy as np
+    from PIL import Image
+
+    from cropcraft_core.lease import hold_scene
+    from cropcraft_core.store import SceneKey, SceneStore
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        pixels = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(photos / f"p{i}.jpg", quality=90)
+    whole = (photos / "p2.jpg").read_bytes()
+    (photos / "p2.jpg").write_bytes(whole[: len(whole) // 2])
+    store = tmp_path / "store"
+    env = {**os.environ, "PREFECT_LOGGING_LEVEL": "INFO"}
+    env.pop("PREFECT_API_URL", None)  # a temporary server, as a user's first run has
+
+    def run() -> subprocess.CompletedProcess:
+        argv = ["run", "plotA/soybean/2024-07-01", "--images", str(photos), "--store", str(store)]
+        code = f"import sys; from flows.cli import main; sys.exit(main({argv!r}))"
+        return subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
+        )
+
+    with hold_scene(SceneStore(str(store)), SceneKey("plotA", "soybean", "2024-07-01"), "nightly"):
+        busy = run()
+    assert busy.returncode == 2
+    assert len(busy.stderr.strip().splitlines()) == 1, busy.stderr  # no temporary server started
+    assert busy.stderr.startswith(
+        "cropcraft: error: scene plotA/soybean/2024-07-01 is being run by nightly"
+    )
+
+    corrupt = run()
+    assert corrupt.returncode == 2, corrupt.stderr
+    lines = corrupt.stderr.strip().splitlines()
+    assert "Traceback" not in corrupt.stderr, corrupt.stderr
+    assert any("Task run 'ingest" in line and "p2.jpg cannot be decoded" in line for line in lines)
+    assert any(line.startswith("cropcraft: error: image p2.jpg cannot be") for line in lines)
