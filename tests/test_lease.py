@@ -195,6 +195,28 @@ def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
     assert scene_holder(store, SCENE) is None
 
 
+def test_a_killed_runs_lock_file_naming_a_live_process_does_not_hold_the_scene(tmp_path):
+    """A run killed outright leaves its lock file naming its pid; once another process has
+    that pid, the file alone read as a holder (``cropcraft status``: running, and the early
+    refusal would refuse every run). The lock itself is what holds the scene."""
+    import socket
+
+    from cropcraft_core.lease import refuse_if_busy
+
+    store = SceneStore(str(tmp_path / "store"))
+    path = store._full(f"{scene_prefix(SCENE)}/{LOCK_NAME}")
+    os.makedirs(os.path.dirname(path))
+    with open(path, "w") as fh:  # as the killed run left it, its pid now another process's
+        json.dump({"owner": "killed", "host": socket.gethostname(), "pid": os.getpid()}, fh)
+    assert scene_holder(store, SCENE) is None
+    refuse_if_busy(store, SCENE)
+    with hold_scene(store, SCENE, owner="flow run nightly"):  # a live holder is refused early
+        assert scene_holder(store, SCENE)["owner"] == "flow run nightly"
+        with pytest.raises(SceneBusyError, match="being run by flow run nightly on"):
+            refuse_if_busy(store, SCENE)
+    refuse_if_busy(store, SCENE)
+
+
 def test_a_holder_that_stalled_past_its_lease_learns_it_was_taken_over(s3_server):
     """On object storage a holder that stops renewing (a stalled process) loses the scene to
     the next run; when it resumes, its next renewal finds another version and ``check``
