@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cropcraft_core.errors import GeometryError, InputError, OutputError
+from cropcraft_core.errors import ConfigError, GeometryError, InputError, OutputError
 from cropcraft_core.geometry.camera import PinholeCamera
 from cropcraft_core.geometry.mesh import CanopyMesh, Organ
 from cropcraft_core.render import (
@@ -122,10 +122,25 @@ def test_agrees_with_open3d_raycast_on_random_soup():
 
 
 def test_raycast_near_option_matches_raster_culling():
-    v, f = _square(0.2, 0.5)
-    res = raycast_depth((v, f), ROW_CAM.scaled(0.25), near=0.6)  # square at depth 0.5 < near
-    assert not res.mask.any()
-    assert render_depth(v, f, ROW_CAM.scaled(0.25), near=0.6).mask.sum() == 0
+    """``near`` drops the faces nearer than it from both renderers alike: of a small square at
+    0.5 m over a larger one at 1.0 m, near = 0.6 leaves the far square whole, with its own face
+    ids; a near that is not a positive finite distance is refused by both (NaN or inf dropped
+    every face from the reference: an empty view, no error)."""
+    cam = ROW_CAM.scaled(0.25)
+    v0, f0 = _square(0.1, 0.5)  # the camera looks down from 1 m: 0.5 m away
+    v1, f1 = _square(0.3, 0.0)  # 1.0 m away
+    v, f = np.vstack([v0, v1]), np.vstack([f0, f1 + 4])
+    everything = render_depth(v, f, cam, near=0.01)
+    assert set(np.unique(everything.face_id)) == {-1, 0, 1, 2, 3}
+    for res in (raycast_depth((v, f), cam, near=0.6), render_depth(v, f, cam, near=0.6)):
+        assert set(np.unique(res.face_id)) == {-1, 2, 3}
+        assert np.array_equal(res.mask, render_depth(v1, f1, cam).mask)
+        assert np.allclose(res.depth[res.mask], 1.0, atol=1e-6)
+    for bad in (float("nan"), float("inf"), 0.0, -1.0, "0.5", True):
+        with pytest.raises(GeometryError, match="near must be a positive finite distance"):
+            raycast_depth((v, f), cam, near=bad)
+        with pytest.raises(GeometryError, match="near must be a positive finite distance"):
+            render_depth(v, f, cam, near=bad)
 
 
 def test_face_ids_point_at_the_face_containing_the_point():
@@ -372,6 +387,21 @@ def _demo_mesh() -> CanopyMesh:
     return CanopyMesh(v, f, organ.astype(np.uint8), plant, np.zeros(m, np.int32))
 
 
+def test_shade_rgb_shows_a_face_without_an_organ_label_in_magenta():
+    """A face whose organ label is none of the three was drawn as a stem, hiding a damaged
+    mesh in the one image a person looks at."""
+    import dataclasses
+
+    mesh = _demo_mesh()
+    cam = ROW_CAM.scaled(0.5)
+    res = render_depth(mesh.vertices, mesh.faces, cam)
+    shown = shade_rgb(mesh, cam, shadows=False)[res.mask].astype(int)
+    assert not ((shown[:, 0] > shown[:, 1] + 40) & (shown[:, 2] > shown[:, 1] + 40)).any()
+    bad = dataclasses.replace(mesh, organ=np.full_like(mesh.organ, 7))
+    shown = shade_rgb(bad, cam, shadows=False)[res.mask].astype(int)
+    assert ((shown[:, 0] > shown[:, 1] + 40) & (shown[:, 2] > shown[:, 1] + 40)).mean() > 0.95
+
+
 def test_shade_rgb_top_and_oblique(tmp_path):
     mesh = _demo_mesh()
     cam = ROW_CAM.scaled(0.5)
@@ -415,6 +445,14 @@ def test_depth_to_rgb_and_save_png_errors(tmp_path):
     assert np.all(rgb[0, 0] == 128)
     assert len({tuple(c) for c in rgb[10, 5:25]}) > 10
     assert np.array_equal(depth_to_rgb(d, 0.0, 2.0, cmap="viridis")[0, 0], [128, 128, 128])
+    for lo, hi, message in (
+        (2.0, 0.0, "vmin 2.0 is above vmax 0.0"),
+        (np.nan, 2.0, "vmin must be"),
+    ):
+        with pytest.raises(ConfigError, match=message):  # crossed: flat; NaN: every pixel black
+            depth_to_rgb(d, lo, hi)
+    flat = depth_to_rgb(np.full((2, 2), 1.5))  # a flat map's own bounds are equal: one colour
+    assert (flat == flat[0, 0]).all() and not np.array_equal(flat[0, 0], [128, 128, 128])
     with pytest.raises(InputError):
         save_png(tmp_path / "x.png", rgb.astype(np.float32))
     with pytest.raises(OutputError):

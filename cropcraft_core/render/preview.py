@@ -24,6 +24,7 @@ ORGAN_RGB = {
     Organ.PETIOLE: (120, 170, 76),
     Organ.STEM: (160, 165, 70),
 }
+UNKNOWN_RGB = (200, 0, 200)  # a face whose label is no organ's: shown, not passed off as one
 SOIL_RGB = (118, 84, 58)
 SKY_HORIZON_RGB = (206, 222, 238)
 SKY_ZENITH_RGB = (118, 162, 218)
@@ -98,8 +99,10 @@ def shade_rgb(
     light = np.ones((h, w))
 
     # --- canopy: base colour per face, Lambert on the side facing the camera
-    base = np.array([ORGAN_RGB.get(Organ(o), (200, 0, 200)) for o in range(3)], dtype=np.float64)
-    organ = np.clip(mesh.organ[fid].astype(np.int64), 0, 2)
+    # the organs' colours, then magenta for a label no organ has (it was drawn as a stem)
+    base = np.array([*(ORGAN_RGB[Organ(o)] for o in range(3)), UNKNOWN_RGB], dtype=np.float64)
+    organ = mesh.organ[fid].astype(np.int64)
+    organ = np.where((organ >= 0) & (organ <= 2), organ, 3)
     col = base[organ]
     plant = mesh.plant[fid].astype(np.int64)
     jitter = (hash01(plant, seed) - 0.5) * 2 * plant_variation
@@ -167,13 +170,20 @@ def depth_to_rgb(
 
     Values are mapped linearly from [vmin, vmax] (default: the finite min and max) onto the
     matplotlib colour map ``cmap`` (e.g. "turbo", "viridis"), clipped at the ends; background
-    pixels get ``background``.
+    pixels get ``background``. Equal bounds (a flat map's own) map from [vmin, vmin + 1];
+    given bounds must be finite with vmin <= vmax (a NaN bound painted every pixel black,
+    crossed ones a flat image).
     """
     import matplotlib  # lazy: matplotlib is slow to import and only previews need it
 
     d = np.asarray(depth, dtype=np.float64)
     if d.ndim != 2:
         raise InputError(f"depth must be an (H, W) array, got shape {d.shape}")
+    for name, bound in (("vmin", vmin), ("vmax", vmax)):
+        if bound is not None and not np.isfinite(bound):
+            raise ConfigError(f"depth colour scale: {name} must be a finite number, got {bound}")
+    if vmin is not None and vmax is not None and vmin > vmax:
+        raise ConfigError(f"depth colour scale: vmin {vmin} is above vmax {vmax}")
     try:
         cm = matplotlib.colormaps[cmap]
     except KeyError:

@@ -42,7 +42,7 @@ from numba import njit, prange
 
 from cropcraft_core.errors import GeometryError
 from cropcraft_core.geometry.camera import PinholeCamera
-from cropcraft_core.render.result import RenderResult, check_vertices_faces
+from cropcraft_core.render.result import RenderResult, check_near, check_vertices_faces
 
 #: Number of horizontal bands the image is split into (a power of two, see ``_band_order``).
 N_BANDS = 64
@@ -322,8 +322,7 @@ def _render(vertices, faces, camera, near, with_ids):
     """(depth (H, W) float32, face ids (H, W) int32 or None without ``with_ids``)."""
     if not isinstance(camera, PinholeCamera):
         raise GeometryError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
-    if not (near > 0 and math.isfinite(near)):
-        raise GeometryError(f"near must be a positive finite distance in metres, got {near}")
+    check_near(near)
     v, f = check_vertices_faces(vertices, faces)
     h, w = camera.height, camera.width
     n, m = len(v), len(f)

@@ -14,7 +14,12 @@ import open3d as o3d
 
 from cropcraft_core.errors import GeometryError
 from cropcraft_core.geometry.camera import PinholeCamera
-from cropcraft_core.render.result import RenderResult, as_vertices_faces, check_vertices_faces
+from cropcraft_core.render.result import (
+    RenderResult,
+    as_vertices_faces,
+    check_near,
+    check_vertices_faces,
+)
 
 _INVALID_ID = o3d.t.geometry.RaycastingScene.INVALID_ID
 
@@ -98,6 +103,7 @@ def raycast_depth(
     vertices, faces = as_vertices_faces(mesh_or_vf)
     face_index = np.arange(len(faces))
     if near is not None:
+        check_near(near)
         z = camera.to_camera(vertices)[:, 2]
         keep = np.all(z[faces] >= near, axis=1) if len(faces) else np.zeros(0, bool)
         faces, face_index = faces[keep], face_index[keep]

@@ -8,6 +8,7 @@ mesh and camera.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,3 +132,11 @@ class RenderResult:
         if self.camera is None:
             raise GeometryError("points() needs the RenderResult's camera")
         return self.camera.unproject(self.depth.astype(np.float64))
+
+
+def check_near(near: object) -> None:
+    """A GeometryError unless ``near`` is a positive finite distance (metres), as both
+    renderers take it (NaN or inf dropped every face and rendered an empty view)."""
+    ok = isinstance(near, (int, float, np.integer, np.floating)) and not isinstance(near, bool)
+    if not (ok and near > 0 and math.isfinite(near)):
+        raise GeometryError(f"near must be a positive finite distance in metres, got {near!r}")
