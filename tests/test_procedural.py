@@ -285,3 +285,44 @@ def test_sees_spheres_is_false_only_wholly_outside_the_view():
     seen = cam.sees_spheres(centres, np.array([0.01, 0.1, 0.1, 0.1, 0.6]))
     # inside; reaching in; wholly outside; behind the camera; behind it but reaching round
     assert seen.tolist() == [True, True, False, False, True]
+
+
+@pytest.mark.parametrize(
+    "layout, hint",
+    [
+        (dict(plot_length=200.0, plot_width=200.0), "1,118,830 plants (202 × 202 m"),  # cm as m
+        (dict(density=275000.0), "4,180,000 plants"),  # plants per hectare as per m²
+    ],
+)
+def test_a_layout_in_other_units_is_named_before_any_plant_is_built(layout, hint):
+    """A plot typed in centimetres or a density per hectare planned millions of plants and
+    ended in numpy's bare MemoryError (or hours of swapping): refused by its plant count."""
+    import re
+
+    with pytest.raises(ConfigError, match=f"would hold {re.escape(hint)}.*a plot is metres across"):
+        generate_canopy("soybean", layout=default_layout("soybean", **layout))
+
+
+def test_layout_and_parameters_take_numpy_numbers_and_refuse_bools_and_bad_regions():
+    """numpy's numbers were refused as "not a positive number" and ``True`` taken as 1 m (a
+    ``true`` margin in a settings file) or as parameter value 1.0; a bad crop or region gave
+    a bare TypeError / OverflowError / ValueError."""
+    import json
+
+    layout = default_layout("maize", density=np.float32(8), plot_length=np.int64(3))
+    assert layout.density == 8.0 and layout.plot_length == 3.0
+    assert json.loads(json.dumps(layout.to_dict()))["plot_length"] == 3.0
+    assert default_layout("soybean", plot_length=3).to_dict()["plot_length"] == 3  # as given
+    for field in ("margin", "plot_length", "row_azimuth_deg", "jitter_along"):
+        with pytest.raises(ConfigError, match="got True"):
+            default_layout("soybean", **{field: True})
+    with pytest.raises(ConfigError, match="num_nodes=True is not a number"):
+        resolve_params("soybean", {"num_nodes": True})
+    with pytest.raises(ConfigError, match="unknown crop"):
+        generate_canopy(["soybean"])
+    for region, message in (
+        ((-np.inf, 1, -1, 1), "four finite numbers"),
+        ((0, 1, 2), r"four numbers \(xmin, xmax, ymin, ymax\)"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            generate_canopy("soybean", region=region)

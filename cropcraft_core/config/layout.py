@@ -10,6 +10,7 @@ maize 0.76 m rows at 8.25 plants/m².
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, replace
 
 from cropcraft_core.errors import ConfigError
@@ -35,17 +36,24 @@ class CanopyLayout:
     """planted border around the plot (m), so that views of the plot centre see no edge"""
 
     def __post_init__(self) -> None:
+        # numbers of any real type (numpy's stored as floats, for JSON); a bool is no length
+        # (``true`` in a settings file was a 1 m margin)
         for name in ("plot_length", "plot_width", "row_spacing", "density"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            if not (_real(v) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name.replace('_', ' ')} must be a positive number, got {v!r}")
+            _plain(self, name)
         for name in ("jitter_along", "jitter_across", "margin"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{name.replace('_', ' ')} must be non-negative, got {v!r}")
+            if not (_real(v) and math.isfinite(v) and v >= 0):
+                raise ConfigError(
+                    f"{name.replace('_', ' ')} must be a non-negative number, got {v!r}"
+                )
+            _plain(self, name)
         a = self.row_azimuth_deg
-        if not (isinstance(a, int | float) and not isinstance(a, bool) and math.isfinite(a)):
+        if not (_real(a) and math.isfinite(a)):
             raise ConfigError(f"row azimuth must be a number of degrees, got {a!r}")
+        _plain(self, "row_azimuth_deg")
         if self.plot_width < self.row_spacing:
             raise ConfigError(
                 f"plot width {self.plot_width:g} m holds no full row at row spacing "
@@ -68,6 +76,18 @@ class CanopyLayout:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def _real(v: object) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _plain(layout: CanopyLayout, name: str) -> None:
+    """A numpy number as a float; Python's ints and floats as given (their JSON, and so the
+    stored scenes' cache keys, unchanged)."""
+    v = getattr(layout, name)
+    if not isinstance(v, int | float):
+        object.__setattr__(layout, name, float(v))
 
 
 def default_layout(crop: str, **overrides) -> CanopyLayout:

@@ -44,7 +44,7 @@ CROPS: dict[str, tuple[ParamSpec, ...]] = {
 
 
 def check_crop(crop: str) -> str:
-    if crop not in CROPS:
+    if not isinstance(crop, str) or crop not in CROPS:
         raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(CROPS)}")
     return crop
 
@@ -68,6 +68,8 @@ def resolve_params(crop: str, given: Mapping[str, float] | None = None) -> dict[
     out: dict[str, float] = {}
     for name, spec in specs.items():
         value = given.get(name, spec.middle)
+        if isinstance(value, bool):  # float(True) is 1.0: no parameter is a yes or no
+            raise ConfigError(f"{crop} parameter {name}={value!r} is not a number")
         try:
             value = float(value)
         except (TypeError, ValueError):

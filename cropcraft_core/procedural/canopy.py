@@ -32,6 +32,10 @@ SPECIES: dict[str, ModuleType] = {"soybean": soybean, "maize": maize}
 # across, colour tint
 _COMMON_SLOTS = 4
 
+#: The most plants one canopy is built with (~75M faces of soybean): more is a plot or a density
+#: in other units (200 × 200 "m", 275,000 plants "per m²"), which ended in a bare MemoryError.
+MAX_PLANTS = 50_000
+
 Region = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax in the row frame (m)
 
 
@@ -106,10 +110,26 @@ def generate_canopy(
     params = resolve_params(crop, params)
     layout = layout or default_layout(crop)
     region = plot_region(layout) if region is None else region
-    xmin, xmax, ymin, ymax = region
+    try:
+        xmin, xmax, ymin, ymax = (float(v) for v in region)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"region must be four numbers (xmin, xmax, ymin, ymax), got {region!r}"
+        ) from None
+    if not all(math.isfinite(v) for v in (xmin, xmax, ymin, ymax)):
+        raise ConfigError(f"region must be four finite numbers, got {region!r}")
     if not (xmin < xmax and ymin < ymax):
         raise ConfigError(f"empty region {region}")
     s, d = layout.row_spacing, layout.in_row_spacing
+    n_rows = math.floor(ymax / s + 1e-9) - math.ceil(ymin / s - 1e-9) + 1
+    n_row = math.floor(xmax / d - 0.5 + 1e-9) - math.ceil(xmin / d - 0.5 - 1e-9) + 1
+    if max(n_rows, 0) * max(n_row, 0) > MAX_PLANTS:  # before any array: a bare MemoryError
+        raise ConfigError(
+            f"the canopy would hold {n_rows * n_row:,} plants ({xmax - xmin:g} × "
+            f"{ymax - ymin:g} m with its border, {layout.density:g} plants/m²), over "
+            f"{MAX_PLANTS:,}: a plot is metres across and the density per m² (not cm, not per "
+            "hectare)"
+        )
     plot_rows, plot_slots = _plot_slots(layout)
     n_slots = _COMMON_SLOTS + species.N_SLOTS
 

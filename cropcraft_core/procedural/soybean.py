@@ -47,7 +47,7 @@ FIRST_BRANCHING_NODE = 8
 P_TWO_BRANCH_NODES = 0.6
 LEAFLETS_PER_NODE = 3
 
-BASE_STEM_M = 0.06  # ground to the first trifoliate node (hypocotyl, epicotyl, unifoliate node)
+BASE_STEM_M = 0.06  # stem below the profile's first internode (hypocotyl, epicotyl, unifoliate)
 BRANCH = {
     "internode_m": 0.040,
     "petiole_m": 0.120,

@@ -24,7 +24,8 @@ class Canopy:
     int32 (the id faces carry in ``mesh.node``), ``node_stem`` (k,) int16 (-1 main stem, b ≥ 0
     branch b), ``node_xyz`` (k, 3) position where the petiole/leaf leaves the stem,
     ``node_internode`` (k,) length of the stem segment below the node (m; for a branch's first node,
-    the segment from the main stem).
+    the segment from the main stem; for the main stem's first node, its profile internode
+    without the base stem under it, ``BASE_STEM_M``, which the internode traits leave out).
 
     ``ground_area`` (m²): the ground the in-plot plants built stand for, their number × row
     spacing × in-row spacing, so LAI = leaf area of in-plot plants / ground_area. It is the
