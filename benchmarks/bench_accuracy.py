@@ -868,7 +868,9 @@ def _scene_list(text: str) -> tuple[int, ...]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench accuracy", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
     ap.add_argument("--scenes", type=at_least(1), help="scenes (default 30; --quick 6)")
     ap.add_argument(

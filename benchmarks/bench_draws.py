@@ -197,7 +197,7 @@ def print_table(res: dict[str, Any]) -> None:
 def main(argv: list[str] | None = None) -> int:
     from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="cropcraft bench draws", description=__doc__.splitlines()[0])
     ap.add_argument("scene", help="SITE/CROP/DATE of a stored run (fitted with 20+ seeds)")
     ap.add_argument("--store", default=None, help="scene store root (default $CROPCRAFT_STORE)")
     ap.add_argument(

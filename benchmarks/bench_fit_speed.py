@@ -140,7 +140,9 @@ def skopt_vs_ours(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench fit-speed", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--json", type=output_file)
     ap.add_argument("--evals", type=at_least(2), default=500)
     ap.add_argument("--initial", type=at_least(2), default=200)

@@ -101,7 +101,9 @@ def print_table(rows: list[dict]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="cropcraft bench generate", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--json", type=output_file)
     ap.add_argument("--repeats", type=at_least(1), default=15)
     a = ap.parse_args(argv)

@@ -212,7 +212,9 @@ def print_table(rows: list[dict], checkpoints: tuple[int, ...]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="cropcraft bench optimizer", description=__doc__.split("\n")[0]
+    )
     p.add_argument(
         "--quick",
         action="store_true",

@@ -76,7 +76,7 @@ def _median_time(fn, runs: int) -> tuple[float, object]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="cropcraft bench render", description=__doc__.splitlines()[0])
     ap.add_argument("--triangles", type=at_least(1), default=150_000)
     ap.add_argument("--runs", type=at_least(1), default=10)
     ap.add_argument("--seed", type=at_least(0), default=0)

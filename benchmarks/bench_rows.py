@@ -176,7 +176,7 @@ def print_table(res: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="cropcraft bench rows", description=__doc__.splitlines()[0])
     ap.add_argument("--crop", required=True, choices=["soybean", "maize"])
     ap.add_argument("--first", type=at_least(0), default=0, help="first scene number")
     ap.add_argument("--scenes", type=at_least(1), help="how many scenes (default 12; --quick 1)")

@@ -525,7 +525,7 @@ def default_poses_uri(store: SceneStore, scene: SceneKey) -> str | None:
 
 
 #: Field notes beside a date's photos: the model parameters measured in the field that day
-#: (e.g. ``{"num_nodes": 9}``, the main-stem nodes counted at a V-stage scouting; a value, or
+#: (e.g. ``{"num_nodes": 9}``, the main-stem trifoliate nodes, one fewer than a V-stage; a value, or
 #: ``[low, high]``), the fit's known parameters for that date (``fit.box``). Settings given to
 #: the run (``--param``, ``--set fit.box...``) go over them.
 KNOWN_FILE = "known.json"
