@@ -19,6 +19,7 @@ from cropcraft_core.fit.geometry import (
     splat_radius,
 )
 from cropcraft_core.geometry import PinholeCamera
+from cropcraft_core.metrics import canopy_metrics
 from cropcraft_core.procedural import generate_canopy, plot_region
 from cropcraft_core.render import render_depth
 from cropcraft_core.surfaces.tsdf import write_colored_ply
@@ -335,7 +336,12 @@ def test_cli_fit_over_the_neighbour_rows_writes_their_answers_beside_the_best_ro
     assert table["answer_params"] == fit["fit"]["params"]
     params = json.loads((out / "params.json").read_text())
     assert params["params"] == pytest.approx(fit["fit"]["params"])
-    assert metrics["lai"] > 0
+    # the traits are the answer's canopy's, rebuilt from params.json (the rows' mean)
+    from cropcraft_core.config.layout import CanopyLayout
+
+    lay = CanopyLayout(**params["layout"])
+    answer = generate_canopy("soybean", params["params"], lay, seed=params["seed"])
+    assert metrics["lai"] == pytest.approx(canopy_metrics(answer, gap_fraction=False)["lai"])
     assert "seeds" not in metrics  # the rows' mean: rows.json has their spread
     assert "LAI by row" in capsys.readouterr().out
     assert len(fit["best_row_fit"]["seed_losses"]) == 2
@@ -362,7 +368,23 @@ def test_cli_poisson_baseline(canopy_ply, tmp_path):
         == 0
     )
     m = json.loads((out / "metrics.json").read_text())
-    assert m["method"] == "poisson" and m["lai"] > 0
+    assert m["method"] == "poisson"
+    # LAI: the kept surface's area over the points' xy box, the surface the one written
+    mesh = read_ply(out / "canopy.ply")
+    assert m["leaf_area_m2"] == pytest.approx(mesh.face_areas().sum(), rel=1e-6)
+    assert m["lai"] == pytest.approx(m["leaf_area_m2"] / m["ground_area_m2"])
+    source = read_ply(canopy_ply).vertices
+    box = np.prod(np.ptp(source[:, :2], axis=0))
+    assert m["ground_area_m2"] == pytest.approx(box, rel=0.05)
+    # the soil cut: nothing kept within 0.2 m of the ground (the canopy stands on z = 0)
+    assert mesh.vertices[mesh.faces].mean(1)[:, 2].min() > 0.2
+    # every surface counted as leaf: above the canopy's leaf LAI (3.81 against 1.38 when
+    # measured), but of its order
+    lay = default_layout("soybean", plot_length=2.0, plot_width=2.4)
+    truth = generate_canopy("soybean", {"num_nodes": 7, "leaf_length": 1.1}, lay, seed=3)
+    true_lai = canopy_metrics(truth, gap_fraction=False)["lai"]
+    assert 1.5 * true_lai < m["lai"] < 4.0 * true_lai
+    assert sum(m["leaf_angle_hist"]) == pytest.approx(1.0)
 
 
 def test_poisson_is_the_same_wherever_the_points_lie(canopy_ply, tmp_path):

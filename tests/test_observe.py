@@ -440,7 +440,18 @@ def test_loss_of_two_planes_by_hand():
     b = compute_stats(plane(0.8), CAM, full(), SOY)
     got = loss(a, b, SOY)
     assert got.depth == 2.0 and got.mask == 0.0 and got.sobel == 0.0
-    assert got.total == pytest.approx(2.0 + 2 * got.lateral)
+    # lateral: row v of a plane at depth d sees |y| = |v + 0.5 - 369| d / F, each row 994
+    # pixels of the N, binned over [0, 0.5] m in 0.05 m bins
+    t = np.abs(np.arange(738) + 0.5 - 369.0)
+
+    def lateral(d: float) -> np.ndarray:
+        counts, _ = np.histogram(t * d / F, bins=np.linspace(0.0, 0.5, 11))
+        return counts * 994 / N
+
+    by_hand = float(np.sum((lateral(0.7) - lateral(0.8)) ** 2))
+    assert by_hand > 0.005  # the two planes' lateral histograms differ
+    assert got.lateral == pytest.approx(by_hand, rel=1e-9)
+    assert got.total == pytest.approx(2.0 + 2 * by_hand)
 
 
 def test_loss_rejects_statistics_of_another_preset():
