@@ -160,7 +160,21 @@ def test_compose_and_images_reference_the_pools():
     compose = (REPO / "docker" / "compose.yaml").read_text()
     for needle in ("prefect server start", "minio", "cropcraft-cpu", "Dockerfile.cpu"):
         assert needle in compose
-    assert "nerfstudio" in (REPO / "docker" / "Dockerfile.cuda").read_text()
+    cuda = (REPO / "docker" / "Dockerfile.cuda").read_text()
+    assert "nerfstudio" in cuda
+    # the CUDA image installs CropCraft with --no-deps (its torch is CUDA's): every other
+    # dependency must be in its own list (scikit-optimize, threadpoolctl and psutil were not)
+    import re
+    import tomllib
+
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {re.split(r"[<>=!~\[ ]", d, maxsplit=1)[0].lower() for d in deps}
+    listed = cuda[cuda.index("pip install --no-deps .") :].split("CMD")[0].lower()
+    replaced = {"torch": "torch==2.5.1", "open3d-cpu": "open3d==0.20.0"}
+    for name in sorted(names):
+        assert re.search(rf"[\s\"]{re.escape(replaced.get(name, name))}[\s\"<>=]", listed) or (
+            name in replaced and replaced[name] in cuda
+        ), f"{name} is not installed in Dockerfile.cuda"
     if shutil.which("docker") is None:
         return
     probe = subprocess.run(["docker", "compose", "version"], capture_output=True, text=True)
