@@ -1411,6 +1411,20 @@ class SceneStore:
 
     # ---- reachability -----------------------------------------------------------------------
 
+    def _folders_to_make(self) -> list[str]:
+        """A local root's folders that do not exist yet (deepest first), which
+        :meth:`check_reachable` creates; none on object storage."""
+        if not self._local:
+            return []
+        made, path = [], os.path.abspath(self._root_path)
+        while path and not os.path.exists(path):
+            made.append(path)
+            parent = os.path.dirname(path)
+            if parent == path:
+                break
+            path = parent
+        return made
+
     def check_reachable(self, timeout_s: float = 5.0) -> None:
         """Fail fast with :class:`StoreError` unless the root can be listed, written and read.
 

@@ -609,7 +609,29 @@ def prepare(
     """
     scene = SceneKey(site, crop, str(date))
     cfg = resolve_config(crop, overrides)
+    unopened = SceneStore(store)  # a local root's folders that connecting creates: a refused
+    made = unopened._folders_to_make()  # request leaves them as they were (none)
     st = SceneStore.connect(store, timeout_s=timeout_s)
+    try:
+        return _checked_request(st, scene, cfg, images, poses, overrides)
+    except BaseException:
+        for folder in made:  # deepest first; only while empty
+            try:
+                os.rmdir(folder)
+            except OSError:
+                break
+        raise
+
+
+def _checked_request(
+    st: SceneStore,
+    scene: SceneKey,
+    cfg: dict[str, Any],
+    images: str | None,
+    poses: str | None,
+    overrides: Mapping[str, Any] | None,
+) -> SceneRequest:
+    """:func:`prepare`'s checks of the photos, poses and field notes on an open store."""
     uri, poses_uri, inputs, known = scene_inputs(st, scene, images, poses)
     photos = [n for n in inputs["images"] if n.lower().endswith(IMAGE_EXTENSIONS)]
     need = int(cfg["ingest"]["min_images"])
@@ -638,7 +660,7 @@ def prepare(
             )
     if known:
         notes = {f"fit.box.{k}": v for k, v in known.items()}
-        cfg = resolve_config(crop, {**notes, **dict(overrides or {})})
+        cfg = resolve_config(scene.crop, {**notes, **dict(overrides or {})})
     return SceneRequest(scene, st.root, uri, poses_uri, cfg, inputs)
 
 

@@ -869,6 +869,26 @@ def test_status_of_a_mistyped_store_or_scene_says_so_and_writes_nothing(tmp_path
     assert list((tmp_path / "store").iterdir()) == []
 
 
+def test_a_refused_run_leaves_no_store_folder_it_made(tmp_path, capsys):
+    """Too few photos (or a bad known.json) are refused before any work, but connecting had
+    already made the new store's folders; an existing store keeps its folder as it was."""
+    from PIL import Image
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(2):
+        Image.new("RGB", (32, 24), (i * 90, 120, 60)).save(photos / f"p{i}.jpg")
+    new = tmp_path / "new" / "store"
+    argv = ["run", "plotA/soybean/2024-07-01", "--images", str(photos), "--store", str(new)]
+    assert main(argv) == 2
+    assert "holds 2 JPEG/PNG photo(s); at least 3 are needed" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    old = tmp_path / "old"
+    old.mkdir()
+    assert main([*argv[:-1], str(old)]) == 2
+    assert old.is_dir() and list(old.iterdir()) == []
+
+
 def test_status_says_the_cache_is_unknown_when_the_last_runs_photos_have_moved(tmp_path, capsys):
     """Every stage read "cached no" once the photos the last run read had moved, as if its
     results were lost; a rerun from their new place is served from the cache."""
