@@ -54,7 +54,8 @@ SEASON_COLUMNS = (
     # the surfaces' cover against the photos' (consistency stage): extra − unreconstructed
     ("photo_net_cover", "photo_net_cover_fraction"),
     # where the date was also fitted over its neighbour rows (``rows.neighbours``): how many
-    # rows, and the lowest and highest of their LAI answers (the date's LAI is row 0's)
+    # rows, and the lowest and highest of their LAI answers (the date's LAI is row 0's, or the
+    # rows' combined answer's under rows.answer)
     ("n_rows_fitted", "rows_fitted"),
     ("lai_rows_min", "lai_rows_min_m2_m2"),
     ("lai_rows_max", "lai_rows_max_m2_m2"),
@@ -165,10 +166,16 @@ def _rows_html(rows: Mapping[str, Any]) -> str:
     """The table of the answers fitted over each observed row, and their spread."""
     from cropcraft_core.metrics.rows import ROW_TRAITS
 
+    how = rows.get("answer", "best")
+    answer = (
+        "the scene's answer above"
+        if how == "best"
+        else f"and the scene's answer above is the {html.escape(str(how))} of the rows' answers"
+    )
     out = [
         f"<h2>The answer over {len(rows['rows'])} rows</h2>",
-        "<p class='small'>Each row observed and fitted alone. Row 0 is the row fit's best row, "
-        "the scene's answer above; +k / −k the k-th row to its right / left. The spread is how "
+        f"<p class='small'>Each row observed and fitted alone. Row 0 is the row fit's best row, "
+        f"{answer}; +k / −k the k-th row to its right / left. The spread is how "
         "much the answer depends on the row observed.</p><table><tr><th>row</th>"
         "<th>offset (m)</th>",
     ]

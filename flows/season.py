@@ -131,6 +131,8 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     store.put_bytes(csv_key, season_csv(rows).encode("utf-8"))
     if rows:
         store.put_bytes(png_key, season_plot_png(rows, f"{site} {crop}"))
+    elif store.exists(png_key):  # no date has results now: an older plot would show them still
+        store.delete(png_key)
     return {
         "csv": store.url(csv_key),
         "png": store.url(png_key) if rows else None,

@@ -527,7 +527,7 @@ def cmd_season(args: argparse.Namespace) -> int:
     for warning in out.get("warnings", []):
         print(f"WARNING  {warning}")
     print(f"summary  {out.get('csv') or 'not written: ' + out.get('summary_error', '?')}")
-    print(f"plot     {out.get('png')}")
+    print(f"plot     {out.get('png') or 'none: no date has results yet'}")
     return 0 if out.get("state", "Completed") == "Completed" else 1
 
 

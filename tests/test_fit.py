@@ -433,6 +433,20 @@ def test_seeds_of_another_box_or_with_non_finite_answers_are_not_combined():
         combine("maize", seeds, replace(cfg, method="trust-region"), 1.0)
 
 
+def test_trust_regions_answer_reports_the_seeds_spread_not_zero():
+    """Trust-region answers its lowest-loss seed, and its ``params_std`` read 0 whatever the
+    seeds' spread: the report's "SD over seeds" said 0 beside a range of 0.14."""
+    obs, _ = observation("maize", {"num_nodes": 9.0})
+    cfg = FitConfig(n_seeds=3, n_evals=8, n_initial=4, method="random")
+    seeds = [fit_seed(obs, s, cfg) for s in range(3)]
+    fit = combine("maize", seeds, replace(cfg, method="trust-region"), 1.0)
+    best = seeds[int(np.argmin([r.best_y for r in seeds]))]
+    assert list(fit.params.values()) == pytest.approx(list(best.reported_x))
+    spread = np.std([r.reported_x for r in seeds], axis=0, ddof=1)
+    assert list(fit.params_std.values()) == pytest.approx(list(spread))
+    assert spread.max() > 0
+
+
 @pytest.mark.parametrize("method", ["random", "trust-region"])
 def test_baselines_run_end_to_end(method):
     obs, _ = observation("maize", {"num_nodes": 9.0})

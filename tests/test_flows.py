@@ -1393,6 +1393,52 @@ def _levelled_scale(poses: dict, true_centres: np.ndarray) -> float:
     return float(spread(a) / spread(b))
 
 
+def test_a_season_with_no_date_left_has_no_plot_of_an_older_night(tmp_path):
+    """The one date's photos replaced and its rerun failed: the summary CSV was rewritten with
+    no row, but last night's plot stayed in the store, showing the date still."""
+    from flows.season import write_summary
+
+    store = SceneStore(str(tmp_path / "store"))
+    scene = SceneKey("plotA", CROP, DATE)
+    store.put_bytes(f"{scene.prefix}/images/a.png", b"x")
+    store.init_manifest(scene, {"images/a.png": "1"}, {})
+    store.put_json(f"{scene.prefix}/metrics/metrics.json", {"lai": 1.2, "node_count": 7.0})
+    store.update_stage(scene, "metrics", status="running")
+    store.update_stage(scene, "metrics", status="done")
+    first = write_summary(store, "plotA", CROP)
+    png = f"plotA/{CROP}/season/summary.png"
+    assert len(first["rows"]) == 1 and store.isfile(png)
+    store.init_manifest(scene, {"images/a.png": "2"}, {})  # new photos: its stages reset
+    store.update_stage(scene, "fit_seed", status="running")
+    store.update_stage(scene, "fit_seed", status="failed", error="no rows found")
+    second = write_summary(store, "plotA", CROP)
+    assert second["rows"] == [] and second["png"] is None
+    assert not store.isfile(png)
+    assert store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().count("\n") == 1
+
+
+def test_report_says_which_rows_answer_the_scene():
+    """Fitted over its neighbour rows with ``rows.answer=mean``, the scene's answer is the
+    rows' mean, but the rows table said row 0 was "the scene's answer above"."""
+    from cropcraft_core.config import CanopyLayout
+    from cropcraft_core.config.params import param_space
+    from cropcraft_core.metrics.rows import compare_rows
+    from cropcraft_core.report import scene_report_html
+
+    base = {s.name: s.middle for s in param_space("soybean")}
+    rows = [
+        {"index": 0, "offset_m": 0.0, "params": base},
+        {"index": 1, "offset_m": 0.76, "params": {**base, "leaf_length": 1.3}},
+    ]
+    table = compare_rows("soybean", rows, CanopyLayout(plot_length=1.0, plot_width=1.0), 0)
+    for how, says in (
+        ("best", "Row 0 is the row fit's best row, the scene's answer above;"),
+        ("mean", "Row 0 is the row fit's best row, and the scene's answer above is the mean of"),
+    ):
+        page = scene_report_html("s/soybean/2024-07-01", rows={**table, "answer": how})
+        assert says in page
+
+
 def test_report_builder_is_self_contained():
     from cropcraft_core.report import scene_report_html, season_csv, season_rows
 

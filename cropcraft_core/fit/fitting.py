@@ -500,7 +500,7 @@ def combine(
     if config.method == "trust-region":
         best = int(np.argmin(losses))
         final = results[best].reported_x
-        std = np.zeros_like(final)
+        std = agg.std_x  # the seeds' spread, as every rule reports it (was 0: "SD 0")
     elif config.reevaluates(crop):
         rule = config.combine_rule(crop)
         if observation is None:
