@@ -1145,6 +1145,17 @@ class _PrefectRun:
 #: ns-process-data made from an SfM project (``applied_transform``) is not metric.
 AUTO_METRIC_RULE = {"auto_metric_rule": "2"}
 
+#: Likewise for imported poses read as metric by ``poses.imported_metric=true``: 2, a walk along
+#: one side of the plot is levelled on the axis its photos' rows are level with (the cameras'
+#: mean optical axis tilted such a frame ~41°). SfM scenes and other imports keep their keys.
+METRIC_LEVELLING_RULE = {"metric_levelling_rule": "2"}
+
+#: The stereo sweep's rule where a scene sets ``surfaces.depth_range`` (2: it bounds the
+#: horizontal planes' depths too) or ``surfaces.min_ncc`` at its least, -1 (2: unmatched
+#: depths are dropped): keyed with the surfaces of such scenes only, whose stored surfaces an
+#: earlier rule made. Every other scene keeps its key.
+SWEEP_RULE = {"sweep_rule": "2"}
+
 
 def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     """The scene graph; ``ex`` is :class:`_PrefectRun` or :class:`_CacheWalk`."""
@@ -1155,8 +1166,14 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
         up["inputs"] = req.inputs["poses"]
         if req.config["poses"]["imported_metric"] == "auto":
             up["rule"] = AUTO_METRIC_RULE
+        elif req.config["poses"]["imported_metric"] is True:
+            up["rule"] = METRIC_LEVELLING_RULE
     r["poses"] = ex.run("poses", up, poses_uri=req.poses)
-    r["surfaces"] = ex.run("surfaces", {"ingest": r["ingest"], "poses": r["poses"]})
+    up = {"ingest": r["ingest"], "poses": r["poses"]}
+    sweep = req.config["surfaces"]
+    if sweep.get("depth_range") is not None or sweep.get("min_ncc") == -1:
+        up["rule"] = SWEEP_RULE
+    r["surfaces"] = ex.run("surfaces", up)
     r["rowfit"] = ex.run(
         "rowfit", {"surfaces": r["surfaces"], "poses": r["poses"], "frame": _frame(r["poses"])}
     )

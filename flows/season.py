@@ -41,6 +41,34 @@ def _inbox_changed(store: SceneStore, found: DiscoveredScene) -> bool:
     return manifest_inputs(now) != found.inputs
 
 
+def stale_dates(
+    store: SceneStore,
+    site: str,
+    crop: str,
+    overrides: dict[str, Any] | None,
+    skip: list[str] | tuple[str, ...] = (),
+) -> list[str]:
+    """Finished dates (not in ``skip``) whose stored results this release would not serve
+    under ``overrides``: run with other settings (the deployment's changed), or by a release
+    whose stages have changed since. The season runs only new or changed inboxes, so their
+    answers stay in its summary beside the others; the run names them. A date whose photos
+    cannot be read where its last run read them is left out (``cropcraft status`` says so)."""
+    from flows.scene import cache_walk, prepare
+
+    out = []
+    for d in store.discover(site, crop, with_runs=True):
+        if d.scene.date in skip or d.stages.get("report") != "done":
+            continue
+        images, poses = d.sources.get("images"), d.sources.get("poses")
+        try:
+            req = prepare(site, crop, d.scene.date, images, poses, overrides, store.root)
+        except CropCraftError:
+            continue
+        if cache_walk(req)[1] is not None:
+            out.append(d.scene.date)
+    return out
+
+
 def _no_surface(store: SceneStore, folder: str) -> float | None:
     """The share of the date's row-camera view without a fully supported reconstructed surface
     (the observe stage's figure, kept in the observation's meta; None if no observation is
@@ -187,6 +215,15 @@ def process_season(
             f"{site}/{crop} has no dated scene in the store {st.url('')}: is it the store the "
             "photos are uploaded to (CROPCRAFT_STORE on the worker, or the flow's store "
             "parameter)?"
+        )
+        log.warning("%s", warnings[-1])
+    stale = stale_dates(st, site, crop, overrides, dates)
+    if stale:
+        warnings.append(
+            f"{len(stale)} finished date(s) hold results that these settings (or this release) "
+            f"would not give: {', '.join(stale)}; the season runs only new or changed photos, "
+            f"so their answers stand in the summary as they were: `cropcraft run {site}/{crop}/"
+            "DATE` with the same settings recomputes one (what did not change stays cached)"
         )
         log.warning("%s", warnings[-1])
     scenes: dict[str, str] = {}

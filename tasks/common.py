@@ -99,7 +99,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # observation's mask drops green leaves while a prediction keeps them
     # 4: a user's camera height is taken above the fitted ground plane, not levelling's ground;
     # maize's row-spacing scale from plant points within 3 m (was the rows' 2 m ROI)
-    "rowfit": 4,
+    # 5: a row-spacing scale that the refit does not confirm is not applied (the scale-1 fit,
+    # ``assumed_metric``; it was applied as ``row_spacing``, 19 % off on one scene); a scene
+    # whose scale was confirmed writes the same bytes, so its observation and fit stay cached
+    "rowfit": 5,
     # 2: maize's depth bins start just above the observed canopy (depth_top_margin 0.25);
     # soybean's observations come out the same bytes, so their fits stay cached
     # 3: a pooled row camera outside the reconstruction is left out of the pool (session 50);

@@ -327,6 +327,23 @@ def test_a_season_on_a_store_without_the_site_says_which_store_it_read(prefect_h
     assert run_season("plotZ", CROP, str(tmp_path / "empty"), OVERRIDES)["warnings"] == []
 
 
+def test_season_names_finished_dates_that_other_settings_answered(base_run, scene_dir):
+    """The season runs only new or changed photos: a finished date run under other settings
+    (the deployment's changed) keeps its answer in the summary, unmarked. The run names it,
+    and says nothing where this release and these settings serve the stored results."""
+    from flows.season import run_season, stale_dates
+
+    store = SceneStore(str(base_run["store"]))
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    assert stale_dates(store, "plotA", CROP, OVERRIDES) == []
+    other = {**OVERRIDES, "generate.seed": 99}
+    assert stale_dates(store, "plotA", CROP, other) == [DATE]
+    assert stale_dates(store, "plotA", CROP, other, skip=[DATE]) == []  # run tonight anyway
+    out = run_season("plotA", CROP, str(base_run["store"]), other)
+    assert out["scenes"] == {}  # its photos are unchanged: not run again
+    assert any("hold results that these settings" in w and DATE in w for w in out["warnings"])
+
+
 def test_rerun_is_cached_everywhere(base_run):
     second = base_run["second"]
     assert set(second["states"].values()) == {"Cached"}
@@ -715,7 +732,7 @@ def test_imported_poses_read_by_the_auto_rule_are_keyed_by_it(scene_dir, tmp_pat
     their key (so poses read by an earlier rule, e.g. an ns-process-data SfM transforms.json
     once read as metric, are read again), and only they: SfM scenes and an explicit reading
     keep their keys."""
-    from flows.scene import AUTO_METRIC_RULE, _wire, prepare
+    from flows.scene import AUTO_METRIC_RULE, METRIC_LEVELLING_RULE, SWEEP_RULE, _wire, prepare
 
     class Recorder:
         def __init__(self):
@@ -742,8 +759,24 @@ def test_imported_poses_read_by_the_auto_rule_are_keyed_by_it(scene_dir, tmp_pat
 
     transforms = str(scene_dir / "transforms.json")
     assert poses_upstream(transforms, {})["rule"] == AUTO_METRIC_RULE
-    assert "rule" not in poses_upstream(transforms, {"poses.imported_metric": True})
+    # read as metric by an explicit true: keyed by the levelling rule (a walk along one side
+    # of the plot was levelled 41° off), not by the auto rule
+    explicit = poses_upstream(transforms, {"poses.imported_metric": True})
+    assert explicit["rule"] == METRIC_LEVELLING_RULE
+    assert "rule" not in poses_upstream(transforms, {"poses.imported_metric": False})
     assert "rule" not in poses_upstream(None, {})
+
+    def surfaces_upstream(overrides):
+        rec = Recorder()
+        _wire(rec, prepare("plotA", CROP, DATE, str(scene_dir / "images"), transforms,
+                           {**OVERRIDES, **overrides}, str(tmp_path)))  # fmt: skip
+        return rec.up["surfaces"]
+
+    # the sweep's rule changed for depth_range and min_ncc = -1: only such scenes are rekeyed
+    assert "rule" not in surfaces_upstream({})
+    assert "rule" not in surfaces_upstream({"surfaces.min_ncc": 0.3})
+    assert surfaces_upstream({"surfaces.min_ncc": -1})["rule"] == SWEEP_RULE
+    assert surfaces_upstream({"surfaces.depth_range": [0.3, 2.0]})["rule"] == SWEEP_RULE
 
 
 def test_the_flows_embedded_defaults_are_the_core_configs_own():
