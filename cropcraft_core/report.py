@@ -147,7 +147,7 @@ def _seeds_html(metrics: Mapping[str, Any], defs: Mapping[str, Any]) -> str:
         "of the same observation land apart: a wide range says the observation pins the trait "
         "down loosely. Not a confidence interval.</p>",
         "<table><tr><th>trait</th><th>answer</th><th>median</th><th>min</th><th>max</th>"
-        "<th>SD</th><th>unit</th></tr>",
+        "<th>SD (÷n)</th><th>unit</th></tr>",
     ]
     for name, t in traits.items():
         unit = (defs.get(name) or {}).get("unit", "")
@@ -296,7 +296,8 @@ def scene_report_html(
         parts.append(
             f"<h2>Fitted parameters ({html.escape(str(fit.get('method', '')))}{count})</h2>"
             "<table><tr><th>parameter</th><th>answer</th>"
-            f"<th>SD over {over}</th><th>min</th><th>max</th></tr>"
+            f"<th>SD over {over} ({'÷n' if over == 'rows' else '÷n−1'})</th><th>min</th>"
+            "<th>max</th></tr>"
         )
         for name, value in params.items():
             col = [float(s[name]) for s in seeds if name in s]

@@ -1503,6 +1503,8 @@ def test_report_builder_is_self_contained():
         timings={"ingest": 1.0},
     )
     assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
+    # the two spreads' definitions differ (params_std: ddof 1; the seeds' traits: ddof 0)
+    assert "SD over seeds (÷n−1)" in page and "<th>SD (÷n)</th>" in page
     assert "b (given, not fitted)" in page and "c (searched 0.8 to 1)" in page
     # the narrowed parameter keeps its spread over the seeds beside its label
     assert "c (searched 0.8 to 1)</td><td class='num'>0.9</td><td class='num'>0.01<" in page
