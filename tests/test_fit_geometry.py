@@ -378,13 +378,25 @@ def test_cli_poisson_baseline(canopy_ply, tmp_path):
     assert m["ground_area_m2"] == pytest.approx(box, rel=0.05)
     # the soil cut: nothing kept within 0.2 m of the ground (the canopy stands on z = 0)
     assert mesh.vertices[mesh.faces].mean(1)[:, 2].min() > 0.2
-    # every surface counted as leaf: above the canopy's leaf LAI (3.81 against 1.38 when
+    # every surface counted as leaf: above the canopy's leaf LAI (1.82 against 1.38 when
     # measured), but of its order
     lay = default_layout("soybean", plot_length=2.0, plot_width=2.4)
     truth = generate_canopy("soybean", {"num_nodes": 7, "leaf_length": 1.1}, lay, seed=3)
     true_lai = canopy_metrics(truth, gap_fraction=False)["lai"]
-    assert 1.5 * true_lai < m["lai"] < 4.0 * true_lai
+    assert 1.0 * true_lai < m["lai"] < 4.0 * true_lai
+    assert m["n_faces"] <= 50_000  # the paper's 50K faces
     assert sum(m["leaf_angle_hist"]) == pytest.approx(1.0)
+
+
+def test_poissons_box_is_the_points_footprint_and_for_maize_a_4_m_column():
+    """The paper's baseline: soybean in the method's box, maize in a 4 m x 4 m column."""
+    from cropcraft_core.fit.geometry import poisson_region
+
+    pts = np.random.default_rng(0).uniform([-3.0, -6.0, 0.0], [7.0, 2.0, 2.0], (2000, 3))
+    lo, hi = poisson_region(pts, "soybean")
+    assert np.allclose(lo, pts[:, :2].min(0)) and np.allclose(hi, pts[:, :2].max(0))
+    lo, hi = poisson_region(pts, "maize")
+    assert np.allclose(hi - lo, 4.0) and np.allclose(0.5 * (lo + hi), [2.0, -2.0], atol=0.05)
 
 
 def test_poisson_is_the_same_wherever_the_points_lie(canopy_ply, tmp_path):
