@@ -133,7 +133,11 @@ class FitConfig:
     """``reevaluate``, ``guarded``, ``floors``: loss evaluations (each on
     ``reevaluate_canopies`` canopies) per polished candidate; 0: no polishing."""
     n_evals: int = 500
-    """Objective evaluations per seed (bo, random; trust-region's iteration cap)."""
+    """Objective evaluations per seed (bo, random, trust-region). Trust-region: its
+    iterations are capped at this too (the paper's 500), but the evaluations cap it first
+    (2-point differences: ~6 evaluations an iteration in 5-D, so ~83 iterations), so that
+    each method gets a BO seed's budget; one start per seed, the lowest-loss seed's answer
+    (the paper's 10 starts)."""
     n_initial: int = 200
     """Random initial evaluations of a BO seed."""
     box: dict[str, Any] = field(default_factory=dict, hash=False)
