@@ -1256,6 +1256,9 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
                 if k in records["observe"]["summary"]
             },
         },
+        # the rows against a camera-height hint far from the crop's usual (None: agree, or
+        # not asked)
+        "scale_warning": records["rowfit"]["summary"].get("scale_warning"),
         # the surfaces against the photos at the photos' cameras (older stores: None)
         "consistency": _consistency(records.get("consistency")),
         # photos the run left out: without a pose in the imported poses, or not seeing the box
@@ -1376,7 +1379,11 @@ def reconstruct_scene(
         records = _wire(ex, req)
         lease.check()
     out = summarize(req, records, ex.states)
-    for warning in (out["observation"]["warning"], (out["consistency"] or {}).get("warning")):
+    for warning in (
+        out["scale_warning"],
+        out["observation"]["warning"],
+        (out["consistency"] or {}).get("warning"),
+    ):
         if warning:
             ex.log.warning("%s: %s", req.scene.prefix, warning)
     out["flow_seconds"] = time.perf_counter() - t0

@@ -414,6 +414,8 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"cached   {', '.join(cached) or '-'}")
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
+    if out.get("scale_warning"):
+        print(f"WARNING  {out['scale_warning']}")
     _print_coverage(out)
     _print_left_out(out)
     _print_rows(out)

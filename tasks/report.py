@@ -103,7 +103,11 @@ def report(
             ),
             "row camera height (m)": rf.get("render_height_m"),
             "scale (m per unit)": rf.get("scale"),
-            "scale source": rf.get("scale_source"),
+            "scale source": (
+                f"{rf.get('scale_source')}. WARNING: {rf['scale_warning']}"
+                if rf.get("scale_warning")
+                else rf.get("scale_source")
+            ),
             "libraries (fit)": _libraries(upstream["aggregate"].get("environment")),
         }
         cons = (upstream.get("consistency") or {}).get("summary") or {}

@@ -75,6 +75,8 @@ def rowfit(
             "scale": fit.scale,
             "scale_source": fit.scale_source,
             "dense": fit.dense,
+            # the rows against a camera-height hint far from the crop's usual (else absent)
+            **({"scale_warning": w} if (w := fit.diagnostics.get("scale_warning")) else {}),
         },
         t.seconds,
     )

@@ -296,6 +296,35 @@ def test_camera_height_scale_is_measured_above_the_fitted_ground():
         fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams, -1.0))
 
 
+def test_a_camera_height_the_rows_contradict_is_named():
+    """A 1.4 m camera height given for 13 m drone photos scaled the scene 9x too small and the
+    run read LAI 0.018 against 1.79 with nothing said. Where the hint lies far from the crop's
+    usual height, the rows are asked: their period puts the cameras 13 m up, and the fit says
+    so. A right hint, near the usual height or far from it (40 m), raises nothing."""
+    pts, col, lay = make_cloud(
+        "maize", None, 20.0, seed=8, half=2.5, density=1000, region=MAIZE_REGION
+    )
+    xy = np.stack(np.meshgrid(np.linspace(-4, 4, 5), np.linspace(-4, 4, 4)), -1).reshape(-1, 2)
+    p = preset("maize", box_size=None)
+
+    def fitted(true_height: float, hint: float):
+        cams = np.column_stack([xy, np.full(len(xy), true_height)])
+        k = hint / true_height  # scene units per metre: SfM levelled by the hint
+        return fit_rows_with_scale(
+            pts * k, col, "maize", p, rng=8, camera_height=(cams * k, hint),
+            known_row_spacing=lay.row_spacing,
+        )  # fmt: skip
+
+    wrong = fitted(13.0, 1.4)
+    assert wrong.scale_source == "camera_height" and wrong.scale == pytest.approx(1.0, rel=0.01)
+    warning = wrong.diagnostics["scale_warning"]
+    assert "camera height given (1.4 m) and the rows disagree" in warning
+    up = float(warning.split("the rows put the cameras ")[1].split(" m up")[0])
+    assert up == pytest.approx(13.0, rel=0.05)
+    assert "scale_warning" not in fitted(13.0, 13.0).diagnostics
+    assert "scale_warning" not in fitted(40.0, 40.0).diagnostics
+
+
 def _translate(t):
     m = np.eye(4)
     m[:3, 3] = t

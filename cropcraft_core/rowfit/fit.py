@@ -976,7 +976,15 @@ def fit_rows_with_scale(
     """
     if camera_height is not None:
         return _fit_with_camera_height(
-            points, colors, crop, preset, _as_rng(rng), camera_height, max_passes, tolerance
+            points,
+            colors,
+            crop,
+            preset,
+            _as_rng(rng),
+            camera_height,
+            max_passes,
+            tolerance,
+            known_row_spacing,
         )
     if metric_scale is not None:
         return fit_ground_and_rows(
@@ -1026,8 +1034,11 @@ def _fit_with_camera_height(
     camera_height: tuple[np.ndarray, float],
     max_passes: int,
     tolerance: float,
+    known_row_spacing: float | None = None,
 ) -> RowFit:
-    """The ``camera_height`` route of :func:`fit_rows_with_scale`."""
+    """The ``camera_height`` route of :func:`fit_rows_with_scale`; with ``known_row_spacing``,
+    checked against the rows where the height is far from the crop's usual one
+    (:func:`_rows_disagree`)."""
     centres, metres = camera_height
     c = np.asarray(centres, dtype=np.float64)
     if c.ndim != 2 or c.shape[1] != 3 or not len(c) or not np.all(np.isfinite(c)):
@@ -1050,7 +1061,73 @@ def _fit_with_camera_height(
             break
         scale *= factor
     diag = {**fit.diagnostics, "scale_factors": history}
+    if known_row_spacing is not None:
+        warning = _rows_disagree(
+            points, colors, crop, preset, seed, c, above, metres, scale,
+            known_row_spacing, max_passes, tolerance,
+        )  # fmt: skip
+        if warning:
+            diag["scale_warning"] = warning
     return replace(fit, diagnostics=diag)
+
+
+#: How far a camera-height hint may lie from the crop's usual capture height, and the rows'
+#: scale from the hint's, as a factor either way, before the rows are asked and a warning is
+#: given: wide enough that a half or double row period (a dense canopy's mid-row fill, a
+#: missed row) raises none. A 1.4 m hint for 13 m drone photos read LAI 0.018 against 1.79
+#: with nothing said.
+SCALE_CHECK_FACTOR = 2.5
+
+
+def _rows_disagree(
+    points: np.ndarray,
+    colors: np.ndarray,
+    crop: str,
+    preset: RowFitPreset | None,
+    seed: int,
+    centres: np.ndarray,
+    above_units: float,
+    metres: float,
+    scale: float,
+    known_row_spacing: float,
+    max_passes: int,
+    tolerance: float,
+) -> str | None:
+    """A warning where the rows contradict a camera-height hint ``metres`` (the scene's scale
+    ``scale`` m per unit): only where the hint is more than :data:`SCALE_CHECK_FACTOR` from
+    the crop's usual capture height (``sfm.frame.PRIOR_CAMERA_HEIGHT_M``), the rows' scale is
+    sought from that usual height (the cameras ``above_units`` over the fitted ground) as the
+    row-spacing route seeks it; confirmed and more than the factor from ``scale``, the rows
+    disagree. None otherwise (no rows' period found: nothing to say)."""
+    from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+
+    usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
+    if usual is None or 1 / SCALE_CHECK_FACTOR <= metres / usual <= SCALE_CHECK_FACTOR:
+        return None
+    rows = usual / above_units
+    try:
+        fit = _seeded_fit(points, colors, crop, preset, seed, rows, "row_spacing")
+        for i in range(max_passes):
+            est = estimate_scale_from_rows(
+                fit, known_row_spacing, search=(0.6, 1.6) if i == 0 else (0.85, 1.15)
+            )
+            if est.method == "fallback_unchanged":
+                return None  # no period, or not confirmed at its scale
+            rows *= est.factor
+            fit = _seeded_fit(points, colors, crop, preset, seed, rows, "row_spacing")
+            if abs(est.factor - 1.0) <= tolerance:
+                break
+    except RowFitError:  # no ground or rows at that scale: the rows cannot say
+        return None
+    if 1 / SCALE_CHECK_FACTOR <= rows / scale <= SCALE_CHECK_FACTOR:
+        return None
+    return (
+        f"the camera height given ({metres:g} m) and the rows disagree: at its scale the "
+        f"rows are {known_row_spacing * scale / rows:.3g} m apart, not the layout's "
+        f"{known_row_spacing:g} m; the rows put the cameras {metres * rows / scale:.3g} m "
+        "up. Every length and the LAI are read at the given height: check --camera-height "
+        "(or the rows' spacing, --set layout.row_spacing)"
+    )
 
 
 def _seeded_fit(
