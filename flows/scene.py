@@ -1248,7 +1248,7 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         "states": dict(states),
         "observation": {
             "no_surface_fraction": seen,
-            "warning": None if seen is None else coverage_warning(seen),
+            "warning": None if seen is None else coverage_warning(seen, req.scene.crop),
             # pooled row cameras (observe.preset.views_*): how many, and those left out
             **{
                 k: records["observe"]["summary"][k]

@@ -484,3 +484,19 @@ def test_a_mesh_with_a_non_finite_vertex_is_named(tmp_path):
     (tmp_path / "nan.ply").write_text(text)
     with pytest.raises(InputError, match="nan.ply: geometry has non-finite coordinates"):
         load_geometry(tmp_path / "nan.ply")
+
+
+def test_compare_image_spans_the_observed_depths():
+    """compare.png coloured depth over 0 to the render height: a maize canopy 3.8-4.9 m under
+    its 5 m camera took the top fifth of the colour map. Now the nearest observed depth is
+    the map's first colour and the farthest its last, on both panels."""
+    from cropcraft_core.fit.geometry import compare_image
+    from cropcraft_core.render.preview import depth_to_rgb
+
+    d = np.full((184, 248), np.nan)
+    d[60:140, 30:200] = np.linspace(3.8, 4.9, 170)[None, :]
+    img = compare_image(d, d, 5.0)
+    ends = depth_to_rgb(np.array([[0.0, 1.0]]), 0.0, 1.0)[0]
+    for x0 in (0, 248 + 8):
+        assert np.array_equal(img[100, x0 + 30], ends[0])
+        assert np.array_equal(img[100, x0 + 199], ends[1])

@@ -758,3 +758,4 @@ def test_no_surface_fraction_and_its_warning():
     assert coverage_warning(NO_SURFACE_WARN) is None  # the threshold itself passes
     msg = coverage_warning(0.235)
     assert msg is not None and "24 % of the row camera's view" in msg and "LAI" in msg
+    assert "synthetic soybean" in msg and "soybean" not in coverage_warning(0.235, "maize")

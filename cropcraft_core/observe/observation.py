@@ -167,16 +167,19 @@ def no_surface_fraction(depth: np.ndarray) -> float:
     return float(np.mean(~np.isfinite(d))) if d.size else 0.0
 
 
-def coverage_warning(fraction: float) -> str | None:
+def coverage_warning(fraction: float, crop: str | None = "soybean") -> str | None:
     """The warning a scene gets when ``fraction`` of its row camera's view has no reconstructed
-    surface (above :data:`NO_SURFACE_WARN`), else None."""
+    surface (above :data:`NO_SURFACE_WARN`), else None; soybean's cites what it measured (no
+    such figures for maize)."""
     if not fraction > NO_SURFACE_WARN:
         return None
+    measured = ""
+    if crop == "soybean":
+        measured = " (synthetic soybean, true poses: -10 % at 23 %, -26 % at 22 %)"
     return (
         f"{100 * fraction:.0f} % of the row camera's view has no fully supported reconstructed "
         f"surface (over {100 * NO_SURFACE_WARN:.0f} %): the fit reads lost pixels as gaps, so "
-        "LAI is likely underestimated (synthetic soybean, true poses: -10 % at 23 %, -26 % at "
-        "22 %)"
+        f"LAI is likely underestimated{measured}"
     )
 
 
