@@ -652,6 +652,23 @@ def _sfm_scene(tmp_path, views, arc, seed):
     return out, import_colmap(out / "colmap" / "sparse" / "0")
 
 
+def test_sfm_of_two_captures_that_share_nothing_names_their_separate_models(tmp_path):
+    """Two short walks over different plots (a drone's flight lines without side overlap are
+    the real case): SfM registers every photo, in separate models; the error said the photos
+    outside the largest were "not registered", which sent users looking for bad photos."""
+    a, _ = _sfm_scene(tmp_path / "a", 8, 20.0, seed=5)
+    b, _ = _sfm_scene(tmp_path / "b", 8, 20.0, seed=9)
+    both = tmp_path / "both"
+    both.mkdir()
+    for tag, out in (("a", a), ("b", b)):
+        for p in sorted((out / "images").iterdir()):
+            shutil.copy(p, both / f"{tag}_{p.name}")
+    noise = np.random.default_rng(1).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(both / "z_noise.png")
+    with pytest.raises(SfmError, match=r"built 2 separate models \(8, 8 images\) that share"):
+        run_sfm(both, tmp_path / "work", num_threads=2)
+
+
 def test_sfm_small_scene(tmp_path):
     """Real pycolmap SfM, kept as fast as it can be: 8 views at 640 × 480 along 20° of the walk
     (at 320 × 240 the canopy's SIFT features are too few to register such a short capture)."""

@@ -926,6 +926,19 @@ def run_sfm(
     frac = len(poses) / len(names)
     unregistered = sorted(set(names) - set(poses.names))
     if frac < min_registered_fraction:
+        sizes = sorted((r.num_reg_images() for r in models.values()), reverse=True)
+        if len(sizes) > 1 and sum(sizes) > len(poses):
+            # every photo may be registered, in models that share no verified match (a drone's
+            # flight lines with too little side overlap): naming the others "not registered"
+            # sent users looking for bad photos
+            raise SfmError(
+                f"structure from motion on {len(names)} images in {image_dir} built "
+                f"{len(sizes)} separate models ({', '.join(map(str, sizes))} images) that share "
+                f"no verified matches; the largest holds {100 * frac:.0f} % of them (need "
+                f"{100 * min_registered_fraction:.0f} %): the photos of one part do not "
+                "overlap the others' enough (a drone's flight lines closer together, or more "
+                "photos)"
+            )
         raise SfmError(
             f"structure from motion registered only {len(poses)} of {len(names)} images "
             f"({100 * frac:.0f} %, need {100 * min_registered_fraction:.0f} %); not registered: "
