@@ -218,8 +218,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         from cropcraft_core.fit.geometry import geometry_warnings
 
         record = json.loads((Path(args.out) / "fit.json").read_text())
-        for warning in geometry_warnings(record["observation"]):
-            print(f"WARNING  {warning}", file=sys.stderr)
+        for warning in [*geometry_warnings(record["observation"]), record.get("edge_warning")]:
+            if warning:
+                print(f"WARNING  {warning}", file=sys.stderr)
     if n:
         table = json.loads((Path(args.out) / "rows.json").read_text())
         cells = "  ".join(f"{r['index']:+d}: {r['traits']['lai']:.3g}" for r in table["rows"])

@@ -1236,6 +1236,7 @@ def _consistency(record: dict | None) -> dict | None:
 def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]) -> dict:
     """The small result of a scene run: where everything is, the key numbers, stage states."""
     store = SceneStore(req.store_root)
+    from cropcraft_core.fit.fitting import edge_warning
     from cropcraft_core.observe import coverage_warning
 
     seen = records["observe"]["summary"].get("no_surface_fraction")  # older records: None
@@ -1271,6 +1272,10 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         "rows": records["rows"]["summary"] if "rows" in records else None,
         "params": answer["summary"]["params"],
         "params_std": answer["summary"]["params_std"],
+        # the answer pressing the search box on several parameters (None: it does not)
+        "edge_warning": edge_warning(
+            req.scene.crop, answer["summary"]["params"], req.config["fit"].get("box")
+        ),
         "report": store.url(records["report"]["artefacts"]["report"]),
         "bundle": store.url(records["export"]["artefacts"]["bundle"]),
         "seconds": {k: v["seconds"] for k, v in records.items() if k != "fit_seeds"},
@@ -1381,6 +1386,7 @@ def reconstruct_scene(
     out = summarize(req, records, ex.states)
     for warning in (
         out["scale_warning"],
+        out["edge_warning"],
         out["observation"]["warning"],
         (out["consistency"] or {}).get("warning"),
     ):

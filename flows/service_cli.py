@@ -414,8 +414,9 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"cached   {', '.join(cached) or '-'}")
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
-    if out.get("scale_warning"):
-        print(f"WARNING  {out['scale_warning']}")
+    for key in ("scale_warning", "edge_warning"):
+        if out.get(key):
+            print(f"WARNING  {out[key]}")
     _print_coverage(out)
     _print_left_out(out)
     _print_rows(out)

@@ -1118,3 +1118,26 @@ def test_pipeline_bench_measures_which_blur_of_the_truth_matches_the_observation
     line = blur_match_line(s6)
     assert line.startswith("  blur match: loss against the true mesh blurred by 0/1.5/3/4.5/6/9/12")
     assert f"closest at {1e3 * s6['best_m']:g} mm" in line
+
+
+def test_an_answer_pressing_the_box_on_two_parameters_is_named():
+    """A maize canopy fitted as soybean pressed three of the box's ends at once (LAI +26 %,
+    leaf angles 30° off) with nothing said. Two fitted parameters within 1 % of their ends
+    give a warning naming them; one does not (a true value can lie there); a given value is
+    not fitted, and a narrowed range's own ends count."""
+    from cropcraft_core.config import param_space
+    from cropcraft_core.fit.fitting import edge_warning
+
+    middle = {s.name: s.middle for s in param_space("soybean")}
+    one = {**middle, "leaf_length": 1.4995}
+    assert edge_warning("soybean", one) is None
+    two = {**one, "petiole_angle": 0.5}
+    msg = edge_warning("soybean", two)
+    assert msg and "leaf_length 1.5 (searched 0.5 to 1.5)" in msg and "petiole_angle 0.5" in msg
+    assert "is the crop right" in msg
+    # num_nodes given (fixed at 14, its end): not fitted, not counted
+    assert edge_warning("soybean", {**one, "num_nodes": 14.0}, {"num_nodes": 14}) is None
+    # a narrowed range's end is the box's
+    narrowed = {**one, "internode_length": 1.2}
+    assert edge_warning("soybean", narrowed, {"internode_length": [0.8, 1.2]})
+    assert edge_warning("soybean", narrowed) is None

@@ -537,7 +537,12 @@ def fit_geometry(
     from cropcraft_core.bundle import check_output_dir, write_bundle
     from cropcraft_core.config import default_layout
     from cropcraft_core.export import atomic_write_text
-    from cropcraft_core.fit.fitting import FitConfig, fit_observation, fit_observations
+    from cropcraft_core.fit.fitting import (
+        FitConfig,
+        edge_warning,
+        fit_observation,
+        fit_observations,
+    )
     from cropcraft_core.fit.forward import ForwardModel
     from cropcraft_core.procedural import generate_canopy
     from cropcraft_core.render.preview import save_png
@@ -592,6 +597,9 @@ def fit_geometry(
         out / "compare.png", compare_image(obs.depth, predicted, float(obs.preset.render_height))
     )
     record = {"fit": answer, "rowfit": rowfit.to_dict(), "observation": obs.meta}
+    edge = edge_warning(crop, answer["params"], (answer.get("config") or {}).get("box"))
+    if edge:
+        record["edge_warning"] = edge
     if neighbours:
         record["best_row_fit"] = res.to_dict()
     atomic_write_text(out / "fit.json", json.dumps(record, indent=2, default=float) + "\n")
