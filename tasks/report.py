@@ -97,7 +97,11 @@ def report(
             "matching": ps.get("matcher"),
             "up direction from": frame.get("up_source"),
             "surfaces backend": upstream["surfaces"]["summary"].get("backend"),
-            "rows found": rf.get("n_rows"),
+            "rows found": (
+                f"{rf['n_rows_parallel']} (of {rf['n_rows']} lines, the others across the rows)"
+                if rf.get("n_rows_parallel") is not None and rf["n_rows_parallel"] < rf["n_rows"]
+                else rf.get("n_rows")
+            ),
             "row view without surface": _percent(
                 upstream["observe"]["summary"].get("no_surface_fraction")
             ),

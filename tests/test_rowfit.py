@@ -12,6 +12,7 @@ from cropcraft_core.config.layout import default_layout
 from cropcraft_core.errors import ConfigError, CropCraftError, InputError
 from cropcraft_core.procedural.canopy import generate_canopy
 from cropcraft_core.rowfit import (
+    Row,
     RowFitError,
     estimate_scale_from_rows,
     fit_ground_and_rows,
@@ -294,6 +295,25 @@ def test_camera_height_scale_is_measured_above_the_fitted_ground():
         fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams[:, :2], hint))
     with pytest.raises(CropCraftError, match="positive number of metres"):
         fit_rows_with_scale(scene, col, "maize", p, rng=8, camera_height=(cams, -1.0))
+
+
+def test_the_rows_found_are_the_lines_along_the_best_one():
+    """Sequential RANSAC also fits lines through leaves across the rows (the report counted
+    them as rows found); the rows are the lines within 10° of the best row: all three of a
+    young canopy's, one of a dense canopy's five (the others at 54° and -33°)."""
+    import dataclasses
+
+    pts, col, _ = make_cloud("soybean", YOUNG_SOY, 0.0, seed=6)
+    p = preset("soybean", box_size=None)
+    young = fit_ground_and_rows(pts, col, "soybean", p, rng=6, scale=1.0)
+    assert young.parallel_rows() == len(young.rows) == 3
+    a = math.radians(40.0)
+    across = Row(np.array([math.cos(a), math.sin(a)]), np.zeros(2), 10)
+    assert dataclasses.replace(young, rows=[*young.rows, across]).parallel_rows() == 3
+    pts, col, _ = make_cloud("soybean", BIG_SOY, 0.0, seed=5)
+    scene, _ = to_scene(pts, 5, scale=1.0)
+    dense = fit_ground_and_rows(scene, col, "soybean", p, rng=5)
+    assert dense.parallel_rows() == 1 and len(dense.rows) == 5
 
 
 def test_a_camera_height_the_rows_contradict_is_named():
