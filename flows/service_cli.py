@@ -414,14 +414,19 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"cached   {', '.join(cached) or '-'}")
     for k, v in out.get("metrics", {}).items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
-    for key in ("scale_warning", "edge_warning"):
-        if out.get(key):
-            print(f"WARNING  {out[key]}")
+    _print_fit_warnings(out)
     _print_coverage(out)
     _print_left_out(out)
     _print_rows(out)
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
+
+
+def _print_fit_warnings(out: Mapping[str, Any]) -> None:
+    """The rows against a camera-height hint, and an answer pressing the parameter box."""
+    for key in ("scale_warning", "edge_warning"):
+        if out.get(key):
+            print(f"WARNING  {out[key]}")
 
 
 def _print_left_out(out: Mapping[str, Any]) -> None:
@@ -740,6 +745,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     states = out.get("states", {})
     n_cached = sum(1 for v in states.values() if v == "Cached")
     print()
+    _print_fit_warnings(out)
     _print_coverage(out)
     print(f"stages cached: {n_cached} of {len(states)}")
     print(f"report   {out['report']}")

@@ -590,6 +590,27 @@ def test_run_summary_prints_each_rows_lai_and_their_spread(capsys):
     assert capsys.readouterr().out == ""
 
 
+def test_run_and_demo_summaries_print_the_fits_warnings(capsys):
+    """The rows against a camera-height hint and an answer pressing the box: the run summary
+    (``cropcraft run``; the demo's prints them alike) gives each as a WARNING line."""
+    from flows.service_cli import _print_summary
+
+    out = {
+        "scene": "s/soybean/2024-07-01",
+        "store": "/x",
+        "states": {"ingest": "Cached"},
+        "metrics": {"lai": 1.2},
+        "scale_warning": "the camera height given (1.4 m) and the rows disagree",
+        "edge_warning": "the answer lies on the edge of the soybean parameter box",
+        "report": "r",
+        "bundle": "b",
+    }
+    _print_summary(out)
+    printed = capsys.readouterr().out
+    assert "WARNING  the camera height given (1.4 m) and the rows disagree" in printed
+    assert "WARNING  the answer lies on the edge of the soybean parameter box" in printed
+
+
 def test_run_progress_without_a_terminal_prints_each_10_percent_mark(capsys):
     """Without a terminal (a nightly job's log) a run's progress is one line at each 10 % of a
     long stage's step (the surfaces' stereo) and of each seed's evaluations, and once at the
