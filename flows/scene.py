@@ -1265,7 +1265,9 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         # photos the run left out: without a pose in the imported poses, or not seeing the box
         "photos_left_out": {
             "unposed": records["poses"]["summary"].get("unposed", []),
+            "unregistered": records["poses"]["summary"].get("unregistered", []),
             "outside_box": records["surfaces"]["summary"].get("photos_left_out", []),
+            "duplicates": records["ingest"]["summary"].get("duplicate_names", []),
         },
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None

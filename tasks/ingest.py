@@ -39,6 +39,8 @@ def ingest(
         {
             "n_images": len(manifest),
             "duplicates": len(manifest.duplicates),
+            # each dropped copy, as "copy (= the photo kept)", for the run's summary
+            **({"duplicate_names": copies} if (copies := _copies(manifest)) else {}),
             "ignored": len(manifest.ignored),
             "n_focal_exif": sum(im.focal_px is not None for im in manifest.images),
             "size_px": [manifest.images[0].width, manifest.images[0].height],
@@ -46,3 +48,8 @@ def ingest(
         t.seconds,
         identity=identity,
     )
+
+
+def _copies(manifest: Any) -> list[str]:
+    """The photos ingest dropped as exact copies of another, as ``"copy (= kept)"``."""
+    return [f"{d['source']} (= {d['duplicate_of']})" for d in manifest.duplicates]

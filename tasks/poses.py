@@ -217,6 +217,10 @@ def poses(
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)
+            # photos SfM did not register (in its largest model): named, not dropped quietly
+            missed = sorted({im["name"] for im in manifest["images"]} - set(sfm.poses.names))
+            if missed:
+                summary["unregistered"] = missed
             result, points = level(sfm.poses, sfm.points, summary)
             key = artefact(scene, "poses", "points.npz")
             hashes[key] = store.put_npz(key, {"points": points, "colors": sfm.colors})

@@ -611,6 +611,29 @@ def test_run_and_demo_summaries_print_the_fits_warnings(capsys):
     assert "WARNING  the answer lies on the edge of the soybean parameter box" in printed
 
 
+def test_run_summary_names_the_photos_sfm_left_out_and_the_copies(capsys):
+    """SfM that registered 22 of 36 photos (the far side of the plot) said so only in the
+    report's header, and dropped copies nowhere: the run's summary names both."""
+    from flows.service_cli import _print_left_out
+
+    _print_left_out(
+        {
+            "photos_left_out": {
+                "unregistered": [f"view_{i:03d}.png" for i in range(18, 32)],
+                "duplicates": ["view_002.jpg (= IMG_2000.jpg)"],
+            }
+        }
+    )
+    said = capsys.readouterr().out.splitlines()
+    assert said[0].startswith(
+        "WARNING  14 photo(s) were not registered by structure from motion, left out: "
+        "view_018.png, "
+    ) and said[0].endswith("(+6 more)")
+    assert said[1] == (
+        "WARNING  1 photo(s) are copies of another photo, left out: view_002.jpg (= IMG_2000.jpg)"
+    )
+
+
 def test_run_progress_without_a_terminal_prints_each_10_percent_mark(capsys):
     """Without a terminal (a nightly job's log) a run's progress is one line at each 10 % of a
     long stage's step (the surfaces' stereo) and of each seed's evaluations, and once at the
