@@ -206,6 +206,7 @@ def scene_report_html(
     timings: Mapping[str, float] | None = None,
     info: Mapping[str, Any] | None = None,
     rows: Mapping[str, Any] | None = None,
+    warnings: Sequence[str] = (),
 ) -> str:
     """The HTML page of one scene.
 
@@ -216,6 +217,9 @@ def scene_report_html(
     fit: ``fit.json`` (``params``, ``params_std``, ``seed_params``, ``seed_losses``, ``method``).
     timings: seconds per stage. info: other key facts (shown as a table). rows: ``rows.json``
     (``cropcraft_core.metrics.rows.compare_rows``: the answer fitted over each observed row).
+    warnings: the run's warnings (the rows against a camera-height hint, an answer on the
+    parameter box's edge, the row view's coverage, photos left out), first on the page: the
+    console printed them and the page, read the next morning, did not.
     """
     metrics = dict(metrics or {})
     defs = metrics.get("definitions") or {}
@@ -224,6 +228,10 @@ def scene_report_html(
         f"<title>CropCraft report {html.escape(scene)}</title><style>{_CSS}</style></head><body>",
         f"<h1>CropCraft scene report: {html.escape(scene)}</h1>",
     ]
+    if warnings:
+        parts.append("<h2>Warnings</h2><ul class='warnings'>")
+        parts += [f"<li>{html.escape(str(w))}</li>" for w in warnings]
+        parts.append("</ul>")
     if info:
         parts.append("<table>")
         for k, v in info.items():

@@ -122,6 +122,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: params.json as cropcraft generate's and fit's (plants in the plot and in all; "fit"
     # holds the answer's fit record, not only its settings)
     "export": 2,
+    # 2: the page opens with the run's warnings (the console's, lost by morning)
+    "report": 2,
 }
 
 #: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).

@@ -150,9 +150,35 @@ def report(
             timings=_timings(upstream),
             info=info,
             rows=table,
+            warnings=run_warnings(crop, upstream, fit),
         )
         key = artefact(scene, "report", "report.html")
         digest = store.put_bytes(key, page.encode("utf-8"))
     return make_record(
         "report", scene, {"report": key}, {key: digest}, {"bytes": len(page)}, t.seconds
     )
+
+
+def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> list[str]:
+    """The warnings a run prints, for its report: the rows against a camera-height hint, an
+    answer on the parameter box's edge, the row view's coverage and the photos left out."""
+    from cropcraft_core.fit.fitting import edge_warning
+    from cropcraft_core.observe import coverage_warning
+
+    out = [upstream["rowfit"]["summary"].get("scale_warning")]
+    out.append(edge_warning(crop, fit["params"], (fit.get("config") or {}).get("box")))
+    seen = upstream["observe"]["summary"].get("no_surface_fraction")
+    out.append(None if seen is None else coverage_warning(seen, crop))
+    left = {
+        "have no pose in the imported poses": upstream["poses"]["summary"].get("unposed"),
+        "were not registered by structure from motion": upstream["poses"]["summary"].get(
+            "unregistered"
+        ),
+        "do not see the scene box": upstream["surfaces"]["summary"].get("photos_left_out"),
+        "are copies of another photo": upstream["ingest"]["summary"].get("duplicate_names"),
+    }
+    for why, names in left.items():
+        if names:
+            more = f" (+{len(names) - 8} more)" if len(names) > 8 else ""
+            out.append(f"{len(names)} photo(s) {why}, left out: {', '.join(names[:8])}{more}")
+    return [w for w in out if w]

@@ -1450,6 +1450,20 @@ def test_a_season_with_no_date_left_has_no_plot_of_an_older_night(tmp_path):
     assert store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().count("\n") == 1
 
 
+def test_report_opens_with_the_runs_warnings():
+    """The console printed the run's warnings (an answer on the box's edge, the row view's
+    coverage) and the report, read the next morning, had none of them."""
+    from cropcraft_core.report import scene_report_html
+
+    page = scene_report_html(
+        "s/soybean/2024-07-01",
+        warnings=["the answer lies on the edge of the soybean parameter box <b>", "26 % of"],
+        info={"crop": "soybean"},
+    )
+    assert page.index("<h2>Warnings</h2>") < page.index("<th>crop</th>")
+    assert "<li>the answer lies on the edge of the soybean parameter box &lt;b&gt;</li>" in page
+
+
 def test_report_says_which_rows_answer_the_scene():
     """Fitted over its neighbour rows with ``rows.answer=mean``, the scene's answer is the
     rows' mean, but the rows table said row 0 was "the scene's answer above"."""
@@ -1503,6 +1517,7 @@ def test_report_builder_is_self_contained():
         timings={"ingest": 1.0},
     )
     assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
+    assert "Warnings" not in page  # none given
     # the two spreads' definitions differ (params_std: ddof 1; the seeds' traits: ddof 0)
     assert "SD over seeds (÷n−1)" in page and "<th>SD (÷n)</th>" in page
     assert "b (given, not fitted)" in page and "c (searched 0.8 to 1)" in page
