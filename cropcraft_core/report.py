@@ -424,7 +424,7 @@ def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes
             ecolor="tab:blue",
             capsize=4,
             alpha=0.6,
-            label="LAI over the seeds' answers",
+            label="LAI over the seeds' answers (not always the answer's)",
         )
     if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
         axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")

@@ -389,7 +389,29 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     seed = cfg["metrics"]["seed"]
     if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
         raise ConfigError(f"metrics.seed must be null or a whole number >= 0, got {seed!r}")
+    _check_camera_height(crop, cfg["poses"]["camera_height"])
     return cfg
+
+
+#: How far (a factor either way) a camera height may lie from the crop's usual capture height
+#: before it is refused as a slip of units: 140 (cm) given for soybean photos passed and the
+#: run failed in the stereo naming the poses and the box, never the height.
+CAMERA_HEIGHT_FACTOR = 20.0
+
+
+def _check_camera_height(crop: str, height: float | None) -> None:
+    from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+
+    usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
+    if height is None or usual is None:
+        return
+    if not 1 / CAMERA_HEIGHT_FACTOR <= height / usual <= CAMERA_HEIGHT_FACTOR:
+        unit = "centimetres" if height > usual else "another unit"
+        raise ConfigError(
+            f"poses.camera_height {height:g} m is {height / usual:.3g}x {crop}'s usual capture "
+            f"height ({usual:g} m): is it in {unit}? (give the cameras' median height above "
+            "the ground in metres)"
+        )
 
 
 def _layout_given(layout: Mapping[str, Any], crop: str | None) -> dict[str, Any]:

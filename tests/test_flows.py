@@ -1850,3 +1850,15 @@ def test_a_smaller_fit_budget_keeps_the_papers_share_of_random_points():
     assert resolve_config(CROP, {"fit": {"n_evals": 50, "n_initial": 10}})["fit"]["n_initial"] == 10
     with pytest.raises(ConfigError, match=r"fit settings \(fit\.\*\): need 2 <= n_initial"):
         resolve_config(CROP, {"fit.n_evals": 50, "fit.n_initial": 60})
+
+
+def test_a_camera_height_in_other_units_is_refused_before_any_work():
+    """`--camera-height 140` (centimetres) for a soybean walk passed, and the run failed in
+    the stereo naming the poses and the box; a height 20x from the crop's usual capture
+    height is refused with the likely slip. Drone heights for maize (13-120 m) pass."""
+    from flows.scene import resolve_config
+
+    with pytest.raises(ConfigError, match=r"camera_height 140 m is 100x soybean's usual .* centim"):
+        resolve_config("soybean", {"poses.camera_height": 140})
+    for crop, height in (("soybean", 1.2), ("soybean", 4.0), ("maize", 13.0), ("maize", 120.0)):
+        assert resolve_config(crop, {"poses.camera_height": height})["poses"]["camera_height"]

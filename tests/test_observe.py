@@ -757,5 +757,6 @@ def test_no_surface_fraction_and_its_warning():
     assert coverage_warning(0.10) is None
     assert coverage_warning(NO_SURFACE_WARN) is None  # the threshold itself passes
     msg = coverage_warning(0.235)
-    assert msg is not None and "24 % of the row camera's view" in msg and "LAI" in msg
+    assert msg is not None and "23.5 % of the row camera's view" in msg and "LAI" in msg
+    assert coverage_warning(0.18004).startswith("18.0 % of the row camera's view")  # not "18 %"
     assert "synthetic soybean" in msg and "soybean" not in coverage_warning(0.235, "maize")

@@ -770,3 +770,19 @@ def test_the_profile_autocorrelation_is_numpys_at_the_lags_asked():
         full = np.correlate(h, h, "full")[n - 1 :]
         for lo, hi in ((0, n - 1), (1, min(n - 1, 40)), (n // 2, n // 2)):
             assert np.array_equal(_autocorrelation(h, lo, hi), full[lo : hi + 1])
+
+
+def test_a_row_fit_failing_at_a_given_scale_names_where_the_scale_came_from():
+    """A camera distance 10x short read the canopy 3.7 cm tall and the run ended in "no rows
+    found" alone; the error now says the scale was the user's."""
+    pts, col, lay = make_cloud("soybean", YOUNG_SOY, 0.0, seed=6)
+    p = preset("soybean", box_size=None)
+    for kw, source in (
+        ({"metric_scale": 0.05, "metric_source": "camera_distance"}, "the camera distance given"),
+        ({"scale_hint": 0.05}, r"the scale given \(rowfit.scale\)"),
+    ):
+        with pytest.raises(RowFitError, match=f"; the scale came from {source}: if it is off"):
+            fit_rows_with_scale(pts, col, "soybean", p, rng=6, **kw)
+    with pytest.raises(RowFitError) as err:  # metric poses: the poses' own scale, not named
+        fit_rows_with_scale(pts, col, "soybean", p, rng=6, metric_scale=0.05)
+    assert "the scale came from" not in str(err.value)

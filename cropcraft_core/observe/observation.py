@@ -177,7 +177,7 @@ def coverage_warning(fraction: float, crop: str | None = "soybean") -> str | Non
     if crop == "soybean":
         measured = " (synthetic soybean, true poses: -10 % at 23 %, -26 % at 22 %)"
     return (
-        f"{100 * fraction:.0f} % of the row camera's view has no fully supported reconstructed "
+        f"{100 * fraction:.1f} % of the row camera's view has no fully supported reconstructed "
         f"surface (over {100 * NO_SURFACE_WARN:.0f} %): the fit reads lost pixels as gaps, so "
         f"LAI is likely underestimated{measured}"
     )
