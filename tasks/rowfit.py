@@ -42,10 +42,12 @@ def rowfit(
         hinted = ("camera_height", "camera_distance")
         metric_source = frame_source if frame_source in hinted else "metric_poses"
         scale = config.get("scale")
-        camera_height = None
+        camera_height = cameras = None
         if frame_source == "camera_height" and not scale:
             poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
             camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
+        elif frame_source == "camera_distance" and not scale:  # its heights put to the rows
+            cameras = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses"))).centers()
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
         fit = fit_rows_with_scale(
@@ -59,6 +61,7 @@ def rowfit(
             camera_height=camera_height,
             scale_hint=float(scale) if scale else None,
             known_row_spacing=spacing,
+            cameras=cameras,
         )
         record = {**fit.to_dict(), "camera_in_scene": fit.camera_in_scene().to_dict()}
         key = artefact(scene, "rowfit", "rowfit.json")

@@ -343,6 +343,22 @@ def test_a_camera_height_the_rows_contradict_is_named():
     assert up == pytest.approx(13.0, rel=0.05)
     assert "scale_warning" not in fitted(13.0, 13.0).diagnostics
     assert "scale_warning" not in fitted(40.0, 40.0).diagnostics
+    # a camera distance in feet taken as metres (the scene 3.3x too large): its cameras' height
+    # is put to the rows alike
+    cams = np.column_stack([xy, np.full(len(xy), 13.0)])
+    feet = fit_rows_with_scale(
+        pts, col, "maize", p, rng=8, metric_scale=3.28, metric_source="camera_distance",
+        known_row_spacing=lay.row_spacing, cameras=cams,
+    )  # fmt: skip
+    warning = feet.diagnostics["scale_warning"]
+    assert warning.startswith("the camera distance given (it puts the cameras 42.6 m up)")
+    up = float(warning.split("the rows put the cameras ")[1].split(" m up")[0])
+    assert up == pytest.approx(13.0, rel=0.05)
+    right = fit_rows_with_scale(
+        pts, col, "maize", p, rng=8, metric_scale=1.0, metric_source="camera_distance",
+        known_row_spacing=lay.row_spacing, cameras=cams,
+    )  # fmt: skip
+    assert "scale_warning" not in right.diagnostics
 
 
 def _translate(t):

@@ -957,6 +957,7 @@ def fit_rows_with_scale(
     camera_height: tuple[np.ndarray, float] | None = None,
     max_passes: int = 3,
     tolerance: float = 0.01,
+    cameras: np.ndarray | None = None,
 ) -> RowFit:
     """:func:`fit_ground_and_rows` with the metric scale chosen by priority:
 
@@ -979,6 +980,10 @@ def fit_rows_with_scale(
        ``diagnostics["scale_fallback"]`` explains why;
     4. nothing → scale 1, ``"assumed_metric"``.
 
+    ``cameras`` ((n, 3) camera centres in the scene frame) with ``metric_scale`` and
+    ``known_row_spacing``: the cameras' height the scale implies is put to the rows as a
+    camera height's is (a camera distance in feet taken as metres).
+
     The row-spacing route needs the first pass to find several rows: the metric thresholds
     (20 cm lines, 0.76 m rows) tolerate a scene scale off by roughly ±30 %.
     """
@@ -999,9 +1004,26 @@ def fit_rows_with_scale(
         given = {"camera_height": "the camera height given", "camera_distance": "the camera "
                  "distance given"}.get(metric_source)  # fmt: skip
         with _given_scale(given) if given else contextlib.nullcontext():
-            return fit_ground_and_rows(
+            fit = fit_ground_and_rows(
                 points, colors, crop, preset, rng, scale=metric_scale, scale_source=metric_source
             )
+        if cameras is None or known_row_spacing is None:
+            return fit
+        seed = int(_as_rng(rng).integers(2**63 - 1))  # after the fit: its draws are as before
+        # the cameras' height the given scale implies, put to the rows like a camera height's
+        c = np.asarray(cameras, dtype=np.float64)
+        above = float(np.median(c @ fit.ground_normal + fit.ground_offset))
+        if not above > 0:
+            return fit
+        metres = above * metric_scale
+        warning = _rows_disagree(
+            points, colors, crop, preset, seed, c, above, metres, metric_scale,
+            known_row_spacing, max_passes, tolerance,
+            given=f"{given or 'the scale'} (it puts the cameras {metres:.3g} m up)",
+        )  # fmt: skip
+        if not warning:
+            return fit
+        return replace(fit, diagnostics={**fit.diagnostics, "scale_warning": warning})
     if scale_hint is not None:
         with _given_scale("the scale given (rowfit.scale)"):
             return fit_ground_and_rows(
@@ -1118,13 +1140,15 @@ def _rows_disagree(
     known_row_spacing: float,
     max_passes: int,
     tolerance: float,
+    given: str | None = None,
 ) -> str | None:
     """A warning where the rows contradict a camera-height hint ``metres`` (the scene's scale
     ``scale`` m per unit): only where the hint is more than :data:`SCALE_CHECK_FACTOR` from
     the crop's usual capture height (``sfm.frame.PRIOR_CAMERA_HEIGHT_M``), the rows' scale is
     sought from that usual height (the cameras ``above_units`` over the fitted ground) as the
     row-spacing route seeks it; confirmed and more than the factor from ``scale``, the rows
-    disagree. None otherwise (no rows' period found: nothing to say)."""
+    disagree. None otherwise (no rows' period found: nothing to say). ``given``: what set the
+    scale, for the warning (default: the camera height)."""
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
 
     usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
@@ -1147,8 +1171,9 @@ def _rows_disagree(
         return None
     if 1 / SCALE_CHECK_FACTOR <= rows / scale <= SCALE_CHECK_FACTOR:
         return None
+    given = given or f"the camera height given ({metres:g} m)"
     return (
-        f"the camera height given ({metres:g} m) and the rows disagree: at its scale the "
+        f"{given} and the rows disagree: at its scale the "
         f"rows are {known_row_spacing * scale / rows:.3g} m apart, not the layout's "
         f"{known_row_spacing:g} m; the rows put the cameras {metres * rows / scale:.3g} m "
         "up. Every length and the LAI are read at the given height: check --camera-height "
