@@ -1017,7 +1017,7 @@ def fit_rows_with_scale(
             return fit
         metres = above * metric_scale
         warning = _rows_disagree(
-            points, colors, crop, preset, seed, c, above, metres, metric_scale,
+            points, colors, crop, preset, seed, above, metres, metric_scale,
             known_row_spacing, max_passes, tolerance,
             given=f"{given or 'the scale'} (it puts the cameras {metres:.3g} m up)",
         )  # fmt: skip
@@ -1111,7 +1111,7 @@ def _fit_with_camera_height(
     diag = {**fit.diagnostics, "scale_factors": history}
     if known_row_spacing is not None:
         warning = _rows_disagree(
-            points, colors, crop, preset, seed, c, above, metres, scale,
+            points, colors, crop, preset, seed, above, metres, scale,
             known_row_spacing, max_passes, tolerance,
         )  # fmt: skip
         if warning:
@@ -1133,7 +1133,6 @@ def _rows_disagree(
     crop: str,
     preset: RowFitPreset | None,
     seed: int,
-    centres: np.ndarray,
     above_units: float,
     metres: float,
     scale: float,
