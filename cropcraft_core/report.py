@@ -194,6 +194,30 @@ def _rows_html(rows: Mapping[str, Any]) -> str:
     return "".join(out)
 
 
+#: Why a run left photos out, by the key of its ``photos_left_out`` record
+#: (:func:`tasks.common.photos_left_out`).
+LEFT_OUT_WHY = {
+    "unposed": "have no pose in the imported poses",
+    "unregistered": "were not registered by structure from motion",
+    "outside_box": "do not see the scene box",
+    "duplicates": "are copies of another photo",
+}
+
+
+def left_out_lines(left: Mapping[str, Sequence[str]] | None) -> list[str]:
+    """One line per reason a run left photos out, naming the first eight: without a pose in
+    the imported poses (a photo added after the capture was posed), not registered by SfM (a
+    part of the walk it could not join: the far side of a plot), not seeing the scene box, or
+    copies of another photo. The run's summary and its report print the same lines."""
+    out = []
+    for key, why in LEFT_OUT_WHY.items():
+        names = list((left or {}).get(key) or [])
+        if names:
+            more = f" (+{len(names) - 8} more)" if len(names) > 8 else ""
+            out.append(f"{len(names)} photo(s) {why}, left out: {', '.join(names[:8])}{more}")
+    return out
+
+
 def scene_report_html(
     scene: str,
     *,

@@ -37,7 +37,7 @@ from cropcraft_core.lease import SceneLease, hold_scene, refuse_if_busy
 from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
 from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
-from tasks.common import fingerprint, get_task, stage_key
+from tasks.common import fingerprint, get_task, photos_left_out, stage_key
 
 # --------------------------------------------------------------------------- configuration
 
@@ -1285,12 +1285,7 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         # the surfaces against the photos at the photos' cameras (older stores: None)
         "consistency": _consistency(records.get("consistency")),
         # photos the run left out: without a pose in the imported poses, or not seeing the box
-        "photos_left_out": {
-            "unposed": records["poses"]["summary"].get("unposed", []),
-            "unregistered": records["poses"]["summary"].get("unregistered", []),
-            "outside_box": records["surfaces"]["summary"].get("photos_left_out", []),
-            "duplicates": records["ingest"]["summary"].get("duplicate_names", []),
-        },
+        "photos_left_out": photos_left_out(records),
         "metrics": records["metrics"]["summary"],
         # the neighbour rows' answers beside the best row's (rows.neighbours > 0), else None
         "rows": records["rows"]["summary"] if "rows" in records else None,

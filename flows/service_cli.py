@@ -430,20 +430,11 @@ def _print_fit_warnings(out: Mapping[str, Any]) -> None:
 
 
 def _print_left_out(out: Mapping[str, Any]) -> None:
-    """The photos the run left out, by name: without a pose in the imported poses (a photo
-    added after the capture was posed), not registered by SfM (a part of the walk it could not
-    join: the far side of a plot), not seeing the scene box, or copies of another photo."""
-    left = out.get("photos_left_out") or {}
-    for key, why in (
-        ("unposed", "have no pose in the imported poses"),
-        ("unregistered", "were not registered by structure from motion"),
-        ("outside_box", "do not see the scene box"),
-        ("duplicates", "are copies of another photo"),
-    ):
-        names = left.get(key) or []
-        if names:
-            more = f" (+{len(names) - 8} more)" if len(names) > 8 else ""
-            print(f"WARNING  {len(names)} photo(s) {why}, left out: {', '.join(names[:8])}{more}")
+    """The photos the run left out, by name and reason (``report.left_out_lines``)."""
+    from cropcraft_core.report import left_out_lines
+
+    for line in left_out_lines(out.get("photos_left_out")):
+        print(f"WARNING  {line}")
 
 
 def _print_rows(out: Mapping[str, Any]) -> None:

@@ -596,3 +596,15 @@ def report_stage(scene: str, what: str, done: int, total: int) -> None:
     """A long stage's step moved on: a ``stage`` :class:`Tick` (``what``: e.g.
     ``"surfaces: stereo"``)."""
     deliver(Tick(scene, what, int(done), int(total), None, "stage"))
+
+
+def photos_left_out(records: Mapping[str, Any]) -> dict[str, list[str]]:
+    """The photos a run left out, by reason, from its stage records (a flow's records, or a
+    stage's upstream): without a pose in the imported poses, not registered by SfM, not seeing
+    the scene box, copies of another photo (:data:`cropcraft_core.report.LEFT_OUT_WHY`)."""
+    return {
+        "unposed": records["poses"]["summary"].get("unposed", []),
+        "unregistered": records["poses"]["summary"].get("unregistered", []),
+        "outside_box": records["surfaces"]["summary"].get("photos_left_out", []),
+        "duplicates": records["ingest"]["summary"].get("duplicate_names", []),
+    }

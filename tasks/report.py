@@ -15,6 +15,7 @@ from tasks.common import (
     load_observation,
     make_record,
     open_store,
+    photos_left_out,
     stage_task,
 )
 from tasks.fit_seed import layout_of
@@ -164,21 +165,10 @@ def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> li
     answer on the parameter box's edge, the row view's coverage and the photos left out."""
     from cropcraft_core.fit.fitting import edge_warning
     from cropcraft_core.observe import coverage_warning
+    from cropcraft_core.report import left_out_lines
 
     out = [upstream["rowfit"]["summary"].get("scale_warning")]
     out.append(edge_warning(crop, fit["params"], (fit.get("config") or {}).get("box")))
     seen = upstream["observe"]["summary"].get("no_surface_fraction")
     out.append(None if seen is None else coverage_warning(seen, crop))
-    left = {
-        "have no pose in the imported poses": upstream["poses"]["summary"].get("unposed"),
-        "were not registered by structure from motion": upstream["poses"]["summary"].get(
-            "unregistered"
-        ),
-        "do not see the scene box": upstream["surfaces"]["summary"].get("photos_left_out"),
-        "are copies of another photo": upstream["ingest"]["summary"].get("duplicate_names"),
-    }
-    for why, names in left.items():
-        if names:
-            more = f" (+{len(names) - 8} more)" if len(names) > 8 else ""
-            out.append(f"{len(names)} photo(s) {why}, left out: {', '.join(names[:8])}{more}")
-    return [w for w in out if w]
+    return [w for w in out if w] + left_out_lines(photos_left_out(upstream))
