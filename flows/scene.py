@@ -308,6 +308,11 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             fit.bo_config(crop).validate()
     except ConfigError as exc:  # named as the user sets them
         raise ConfigError(f"fit settings (fit.*): {exc}") from None
+    # a known parameter keys its fit as a number: known.json's 9 (or --set's) is --param's 9.0
+    cfg["fit"]["box"] = {
+        k: [float(x) for x in v] if isinstance(v, list | tuple) else float(v)
+        for k, v in cfg["fit"]["box"].items()
+    }
     n_points = cfg["surfaces"]["n_points"]
     if not isinstance(n_points, int) or isinstance(n_points, bool) or n_points < 1:
         raise ConfigError(f"surfaces.n_points must be a whole number >= 1, got {n_points!r}")

@@ -235,6 +235,11 @@ def test_param_is_a_parameter_box_shortcut_checked_against_the_crop():
     assert seeds["box"] == cfg["fit"]["box"]
     # the whole box is hashed as before the setting existed: stored seeds stay served
     assert "box" not in stage_configs(resolve_config("soybean"), "soybean")["fit_seed"]
+    # known.json's 9 and --set's [1, 1.3] are --param's 9.0 and 1:1.3: one fit, not two
+    from cropcraft_core.store import config_hash
+
+    notes = resolve_config("soybean", {"fit.box.num_nodes": 9, "fit.box.leaf_length": [1, 1.3]})
+    assert config_hash(stage_configs(notes, "soybean")["fit_seed"]) == config_hash(seeds)
     with pytest.raises(ConfigError, match="unknown maize parameter 'petiole_angle'"):
         resolve_config("maize", {"fit.box.petiole_angle": 2.0})
     with pytest.raises(ConfigError, match="NAME=VALUE or NAME=LOW:HIGH"):
