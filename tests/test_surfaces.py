@@ -1363,8 +1363,12 @@ def test_photos_that_do_not_see_the_scene_box_are_named_and_left_to_the_caller()
     names = ["a.png", "b.png", "far.png"]
     assert views_in_box(names, [*over, along], box) == [0, 1]
     assert views_in_box(names, [*over, along], None) == [0, 1, 2]
-    with pytest.raises(InputError, match=r"only 1 of 3 photos see the scene box.*b\.png, far\.png"):
+    few = r"only 1 of 3 photos see the scene box.*b\.png, far\.png\); 3 photos are too few"
+    with pytest.raises(InputError, match=few):
         views_in_box(names, [over[0], along, along], box)
+    many = [f"p{i}.png" for i in range(12)]
+    with pytest.raises(InputError, match=r"p8\.png, \.\.\.\)$"):  # enough photos: no hint
+        views_in_box(many, [over[0], *[along] * 11], box)
 
 
 def test_a_depth_range_bounds_the_horizontal_sweeps_depths(scene):

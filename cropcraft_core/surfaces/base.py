@@ -538,6 +538,11 @@ def depth_limits(
     return max(0.05, float(lo[ok].min())), float(hi[ok].max())
 
 
+#: Fewer photos than this are named as the likely cause where no two see the scene box: a
+#: 3-photo date's poses levelled the plot 1 photo in view (session 90's soybean walk audit).
+FEW_PHOTOS = 10
+
+
 def views_in_box(
     names: Sequence[str], cameras: Sequence[PinholeCamera], bbox: np.ndarray | None
 ) -> list[int]:
@@ -556,10 +561,16 @@ def views_in_box(
         keep.append(i)
     if len(keep) < 2:
         away = [n for i, n in enumerate(names) if i not in keep]
+        few = (
+            f"; {len(cameras)} photos are too few to set a plot's frame from (its ground and "
+            "scale): a walk around a plot takes ~50"
+            if len(cameras) < FEW_PHOTOS
+            else ""
+        )
         raise InputError(
             f"only {len(keep)} of {len(cameras)} photos see the scene box "
             f"{np.round(bbox, 2).tolist()}: check surfaces.bbox and the poses' frame (photos "
-            f"that do not: {', '.join(away[:8])}{', ...' if len(away) > 8 else ''})"
+            f"that do not: {', '.join(away[:8])}{', ...' if len(away) > 8 else ''}){few}"
         )
     return keep
 
