@@ -1236,7 +1236,15 @@ def _wire(ex: Any, req: SceneRequest) -> dict[str, Any]:
     r["export"] = ex.run(
         "export", {"generate": r["generate"], "metrics": r["metrics"], "aggregate": answer}
     )
-    up = {k: r[k] for k in r if k != "fit_seed"} | {"aggregate": answer} | dict(seed_recs)
+    up = {k: r[k] for k in r if k != "fit_seed"} | dict(seed_recs)
+    if answer is not r["aggregate"]:  # the rows' mean (the best row's own fit stays aggregate)
+        up["answer"] = answer
+    if "observe_rows" in r:  # the neighbour rows' seeds and answers: the page times them too
+        from cropcraft_core.rowfit import row_label
+
+        for k in (k for k in jobs if k is not None):
+            up.update({f"{n}@{row_label(k)}": rec for n, rec in row_seeds[k].items()})
+            up[f"aggregate@{row_label(k)}"] = aggregates[k]
     r["report"] = ex.run("report", up | {"summaries": _summaries(up)})
     r["fit_seeds"] = seed_recs
     return r

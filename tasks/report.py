@@ -22,12 +22,21 @@ from tasks.fit_seed import layout_of
 
 
 def _timings(upstream: dict[str, Any]) -> dict[str, float]:
+    """Seconds per stage of the records the report reads; the seeds and answers of every row
+    fitted (``seed-3@row_p1``, ``aggregate@row_p1`` beside the best row's) summed and
+    counted, and the scene's answer under ``rows.answer=mean`` (``answer``) as the rows
+    stage it is."""
     out: dict[str, float] = {}
+    n_rows = sum(1 for n in upstream if n == "aggregate" or n.startswith("aggregate@"))
+    over = f" over {n_rows} rows" if n_rows > 1 else ""
     for stage in STAGES:
-        if stage == "fit_seed":
-            recs = [r for n, r in upstream.items() if n.startswith("seed-")]
-            if recs:
-                out[f"fit_seed (x{len(recs)})"] = sum(float(r["seconds"]) for r in recs)
+        if stage in ("fit_seed", "aggregate"):
+            prefix = "seed-" if stage == "fit_seed" else "aggregate"
+            recs = [r for n, r in upstream.items() if n.split("@")[0].startswith(prefix)]
+            if recs and (stage == "fit_seed" or n_rows > 1):
+                out[f"{stage} (x{len(recs)}{over})"] = sum(float(r["seconds"]) for r in recs)
+            elif recs:
+                out[stage] = float(recs[0].get("seconds", 0.0))
         elif stage in upstream:
             out[stage] = float(upstream[stage].get("seconds", 0.0))
     return out
@@ -76,7 +85,8 @@ def report(
                     thumbnail(np.asarray(im.convert("RGB")), int(config.get("thumbnail_px", 192)))
                 )
         obs = load_observation(store, upstream)
-        fit = store.get_json(key_of(upstream["aggregate"], "fit"))
+        # the scene's answer: the best row's fit, or the rows' mean (rows.answer=mean)
+        fit = store.get_json(key_of(upstream.get("answer", upstream["aggregate"]), "fit"))
         recipe = store.get_json(key_of(upstream["generate"], "recipe"))
         metrics = store.get_json(key_of(upstream["metrics"], "metrics"))
         fwd = ForwardModel(obs, layout_of(crop, {"layout": config.get("layout")}))

@@ -1486,6 +1486,26 @@ def test_report_says_which_rows_answer_the_scene():
         assert says in page
 
 
+def test_report_times_every_rows_seeds_and_answers():
+    """Under neighbour rows the page timed only the best row's seeds, and under
+    ``rows.answer=mean`` it timed the rows stage twice, once as the aggregate's."""
+    from tasks.report import _timings
+
+    rec = {"hashes": {}, "summary": {}}
+    up = {"ingest": {**rec, "seconds": 1.0}, "aggregate": {**rec, "seconds": 5.0}}
+    up |= {f"seed-{s}": {**rec, "seconds": 10.0} for s in range(2)}
+    assert _timings(up) == {"ingest": 1.0, "fit_seed (x2)": 20.0, "aggregate": 5.0}
+    up |= {f"seed-{s}@row_p1": {**rec, "seconds": 20.0} for s in range(2)}
+    up |= {"aggregate@row_p1": {**rec, "seconds": 6.0}, "rows": {**rec, "seconds": 2.0}}
+    up |= {"answer": up["rows"]}  # rows.answer=mean: the rows stage is the answer
+    assert _timings(up) == {
+        "ingest": 1.0,
+        "fit_seed (x4 over 2 rows)": 60.0,
+        "aggregate (x2 over 2 rows)": 11.0,
+        "rows": 2.0,
+    }
+
+
 def test_report_builder_is_self_contained():
     from cropcraft_core.report import scene_report_html, season_csv, season_rows
 
@@ -1747,6 +1767,9 @@ def test_neighbour_rows_are_fitted_beside_the_best_row_whose_answer_stays_cached
     assert store.get_json(f"{scene}/generate/canopy.json")["params"] == out["params"]
     html = store.get_bytes(f"{scene}/report/report.html").decode()
     assert f"mean of {len(kept) + 1} rows" in html and "SD over rows" in html
+    n = len(kept) + 1  # every row's seeds and answer timed, the rows stage once
+    assert f"fit_seed (x{N_SEEDS * n} over {n} rows)" in html
+    assert f"aggregate (x{n} over {n} rows)" in html and html.count("<td>rows</td>") == 1
     (season,) = write_summary(store, "plotA", CROP)["rows"]
     assert season["rows_fitted"] == len(kept) + 1
     assert season["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
