@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from cropcraft_core.errors import CropCraftError
+from cropcraft_core.errors import CropCraftError, InputError
 from tasks.common import (
     Timer,
     artefact,
@@ -51,6 +51,27 @@ def _progress(scene: str):
     return progress
 
 
+def ground_hint(crop: str, frame: dict[str, Any] | None) -> str | None:
+    """Why a scene's surfaces found nothing, where its poses are the likely cause: metric
+    poses without points stand a prior capture height above a ground of its own choosing,
+    and photos taken from elsewhere (a drone's maize filed as soybean) put the scene box off
+    the plot. None where the ground was found otherwise."""
+    from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
+
+    if not frame or frame.get("ground_source") != "prior":
+        return None
+    others = ", ".join(
+        f"{other}'s ~{h:g} m" for other, h in PRIOR_CAMERA_HEIGHT_M.items() if other != crop
+    )
+    return (
+        "The poses are metric but carry no points to find the ground by, so it was placed "
+        f"{frame['camera_height_m']:.3g} m below the cameras (poses.prior_camera_height, "
+        f"{crop}'s usual capture height): photos taken from another height put the scene box "
+        f"off the plot. Set poses.prior_camera_height to the cameras' height above the ground, "
+        f"or check the crop ({others})"
+    )
+
+
 @stage_task("surfaces")
 def surfaces(
     store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
@@ -66,7 +87,7 @@ def surfaces(
     """
     Poses, pinhole_photos = core("surfaces", "cropcraft_core.sfm", "Poses", "pinhole_photos")
     SurfacesConfig, make_backend = _surfaces_api()
-    from cropcraft_core.surfaces import resolve_bbox, views_in_box
+    from cropcraft_core.surfaces import SurfacesError, resolve_bbox, views_in_box
 
     store = open_store(store_root)
     cfg = dict(config)
@@ -82,17 +103,23 @@ def surfaces(
         backend = make_backend(SurfacesConfig.from_dict(cfg))
         cams, names = poses.cameras, poses.names
         away: list[str] = []
-        if backend.name in STEREO_BACKENDS and cfg.get("depth_range") is None:
-            keep = views_in_box(names, cams, bbox)  # the others have no depths of the plot
-            kept = set(keep)
-            away = [n for i, n in enumerate(names) if i not in kept]
-            if away:
-                stage_log().warning(
-                    "surfaces: %d of %d photos do not see the scene box and are left out: %s",
-                    len(away), len(cams), ", ".join(away),
-                )  # fmt: skip
-                images, cams = [images[i] for i in keep], [cams[i] for i in keep]
-        backend.fit(images, cams, bbox, progress=_progress(scene))
+        try:
+            if backend.name in STEREO_BACKENDS and cfg.get("depth_range") is None:
+                keep = views_in_box(names, cams, bbox)  # the others have no depths of the plot
+                kept = set(keep)
+                away = [n for i, n in enumerate(names) if i not in kept]
+                if away:
+                    stage_log().warning(
+                        "surfaces: %d of %d photos do not see the scene box and are left out: %s",
+                        len(away), len(cams), ", ".join(away),
+                    )  # fmt: skip
+                    images, cams = [images[i] for i in keep], [cams[i] for i in keep]
+            backend.fit(images, cams, bbox, progress=_progress(scene))
+        except (InputError, SurfacesError) as exc:
+            hint = ground_hint(scene.split("/")[1], upstream["poses"]["summary"].get("frame"))
+            if hint is None:
+                raise
+            raise type(exc)(f"{exc}. {hint}") from exc
         points, colors = backend.point_cloud(n_points)
         backend.save(tmp / "model")
         hashes.update(store.put_tree(tmp / "model", artefact(scene, "surfaces", "model")))

@@ -904,3 +904,33 @@ def test_photos_without_an_imported_pose_are_named_and_too_few_poses_refused(
     _print_left_out({"photos_left_out": {"unposed": ["late.png"], "outside_box": []}})
     said = capsys.readouterr().out
     assert said == "WARNING  1 photo(s) have no pose in the imported poses, left out: late.png\n"
+
+
+def test_a_drone_capture_filed_under_the_wrong_crop_is_told_where_its_ground_went(tmp_path):
+    """Maize drone photos with metric poses (no points) run as soybean: the ground was placed
+    soybean's 1.4 m below the 13 m cameras, the scene box missed the plot, and the run failed
+    on "no view has a usable depth map" with no word of the ground, the crop or the setting
+    that places it (session 90's maize audit). Filed as maize, the poses keep their ground."""
+    from tasks.ingest import ingest
+    from tasks.poses import poses
+    from tasks.surfaces import surfaces
+
+    out = tmp_path / "scene"
+    make_scene(
+        "maize", out, views=6, resolution=(64, 48), trajectory="drone", metrics=False,
+        supersample=1,
+    )  # fmt: skip
+    root, photos, posed = str(tmp_path / "store"), str(out / "images"), str(out / "transforms.json")
+    recs = {}
+    for crop in ("maize", "soybean"):
+        scene = f"plotM/{crop}/2024-07-01"
+        ing = ingest.fn(root, scene, {"min_images": 3}, {}, photos)
+        recs[crop] = {"ingest": ing, "poses": poses.fn(root, scene, {}, {"ingest": ing}, posed)}
+    assert recs["maize"]["poses"]["summary"]["frame"]["ground_source"] == "input_frame"
+    assert recs["soybean"]["poses"]["summary"]["frame"]["ground_source"] == "prior"
+    hint = (
+        r"placed 1\.4 m below the cameras \(poses\.prior_camera_height, soybean's usual "
+        r"capture height\).*check the crop \(maize's ~13 m\)"
+    )
+    with pytest.raises(CropCraftError, match=hint):
+        surfaces.fn(root, "plotM/soybean/2024-07-01", {"bbox": "auto"}, recs["soybean"])

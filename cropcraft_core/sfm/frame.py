@@ -74,6 +74,10 @@ class GravityFrame:
     """Angle between the points' up and the cameras' mean up (NaN without points)."""
     camera_height_m: float
     """Median camera height above the estimated ground in the levelled frame."""
+    ground_source: str = ""
+    """Where the ground came from: 'sparse_points', 'prior' (metric poses without points: the
+    prior capture height below the cameras), 'input_frame' (a frame levelled already kept its
+    own), 'cameras_focus' (the point the cameras look at) or 'none'."""
 
     @property
     def metric(self) -> bool:
@@ -88,6 +92,7 @@ class GravityFrame:
             "up_source": self.up_source,
             "up_disagreement_deg": self.up_disagreement_deg,
             "camera_height_m": self.camera_height_m,
+            "ground_source": self.ground_source,
         }
 
     def to_dict(self) -> dict:
@@ -294,15 +299,15 @@ def level_poses(
     f = None if focus is None else r @ focus
     if usable:
         core_r = core @ r.T
-        ground_z = float(np.percentile(core_r[:, 2], ground_percentile))
+        ground_z, ground = float(np.percentile(core_r[:, 2], ground_percentile)), "sparse_points"
         centre_xy = np.median(core_r[:, :2], axis=0) if f is None else f[:2]
     elif metric:  # metres already: the ground a typical capture height below the cameras
-        ground_z = float(np.median((centres @ r.T)[:, 2])) - prior_camera_height_m
+        ground_z, ground = float(np.median((centres @ r.T)[:, 2])) - prior_camera_height_m, "prior"
         centre_xy = (centres @ r.T)[:, :2].mean(axis=0) if f is None else f[:2]
     elif f is not None:
-        ground_z, centre_xy = float(f[2]), f[:2]
+        ground_z, centre_xy, ground = float(f[2]), f[:2], "cameras_focus"
     else:
-        ground_z, centre_xy = None, (centres @ r.T)[:, :2].mean(axis=0)
+        ground_z, centre_xy, ground = None, (centres @ r.T)[:, :2].mean(axis=0), "none"
     heights = (centres @ r.T)[:, 2] - (ground_z if ground_z is not None else 0.0)
     med_h = float(np.median(heights))
     if metric:
@@ -330,7 +335,7 @@ def level_poses(
             t[:2] = 0.0
         h = float(np.median(centres[:, 2]))
         if not usable and 0.5 <= h / prior_camera_height_m <= 2.0:
-            t[2], med_h = 0.0, h
+            t[2], med_h, ground = 0.0, h, "input_frame"
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = scale * r, t
     out_poses = poses.transformed(scale, r, t)
@@ -342,5 +347,6 @@ def level_poses(
         up_source=source,
         up_disagreement_deg=disagree,
         camera_height_m=float(med_h * scale),
+        ground_source=ground,
     )
     return out_poses, out_pts, frame
