@@ -201,6 +201,7 @@ LEFT_OUT_WHY = {
     "unregistered": "were not registered by structure from motion",
     "outside_box": "do not see the scene box",
     "duplicates": "are copies of another photo",
+    "in_subfolders": "are in subfolders, which are not read (move them into the folder)",
 }
 
 

@@ -496,8 +496,16 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
         )
         out[name] = f"{info.get('size')}:{str(tag).strip(chr(34))}"
     if not out:
-        deeper = _photos_below(uri) if what == "images" else None
-        hint = f"; the photos are in {deeper!r} below it: give that folder" if deeper else ""
+        deeper = _photos_below(uri) if what == "images" else []
+        hint = ""
+        if len(deeper) == 1:
+            hint = f"; the photos are in {deeper[0]!r} below it: give that folder"
+        elif deeper:
+            listed = ", ".join(map(repr, deeper[:8])) + (", ..." if len(deeper) > 8 else "")
+            hint = (
+                f"; the photos are in {len(deeper)} folders below it ({listed}): put the "
+                "scene's photos in one folder and give that"
+            )
         raise InputError(
             f"no {what} found at {uri!r}: check the URI (a folder of JPEG/PNG photos, or a "
             f"poses file / COLMAP model folder){hint}"
@@ -505,10 +513,11 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
     return dict(sorted(out.items()))
 
 
-def _photos_below(uri: str, depth: int = 3) -> str | None:
-    """The first subfolder (relative path, up to ``depth`` levels down) of ``uri`` that holds
-    JPEG/PNG photos: a camera's card copied whole keeps them in ``DCIM/100MEDIA``, and only
-    the folder itself is read. None where there is none (or it cannot be listed)."""
+def _photos_below(uri: str, depth: int = 3) -> list[str]:
+    """The subfolders (relative paths, up to ``depth`` levels down) of ``uri`` that hold
+    JPEG/PNG photos: a camera's card copied whole keeps them in ``DCIM/100MEDIA`` (and
+    ``101MEDIA`` after 999 photos), and only the folder itself is read. [] where there is
+    none (or it cannot be listed)."""
     from fsspec.core import url_to_fs
 
     from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
@@ -516,13 +525,17 @@ def _photos_below(uri: str, depth: int = 3) -> str | None:
     try:
         fs, path = url_to_fs(os.fspath(uri))
         root = str(path).rstrip("/")
-        for name in sorted(fs.find(path, maxdepth=depth)):
-            rel = str(name)[len(root) + 1 :]
-            if "/" in rel and rel.lower().endswith(IMAGE_EXTENSIONS):
-                return rel.rsplit("/", 1)[0]
+        found = sorted(fs.find(path, maxdepth=depth))
     except Exception:
-        return None
-    return None
+        return []
+    folders = []
+    for name in found:
+        rel = str(name)[len(root) + 1 :]
+        if "/" in rel and rel.lower().endswith(IMAGE_EXTENSIONS):
+            folder = rel.rsplit("/", 1)[0]
+            if folder not in folders and not folder.startswith("."):
+                folders.append(folder)
+    return folders
 
 
 def named_ply(fs: Any, path: str, text: str | bytes | None = None) -> tuple[str, str] | None:
@@ -607,4 +620,5 @@ def photos_left_out(records: Mapping[str, Any]) -> dict[str, list[str]]:
         "unregistered": records["poses"]["summary"].get("unregistered", []),
         "outside_box": records["surfaces"]["summary"].get("photos_left_out", []),
         "duplicates": records["ingest"]["summary"].get("duplicate_names", []),
+        "in_subfolders": records["ingest"]["summary"].get("in_subfolders", []),
     }

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 from typing import Any
 
-from tasks.common import Timer, artefact, core, make_record, open_store, stage_task, workdir
+from tasks.common import (
+    Timer,
+    artefact,
+    core,
+    make_record,
+    open_store,
+    stage_log,
+    stage_task,
+    workdir,
+)
 
 
 @stage_task("ingest")
@@ -27,6 +36,11 @@ def ingest(
             min_images=int(config.get("min_images", 3)),
         )
         hashes = store.put_tree(tmp / "images", artefact(scene, "ingest", "images"))
+        if manifest.in_subfolders:
+            stage_log().warning(
+                "ingest: %d photo(s) in subfolders of %s are not read: %s",
+                len(manifest.in_subfolders), images, ", ".join(manifest.in_subfolders[:8]),
+            )  # fmt: skip
     manifest_key = artefact(scene, "ingest", "images/manifest.json")
     # later stages key on the images and the manifest's content, not on where the photos were
     # read from: the same photos re-read (new mtimes, a copied inbox) leave SfM and on cached
@@ -42,6 +56,8 @@ def ingest(
             # each dropped copy, as "copy (= the photo kept)", for the run's summary
             **({"duplicate_names": copies} if (copies := _copies(manifest)) else {}),
             "ignored": len(manifest.ignored),
+            # photos in subfolders, which ingest does not read: named, not lost quietly
+            **({"in_subfolders": manifest.in_subfolders} if manifest.in_subfolders else {}),
             "n_focal_exif": sum(im.focal_px is not None for im in manifest.images),
             "size_px": [manifest.images[0].width, manifest.images[0].height],
         },

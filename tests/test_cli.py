@@ -626,6 +626,7 @@ def test_run_summary_names_the_photos_sfm_left_out_and_the_copies(capsys):
             "photos_left_out": {
                 "unregistered": [f"view_{i:03d}.png" for i in range(18, 32)],
                 "duplicates": ["view_002.jpg (= IMG_2000.jpg)"],
+                "in_subfolders": ["101MEDIA/DJI_1000.JPG"],
             }
         }
     )
@@ -636,6 +637,10 @@ def test_run_summary_names_the_photos_sfm_left_out_and_the_copies(capsys):
     ) and said[0].endswith("(+6 more)")
     assert said[1] == (
         "WARNING  1 photo(s) are copies of another photo, left out: view_002.jpg (= IMG_2000.jpg)"
+    )
+    assert said[2] == (  # a second card folder beside the photos (session 91's ingest audit)
+        "WARNING  1 photo(s) are in subfolders, which are not read (move them into the folder), "
+        "left out: 101MEDIA/DJI_1000.JPG"
     )
 
 

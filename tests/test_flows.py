@@ -1240,6 +1240,9 @@ def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
     shutil.copytree(scene_dir / "images", card / "DCIM" / "100MEDIA")
     with pytest.raises(InputError, match="the photos are in 'DCIM/100MEDIA' below it"):
         prepare("plotA", CROP, DATE, str(card), None, None, store)
+    shutil.copytree(scene_dir / "images", card / "DCIM" / "101MEDIA")  # past 999 photos
+    with pytest.raises(InputError, match=r"in 2 folders below it \('DCIM/100MEDIA', 'DCIM/101"):
+        prepare("plotA", CROP, DATE, str(card), None, None, store)
     # a photo instead of their folder, and fewer photos than ingest takes: named here, not
     # after Prefect has started and the scene's lease and manifest are written
     one = sorted((scene_dir / "images").glob("*.jpg"))[0]

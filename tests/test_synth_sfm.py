@@ -345,6 +345,15 @@ def test_ingest_dedup_manifest_and_exif(tmp_path):
     exif[0x0112] = 6
     img.save(src / "rot.jpg", exif=exif.tobytes(), quality=95)
     man = ingest_images(str(src), tmp_path / "out", max_size=32)
+    assert "in_subfolders" not in man.to_dict()  # a flat folder's manifest: bytes as before
+    (src / "more" / "deeper").mkdir(parents=True)  # a second card folder: not read, named
+    (src / ".thumbs").mkdir()
+    _png((10, 200, 30)).save(src / "more" / "m1.jpg")
+    _png((10, 200, 90)).save(src / "more" / "deeper" / "m2.png")
+    _png((10, 200, 90)).save(src / ".thumbs" / "t.png")
+    man = ingest_images(str(src), tmp_path / "out", max_size=32)
+    assert man.in_subfolders == ["more/deeper/m2.png", "more/m1.jpg"]
+    assert IngestManifest.read(tmp_path / "out").in_subfolders == man.in_subfolders
     names = man.names
     assert "p0_copy.png" not in names and names.count("p0.png") == 1
     assert man.duplicates == [{"source": "p0_copy.png", "duplicate_of": "p0.png"}]

@@ -84,6 +84,8 @@ class IngestManifest:
     images: list[IngestedImage]
     duplicates: list[dict[str, str]] = field(default_factory=list)
     ignored: list[str] = field(default_factory=list)
+    in_subfolders: list[str] = field(default_factory=list)
+    """Photos in the source's subfolders, which are not read (paths relative to it)."""
     duplicate_key: str = "sha256 of the decoded RGB pixels (after EXIF orientation) and their size"
 
     @property
@@ -96,6 +98,8 @@ class IngestManifest:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["n_images"] = len(self.images)
+        if not d["in_subfolders"]:  # a folder without subfolders: the bytes as before
+            del d["in_subfolders"]
         return d
 
     def identity(self) -> str:
@@ -129,8 +133,9 @@ class IngestManifest:
             raise InputError(f"cannot read the ingest manifest {p}: {e}") from None
 
 
-def _list_source(source: str) -> tuple[object, list[str], str]:
-    """(filesystem, sorted file paths directly in the source folder, root path)."""
+def _list_source(source: str) -> tuple[object, list[str], str, list[str]]:
+    """(filesystem, sorted file paths directly in the source folder, root path, sorted paths
+    of its subfolders)."""
     import fsspec
 
     try:
@@ -149,7 +154,29 @@ def _list_source(source: str) -> tuple[object, list[str], str]:
     except (OSError, PermissionError) as e:
         raise InputError(f"cannot list image source {source!r}: {e}") from None
     files = sorted(e["name"] for e in entries if is_listed_file(fs, e))
-    return fs, files, root
+    folders = sorted(e["name"] for e in entries if e.get("type") == "directory")
+    return fs, files, root, folders
+
+
+def photos_in_subfolders(fs, root: str, folders: list[str], depth: int = 3) -> list[str]:
+    """The JPEG/PNG photos (paths relative to ``root``) in the subfolders of a photo folder,
+    up to ``depth`` levels down, hidden ones aside: ingest reads the folder itself only (a
+    nerfstudio folder's ``images_2/`` holds the same photos at half size), so these are left
+    out, and named. [] where they cannot be listed."""
+    base = str(root).rstrip("/")
+    out = []
+    for folder in folders:
+        try:
+            found = fs.find(folder, maxdepth=depth)
+        except Exception:  # unlisted: the photos read are not in doubt
+            continue
+        for name in found:
+            rel = str(name)[len(base) + 1 :]
+            if rel.lower().endswith(IMAGE_EXTENSIONS) and not any(
+                part.startswith(".") for part in rel.split("/")
+            ):
+                out.append(rel)
+    return sorted(out)
 
 
 def is_listed_file(fs, info: dict) -> bool:
@@ -302,7 +329,7 @@ def ingest_images(
     if max_size is not None and int(max_size) < 16:
         raise InputError(f"max_size must be at least 16 pixels, got {max_size}")
     source = os.fspath(source)
-    fs, files, _ = _list_source(source)
+    fs, files, root, folders = _list_source(source)
     dest = Path(dest_dir)
     try:
         dest.mkdir(parents=True, exist_ok=True)
@@ -403,6 +430,7 @@ def ingest_images(
         images=images,
         duplicates=duplicates,
         ignored=ignored,
+        in_subfolders=photos_in_subfolders(fs, root, folders),
     )
     tmp = dest / f".{MANIFEST_NAME}.tmp"
     try:
