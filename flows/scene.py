@@ -1169,8 +1169,9 @@ class _PrefectRun:
 #: The rule by which ``poses.imported_metric="auto"`` reads imported poses, keyed with them so
 #: that a scene whose poses were read by an earlier rule is read again (SfM scenes and poses
 #: read by an explicit true/false keep their keys). 2: a ``transforms.json`` that
-#: ns-process-data made from an SfM project (``applied_transform``) is not metric.
-AUTO_METRIC_RULE = {"auto_metric_rule": "2"}
+#: ns-process-data made from an SfM project (``applied_transform``) is not metric. 3: nor is
+#: one from instant-ngp's ``colmap2nerf.py`` (a ``sharpness`` on its frames).
+AUTO_METRIC_RULE = {"auto_metric_rule": "3"}
 
 #: Likewise for imported poses read as metric by ``poses.imported_metric=true``: 2, a walk along
 #: one side of the plot is levelled on the axis its photos' rows are level with (the cameras'

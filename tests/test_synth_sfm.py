@@ -300,6 +300,14 @@ def test_imported_poses_say_whether_sfm_made_them(tmp_path):
         f["colmap_im_id"] = i + 1
     (tmp_path / "old_sfm.json").write_text(json.dumps(doc))
     assert import_poses(tmp_path / "old_sfm.json").from_sfm
+    # instant-ngp's colmap2nerf.py: "NeRF sized" poses, a sharpness on every frame (read as
+    # metres, a walk's cameras stood 2x too high: session 91's ingest audit)
+    doc = json.loads((tmp_path / "ar.json").read_text())
+    doc["aabb_scale"] = 32
+    for f in doc["frames"]:
+        f["sharpness"] = 812.5
+    (tmp_path / "ngp.json").write_text(json.dumps(doc))
+    assert import_poses(tmp_path / "ngp.json").from_sfm
     # ns-process-data's sparse points beside it, in the poses' frame
     lines = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in pts]
     head = ["ply", "format ascii 1.0", f"element vertex {len(pts)}"]

@@ -477,10 +477,14 @@ def transforms_from_sfm(doc: dict) -> bool:
     """Whether a ``transforms.json`` holds SfM poses (any scale and orientation) rather than a
     phone's metric AR tracking: ``ns-process-data`` writes ``applied_transform`` for COLMAP and
     Metashape projects, and releases before it wrote that field still gave every COLMAP frame
-    its ``colmap_im_id`` (which Polycam's and Record3D's frames never carry)."""
+    its ``colmap_im_id`` (which Polycam's and Record3D's frames never carry); instant-ngp's
+    ``colmap2nerf.py`` gives every frame its ``sharpness`` (and scales the poses to "NeRF
+    size", 4 / the cameras' mean distance from the point they look at: read as metres, a
+    walk's cameras stood 2x too high)."""
     if "applied_transform" in doc:
         return True
-    return any(isinstance(f, dict) and "colmap_im_id" in f for f in doc.get("frames") or ())
+    marks = ("colmap_im_id", "sharpness")
+    return any(isinstance(f, dict) and any(m in f for m in marks) for f in doc.get("frames") or ())
 
 
 def transforms_ply(doc: dict) -> str | None:
