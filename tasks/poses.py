@@ -36,6 +36,14 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
     )
     by_source = {im["source"]: im["name"] for im in manifest["images"]}
     by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
+    posed = {by_source.get(n) or by_stem.get(PurePosixPath(n).stem) for n in poses.names}
+    for d in manifest.get("duplicates") or ():
+        # a dropped copy's pose is the pose of the photo kept in its place, where that has
+        # none of its own (Finder's "view_003 copy.jpg" sorts first and is kept)
+        kept = by_source.get(d["duplicate_of"])
+        if kept is not None and kept not in posed:
+            by_source.setdefault(d["source"], kept)
+            by_stem.setdefault(PurePosixPath(d["source"]).stem, kept)
     ingested = {im["name"]: im for im in manifest["images"]}
     views, missing, dist = [], [], {}
     for name, cam in poses:
@@ -82,7 +90,7 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
             f"the imported poses name {len(poses)} images but only {len(views)} of them were "
             f"ingested (e.g. missing: {', '.join(missing[:5])}); give the poses of these photos"
         )
-    return Poses(tuple(views), dist)
+    return Poses(tuple(views), dist), missing
 
 
 def _fetch(uri: str, dest: Path) -> Path:
@@ -173,7 +181,7 @@ def poses(
     with Timer() as t, workdir("poses") as tmp:
         if poses_uri:
             imported = import_poses(_fetch(poses_uri, tmp))
-            result = _rename_to_ingested(imported.poses, manifest, poses_uri)
+            result, photoless = _rename_to_ingested(imported.poses, manifest, poses_uri)
             metric = config.get("imported_metric", "auto")
             if metric == "auto":
                 metric = not imported.from_sfm
@@ -189,6 +197,13 @@ def poses(
                 "n_registered": len(result),
                 "n_images": len(manifest["images"]),
             }
+            if photoless:  # a capture's frames whose photos are not here: said, not dropped
+                stage_log().warning(
+                    "poses: %d of the %d poses in %s have no photo among the %d ingested: %s",
+                    len(photoless), len(imported.poses), poses_uri, len(manifest["images"]),
+                    ", ".join(photoless[:8]) + (", ..." if len(photoless) > 8 else ""),
+                )  # fmt: skip
+                summary["photoless_poses"] = len(photoless)
             unposed = sorted({im["name"] for im in manifest["images"]} - set(result.names))
             if unposed:  # a photo added since the capture was posed: said, not dropped quietly
                 if len(result) < MIN_REGISTERED_FRACTION * len(manifest["images"]):

@@ -259,16 +259,25 @@ def test_imported_poses_follow_the_photos_as_ingested():
          "source_width": 320, "source_height": 240}
         for i in range(3)
     ]  # fmt: skip
-    out = _rename_to_ingested(poses, {"images": images}, "poses.json")
+    out, photoless = _rename_to_ingested(poses, {"images": images}, "poses.json")
     c = out.camera("IMG_1.png")
     assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (160, 120, 130.0, 125.0, 80.25, 59.75)
+    assert photoless == []
+    # a Finder copy ("IMG_1 copy.JPG") sorted first and was kept, the posed original dropped
+    # as its duplicate: the original's pose is the copy's (session 91's ingest audit)
+    copied = [*images[:1], {**images[1], "name": "IMG_1 copy.png", "source": "IMG_1 copy.JPG"}]
+    copied += images[2:]
+    dup = {"source": "IMG_1.JPG", "duplicate_of": "IMG_1 copy.JPG"}
+    ghost = Poses((*poses.views, ("IMG_9.JPG", cam)))  # a frame whose photo is not here
+    out, photoless = _rename_to_ingested(ghost, {"images": copied, "duplicates": [dup]}, "t")
+    assert out.names == ["IMG_0.png", "IMG_1 copy.png", "IMG_2.png"] and photoless == ["IMG_9.JPG"]
     images[2].update(width=120, height=160, source_width=240, source_height=320)
     with pytest.raises(InputError, match=r"poses.json gives IMG_2.JPG as 320x240 pixels, but"):
         _rename_to_ingested(poses, {"images": images}, "poses.json")
     # ... unless the photo is stored sideways with its EXIF tag saying so (a phone held
     # upright): COLMAP posed the stored pixels, so the camera turns as ingest turned them
     images[2]["exif_orientation"] = 6
-    c = _rename_to_ingested(poses, {"images": images}, "poses.json").camera("IMG_2.png")
+    c = _rename_to_ingested(poses, {"images": images}, "poses.json")[0].camera("IMG_2.png")
     assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (120, 160, 125.0, 130.0, 60.25, 80.25)
     np.testing.assert_allclose(c.cam_to_world[:3, 0], [0, -1, 0], atol=1e-12)  # x' = -y
     images[2]["exif_orientation"] = 2  # a mirror image: no camera sees that
@@ -913,6 +922,21 @@ def test_photos_without_an_imported_pose_are_named_and_too_few_poses_refused(
         log.removeHandler(caplog.handler)
     assert rec["summary"]["unposed"] == ["late.png"] and rec["summary"]["n_registered"] == 4
     assert "1 of 5 photos have no pose" in caplog.text and "late.png" in caplog.text
+    assert "photoless_poses" not in rec["summary"]
+    # the other way round: a pose whose photo is not here (a folder of the capture's best)
+    culled = tmp_path / "culled"
+    shutil.copytree(out / "images", culled)
+    next(iter(sorted(culled.iterdir()))).unlink()
+    ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(culled))
+    log.addHandler(caplog.handler)
+    try:
+        rec = poses.fn(root, scene, {}, {"ingest": ing}, str(out / "transforms.json"))
+    finally:
+        log.removeHandler(caplog.handler)
+    assert rec["summary"]["photoless_poses"] == 1 and rec["summary"]["n_registered"] == 3
+    assert "1 of the 4 poses in" in caplog.text
+    assert "have no photo among the 3 ingested: view_000" in caplog.text
+    ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(photos))
     for i in range(4):
         _png((10 * i, 90, 30), size=(64, 48)).save(photos / f"later{i}.png")
     ing = ingest.fn(root, scene, {"min_images": 3}, {}, str(photos))
