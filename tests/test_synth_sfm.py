@@ -361,6 +361,12 @@ def test_ingest_dedup_manifest_and_exif(tmp_path):
     exif = Image.Exif()
     exif[0x0112] = 6
     img.save(src / "rot.jpg", exif=exif.tobytes(), quality=95)
+    exif[0x0112] = 9  # outside EXIF's 1-8 (some software writes it): read as stored
+    _png((60, 120, 200)).save(src / "nine.jpg", exif=exif.tobytes(), quality=95)
+    man = ingest_images(str(src), tmp_path / "out", max_size=32)
+    nine = next(im for im in man.images if im.source == "nine.jpg")
+    assert nine.exif_orientation == 1 and (nine.source_width, nine.source_height) == (40, 30)
+    (src / "nine.jpg").unlink()
     man = ingest_images(str(src), tmp_path / "out", max_size=32)
     assert "in_subfolders" not in man.to_dict()  # a flat folder's manifest: bytes as before
     (src / "more" / "deeper").mkdir(parents=True)  # a second card folder: not read, named

@@ -213,10 +213,12 @@ def _orientation(img: Image.Image, label: str) -> int:
     """The EXIF orientation tag of a decoded image (1 if none). Only that tag is read, so a
     photo whose other EXIF tags are malformed still ingests (the pixels carry no EXIF on);
     EXIF that cannot be parsed at all leaves the orientation unknown: an InputError naming
-    the file, since guessing would store the photo sideways."""
+    the file, since guessing would store the photo sideways. A value outside EXIF's 1-8
+    (some software writes 0 or 9) says nothing: the photo is read as stored, as viewers
+    show it."""
     try:
-        value = img.getexif().get(0x0112, 1)
-        return int(value or 1)
+        value = int(img.getexif().get(0x0112, 1) or 1)
+        return value if 1 <= value <= 8 else 1
     except Exception as e:  # PIL raises struct.error, TypeError, KeyError... on bad EXIF
         raise InputError(
             f"image {label}: its EXIF metadata cannot be parsed ({type(e).__name__}: {e}), so "
