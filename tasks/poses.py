@@ -65,7 +65,9 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
         stored = upright[::-1] if orientation in (6, 8) else upright  # a quarter turn
         if orientation != 1 and (cam.width, cam.height) == stored:
             cam, lens_of = turn_upright(cam, lens_of, orientation)
-        if (cam.width, cam.height) == (im["source_width"], im["source_height"]) != size:
+        if (cam.width, cam.height) != size and _same_view(cam, upright):
+            # posed at the photo's size, or at a uniform downscale of it (nerfstudio's
+            # images_2 / images_4 copies): the intrinsics follow the photo as ingested
             sx, sy = im["width"] / cam.width, im["height"] / cam.height
             cam = dataclasses.replace(
                 cam,
@@ -91,6 +93,16 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
             f"ingested (e.g. missing: {', '.join(missing[:5])}); give the poses of these photos"
         )
     return Poses(tuple(views), dist), missing
+
+
+def _same_view(cam, upright: tuple[int, int]) -> bool:
+    """Whether a camera of ``cam.width`` x ``cam.height`` pixels poses the whole photo of size
+    ``upright``: that size, or that size scaled uniformly (nerfstudio's ``images_2``: the
+    height within a pixel of the width's scale)."""
+    w, h = upright
+    if (cam.width, cam.height) == (w, h):
+        return True
+    return cam.width != w and abs(h * cam.width / w - cam.height) <= 1.0
 
 
 def _fetch(uri: str, dest: Path) -> Path:

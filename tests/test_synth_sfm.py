@@ -196,6 +196,11 @@ def test_colmap_and_transforms_round_trips(tmp_path):
     m = np.array(doc["frames"][0]["transform_matrix"])
     np.testing.assert_allclose(-m[:3, 2], poses.cameras[0].cam_to_world[:3, 2], atol=1e-12)
     np.testing.assert_allclose(m[:3, 1], -poses.cameras[0].cam_to_world[:3, 1], atol=1e-12)
+    # a transforms.json written on Windows: "images\\view.png" names view.png
+    for f in doc["frames"]:
+        f["file_path"] = f["file_path"].replace("/", "\\")
+    (tmp_path / "windows.json").write_text(json.dumps(doc))
+    assert import_transforms_json(tmp_path / "windows.json").names == sorted(poses.names)
 
 
 def test_scene_formats_agree(scene):
@@ -263,6 +268,16 @@ def test_imported_poses_follow_the_photos_as_ingested():
     c = out.camera("IMG_1.png")
     assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (160, 120, 130.0, 125.0, 80.25, 59.75)
     assert photoless == []
+    # posed at a quarter of the photos' size (nerfstudio's images_4): scaled as ingested
+    quarter = PinholeCamera(80, 60, 65.0, 62.5, 40.125, 29.875, np.eye(4))
+    small = Poses(tuple((f"IMG_{i}.JPG", quarter) for i in range(3)))
+    c = _rename_to_ingested(small, {"images": images}, "poses.json")[0].camera("IMG_1.png")
+    assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (160, 120, 130.0, 125.0, 80.25, 59.75)
+    cropped = Poses(
+        tuple((f"IMG_{i}.JPG", dataclasses.replace(quarter, height=70)) for i in range(3))
+    )
+    with pytest.raises(InputError, match=r"as 80x70 pixels, but the photo IMG_0.JPG is 320x240"):
+        _rename_to_ingested(cropped, {"images": images}, "poses.json")
     # a Finder copy ("IMG_1 copy.JPG") sorted first and was kept, the posed original dropped
     # as its duplicate: the original's pose is the copy's (session 91's ingest audit)
     copied = [*images[:1], {**images[1], "name": "IMG_1 copy.png", "source": "IMG_1 copy.JPG"}]
@@ -326,6 +341,10 @@ def test_imported_poses_say_whether_sfm_made_them(tmp_path):
         poses, tmp_path / "sfm.json", extra={**applied, "ply_file_path": "sparse_pc.ply"}
     )
     np.testing.assert_allclose(import_poses(tmp_path / "sfm.json").points, pts, atol=1e-5)
+    absolute = {**applied, "ply_file_path": str(tmp_path / "sparse_pc.ply")}  # as nerfstudio
+    export_transforms_json(poses, tmp_path / "elsewhere" / "abs.json", extra=absolute)
+    far = import_poses(tmp_path / "elsewhere" / "abs.json")
+    np.testing.assert_allclose(far.points, pts, atol=1e-5)
     # ns-process-data's output folder given as it is: its transforms.json is read
     out = tmp_path / "processed"
     out.mkdir()

@@ -464,6 +464,9 @@ def import_poses(path: str | os.PathLike) -> ImportedPoses:
     doc = _transforms_doc(p)
     points = None
     rel = transforms_ply(doc)
+    given = doc.get("ply_file_path") if isinstance(doc, dict) else None
+    if rel is None and isinstance(given, str) and Path(given).is_absolute():
+        rel = given  # an absolute path, as nerfstudio reads it, where it is on this host
     if rel is not None and (p.parent / rel).is_file():
         from cropcraft_core.export.meshio import PointCloud, read_geometry
 
@@ -589,7 +592,7 @@ def _transforms_poses(doc: dict, p: Path) -> Poses:
             fy = float(g.get("fl_y", fx))
             cx, cy = float(g.get("cx", w / 2)), float(g.get("cy", h / 2))
             m = np.asarray(f["transform_matrix"], dtype=np.float64)
-            name = Path(str(f["file_path"])).name
+            name = PurePosixPath(str(f["file_path"]).replace("\\", "/")).name  # Windows too
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"{where} is missing or has a malformed {e}") from None
         if not all(math.isfinite(x) for x in (fx, fy, cx, cy)):
