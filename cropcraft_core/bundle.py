@@ -66,11 +66,17 @@ def output_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
 def gap_fraction_canopy(canopy: Canopy) -> Canopy:
     """The same plants with a border wide enough for gap-fraction rays at 68° zenith to stay
     inside the canopy (height · tan 68°, plus a row spacing because rows are discrete), capped at
-    8 m."""
+    8 m. A plot whose wider border would pass ``MAX_PLANTS`` (a 39 m soybean plot) keeps its
+    own: only the sensors near its edge see past it, and the reading's
+    ``lai_gap_fraction_border_ok`` says so."""
+    from cropcraft_core.procedural.canopy import MAX_PLANTS, plants_in_region
+
     height = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.0
     border = min(8.0, height * math.tan(math.radians(68.0)) + 0.2 + canopy.layout.row_spacing)
     region = plot_region(canopy.layout, border)
     if all(abs(a) >= abs(b) for a, b in zip(canopy.info["region"], region, strict=True)):
+        return canopy
+    if plants_in_region(canopy.layout, region) > MAX_PLANTS:
         return canopy
     return generate_canopy(canopy.crop, canopy.params, canopy.layout, canopy.seed, region=region)
 

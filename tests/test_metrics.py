@@ -363,6 +363,27 @@ def test_a_canopy_reads_the_same_from_generate_and_from_the_scene_flow():
     }
 
 
+def test_a_plot_whose_gap_fraction_border_would_pass_the_plant_limit_is_still_measured(
+    monkeypatch,
+):
+    """A 39 m soybean plot built (45,368 plants) and was then refused whole: the gap-fraction
+    border it would need took it past MAX_PLANTS, and the error blamed the user's units
+    (session 91's export audit). Its own border serves, and the reading says it is short.
+    The limit is lowered here to this small canopy's plant count to stay cheap."""
+    import cropcraft_core.procedural.canopy as canopy_module
+    from cropcraft_core.bundle import gap_fraction_canopy, measure_canopy
+    from cropcraft_core.metrics.gap_fraction import BorderWarning
+    from cropcraft_core.procedural import generate_canopy
+
+    layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
+    canopy = generate_canopy("soybean", {"num_nodes": 5.0}, layout, seed=3)
+    monkeypatch.setattr(canopy_module, "MAX_PLANTS", len(canopy.plant_in_plot))
+    assert gap_fraction_canopy(canopy) is canopy
+    with pytest.warns(BorderWarning):
+        m = measure_canopy(canopy)
+    assert m["lai_gap_fraction"] > 0 and m["lai_gap_fraction_border_ok"] is False
+
+
 # ------------------------------------------------------------------------------------------------
 # gap fraction
 
@@ -448,7 +469,15 @@ def test_gap_fraction_lai_matches_true_lai_on_random_leaf_canopy():
     # this realisation is a little thin over the plot (1.93 there, 1.97 over the central 2 m × 2 m);
     # the instrument reads that local canopy: 1.93 with these seeds
     assert m["lai_gap_fraction"] == pytest.approx(m["lai"], rel=0.03)
-    assert m["lai_gap_fraction_border_ok"] is True
+    assert m["lai_gap_fraction_border_ok"] is True and m["lai_gap_fraction_rings_closed"] == 0
+    # a closed canopy (a roof over the sensors): no ray escapes, every ring at the clip floor,
+    # and the reading says so (session 91's export audit: LAI 10.2 read as a plain number)
+    roof = np.array([[-20.0, -20, 0.5], [20, -20, 0.5], [20, 20, 0.5], [-20, 20, 0.5]])
+    shut = gap_fraction_lai(
+        roof, np.array([[0, 1, 2], [0, 2, 3]]), SensorRegion(-0.5, -0.5, 0.5, 0.5),
+        np.random.default_rng(0),
+    )  # fmt: skip
+    assert shut.rings_closed == 5
     # T_i follows exp(−0.5 LAI / cos θ_i) ring by ring
     expected_t = np.exp(-0.5 * true_lai / np.cos(np.radians(RING_ZENITH_DEG)))
     np.testing.assert_allclose(m["lai_gap_fraction_rings_T"], expected_t, rtol=0.15)

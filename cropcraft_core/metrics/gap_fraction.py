@@ -114,7 +114,8 @@ class GapFractionResult:
     n_rays_per_ring (rays per ring over all sensors). canopy_height: highest face above the
     sensors (m). border_needed = canopy_height · tan 68°; border_available: the smallest distance,
     over the four sides, from the sensor region to the edge of the mesh's bounding box in the
-    region frame (m); border_ok = available ≥ needed.
+    region frame (m); border_ok = available ≥ needed. rings_closed: the rings through which
+    no ray escaped (T at its clip floor: the LAI is then that floor's, not a reading).
     """
 
     lai: float
@@ -127,6 +128,7 @@ class GapFractionResult:
     border_needed: float
     border_available: float
     border_ok: bool
+    rings_closed: int = 0
 
 
 def sensor_points(
@@ -268,6 +270,7 @@ def gap_fraction_lai(
         border_needed=needed,
         border_available=available,
         border_ok=bool(ok),
+        rings_closed=int((~gap.any(axis=(0, 2))).sum()),
     )
 
 

@@ -372,9 +372,9 @@ def canopy_traits(
         )
         lai_gf: float | None = gf.lai
         rings = [float(t) for t in gf.transmittance]
-        border = gf.border_ok
+        border, closed = gf.border_ok, gf.rings_closed
     else:
-        lai_gf, rings, border = None, None, None
+        lai_gf, rings, border, closed = None, None, None, None
     traits += [
         Trait(
             "lai_gap_fraction",
@@ -397,6 +397,14 @@ def canopy_traits(
             "",
             "true when the canopy reaches height x tan(68 deg) beyond the sensor region on every "
             "side, so the outer ring's rays cross canopy, not empty ground",
+        ),
+        Trait(
+            "lai_gap_fraction_rings_closed",
+            closed,
+            "1",
+            "rings (of 5) through which no ray escaped: their T is the clip floor, so where "
+            "any is closed lai_gap_fraction is the floor's value, not a reading (an instrument "
+            "under such a canopy reads no more)",
         ),
     ]
     return traits
@@ -439,9 +447,10 @@ def canopy_metrics(
     leaf_angle_mean_deg, leaf_angle_std_deg, leaf_angle_hist (18 area fractions),
     leaf_angle_hist_edges_deg (19 edges), leaf_angle_beta_nu, leaf_angle_beta_mu,
     leaf_angle_class, node_count, internode_mean_m, plant_height_m, leaf_count,
-    lai_gap_fraction, lai_gap_fraction_rings_T, lai_gap_fraction_border_ok, and
-    ``definitions = {name: {"unit": ..., "method": ...}}``. Undefined values are ``None``
-    (never NaN, so the dict is valid JSON). Arguments as in ``canopy_traits``.
+    lai_gap_fraction, lai_gap_fraction_rings_T, lai_gap_fraction_border_ok,
+    lai_gap_fraction_rings_closed, and ``definitions = {name: {"unit": ..., "method":
+    ...}}``. Undefined values are ``None`` (never NaN, so the dict is valid JSON).
+    Arguments as in ``canopy_traits``.
     """
     return traits_to_dict(
         canopy_traits(

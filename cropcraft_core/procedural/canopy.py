@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from types import ModuleType
 
 import numpy as np
@@ -84,6 +84,15 @@ def _plot_slots(layout: CanopyLayout) -> tuple[range, range]:
     return range(-kmax, kmax + 1), range(j0, j1)
 
 
+def plants_in_region(layout: CanopyLayout, region: Sequence[float]) -> int:
+    """How many plants ``layout`` plants in ``region`` (xmin, xmax, ymin, ymax; m)."""
+    xmin, xmax, ymin, ymax = (float(v) for v in region)
+    s, d = layout.row_spacing, layout.in_row_spacing
+    n_rows = math.floor(ymax / s + 1e-9) - math.ceil(ymin / s - 1e-9) + 1
+    n_row = math.floor(xmax / d - 0.5 + 1e-9) - math.ceil(xmin / d - 0.5 - 1e-9) + 1
+    return max(n_rows, 0) * max(n_row, 0)
+
+
 def generate_canopy(
     crop: str,
     params: Mapping[str, float] | None = None,
@@ -121,11 +130,10 @@ def generate_canopy(
     if not (xmin < xmax and ymin < ymax):
         raise ConfigError(f"empty region {region}")
     s, d = layout.row_spacing, layout.in_row_spacing
-    n_rows = math.floor(ymax / s + 1e-9) - math.ceil(ymin / s - 1e-9) + 1
-    n_row = math.floor(xmax / d - 0.5 + 1e-9) - math.ceil(xmin / d - 0.5 - 1e-9) + 1
-    if max(n_rows, 0) * max(n_row, 0) > MAX_PLANTS:  # before any array: a bare MemoryError
+    n_plants = plants_in_region(layout, (xmin, xmax, ymin, ymax))
+    if n_plants > MAX_PLANTS:  # before any array: a bare MemoryError
         raise ConfigError(
-            f"the canopy would hold {n_rows * n_row:,} plants ({xmax - xmin:g} × "
+            f"the canopy would hold {n_plants:,} plants ({xmax - xmin:g} × "
             f"{ymax - ymin:g} m with its border, {layout.density:g} plants/m²), over "
             f"{MAX_PLANTS:,}: a plot is metres across and the density per m² (not cm, not per "
             "hectare)"
