@@ -124,7 +124,8 @@ def write_bundle_files(
     half = 0.5 * max(lay.plot_length, lay.plot_width)
     top = float(canopy.mesh.vertices[:, 2].max()) if canopy.mesh.n_faces else 0.5
     cam = oblique_camera((-half, half, -half, half), height=top)
-    save_png(folder / "preview.png", shade_rgb(canopy.mesh, cam))
+    # the files' plants only: the planted border drew a field 3x the files' plot
+    save_png(folder / "preview.png", shade_rgb(plot, cam))
     seconds["preview_s"] = time.perf_counter() - t
     if timings is not None:
         metrics = {**metrics, "timings": {**timings, **seconds}}

@@ -498,3 +498,23 @@ def test_empty_mesh_round_trips(tmp_path: Path) -> None:
     assert back.n_faces == 0 and back.vertices.shape == (0, 3)
     gltf = _glb_json(write_glb(tmp_path / "empty.glb", CanopyMesh.empty()))
     assert "meshes" not in gltf
+
+
+def test_the_bundles_preview_draws_the_plants_its_files_hold(tmp_path: Path) -> None:
+    """``preview.png`` drew the planted border too (420 plants beside the files' 126), a
+    field 3x the plot that the files hold (session 91's export audit)."""
+    from PIL import Image
+
+    from cropcraft_core.bundle import write_bundle_files
+    from cropcraft_core.config import CanopyLayout
+    from cropcraft_core.procedural import generate_canopy
+    from cropcraft_core.render.preview import oblique_camera, shade_rgb
+
+    layout = CanopyLayout(plot_width=1.0, plot_length=1.0)
+    canopy = generate_canopy("soybean", {"num_nodes": 4.0}, layout, seed=2)
+    write_bundle_files(canopy, tmp_path, {"lai": 1.0})
+    top = float(canopy.mesh.vertices[:, 2].max())
+    cam = oblique_camera((-0.5, 0.5, -0.5, 0.5), height=top)
+    with Image.open(tmp_path / "preview.png") as im:
+        drawn = np.asarray(im.convert("RGB"))
+    np.testing.assert_array_equal(drawn, shade_rgb(canopy.plot_mesh(), cam))
