@@ -519,6 +519,8 @@ def cmd_season(args: argparse.Namespace) -> int:
     from flows.season import run_season
 
     site, _, crop = args.site_crop.strip("/").partition("/")
+    if not site or not crop or "/" in crop:
+        raise ConfigError(f"season expects SITE/CROP (e.g. plotA/soybean), got {args.site_crop!r}")
     _before_flow_run()
     with run_progress(not args.no_progress):
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)

@@ -1047,3 +1047,13 @@ def test_run_of_a_busy_scene_or_a_corrupt_photo_ends_in_its_one_line_error(tmp_p
     assert "Traceback" not in corrupt.stderr, corrupt.stderr
     assert any("Task run 'ingest" in line and "p2.jpg cannot be decoded" in line for line in lines)
     assert any(line.startswith("cropcraft: error: image p2.jpg cannot be") for line in lines)
+
+
+def test_season_without_its_crop_asks_for_site_and_crop(tmp_path, capsys):
+    """``cropcraft season plotA`` answered "unknown crop ''" (session 91's season audit)."""
+    from flows.cli import main
+
+    for bad in ("plotA", "plotA/", "plotA/soybean/2024-07-01"):
+        assert main(["season", bad, "--store", str(tmp_path / "s")]) == 2
+        err = capsys.readouterr().err
+        assert f"season expects SITE/CROP (e.g. plotA/soybean), got '{bad}'" in err
