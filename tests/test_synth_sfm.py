@@ -567,6 +567,18 @@ def test_ingest_names_corrupt_and_truncated(tmp_path):
     with pytest.raises(InputError, match=r"x\.jpg is HEIC whatever its name says"):
         ingest_images(str(src), tmp_path / "o4b")
     (src / "x.jpg").unlink()
+    # three bad photos named in one message, not one a night (session 91's season audit)
+    (src / "a_empty.jpg").write_bytes(b"")
+    (src / "b_cut.png").write_bytes(buf.getvalue()[:-30])
+    (src / "c_noise.jpg").write_bytes(bytes(range(256)))
+    with pytest.raises(
+        InputError,
+        match=r"3 of the 6 photos in .* cannot be read: image "
+        r"a_empty\.jpg is empty .*; image b_cut\.png .*; image c_noise\.jpg",
+    ):
+        ingest_images(str(src), tmp_path / "o4c")
+    for name in ("a_empty.jpg", "b_cut.png", "c_noise.jpg"):
+        (src / name).unlink()
     assert len(ingest_images(f"file://{src}", tmp_path / "o5")) == 3
     with pytest.raises(InputError, match="at least 4"):
         ingest_images(str(src), tmp_path / "o6", min_images=4)

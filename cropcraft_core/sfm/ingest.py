@@ -366,6 +366,7 @@ def ingest_images(
     used_names: set[str] = set()
     images: list[IngestedImage] = []
     duplicates: list[dict[str, str]] = []
+    unreadable: list[str] = []  # every bad photo named at once, not one a night
     for f in photos:
         base = PurePosixPath(f).name
         try:
@@ -373,7 +374,13 @@ def ingest_images(
                 data = fh.read()
         except OSError as e:
             raise InputError(f"cannot read image {base} from {source}: {e}") from None
-        img, fmt, orientation, focal = _decode(data, base)
+        try:
+            img, fmt, orientation, focal = _decode(data, base)
+        except InputError as e:
+            unreadable.append(str(e))
+            continue
+        if unreadable:  # the rest are only checked
+            continue
         sw, sh = img.size
         px = hashlib.sha256(f"{sw}x{sh}:".encode() + img.tobytes()).hexdigest()
         if px in seen:
@@ -419,6 +426,13 @@ def ingest_images(
                 focal_px=None if focal is None else focal * float(scale),
             )
         )
+    if unreadable:
+        more = f" (and {len(unreadable) - 8} more)" if len(unreadable) > 8 else ""
+        raise InputError(
+            (f"{len(unreadable)} of the {len(photos)} photos in {source} cannot be read: " if
+             len(unreadable) > 1 else "")
+            + "; ".join(unreadable[:8]) + more
+        )  # fmt: skip
     if len(images) < min_images:
         extra = f" after dropping {len(duplicates)} duplicate(s)" if duplicates else ""
         raise InputError(
