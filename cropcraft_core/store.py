@@ -1841,6 +1841,21 @@ class SceneStore:
             if not _is_date(name) and self._children(f"{prefix}/{name}/{IMAGES_STAGE}")
         ]
 
+    def photos_out_of_place(self, site: str, crop: str) -> list[str]:
+        """Dated folders of ``site``/``crop`` whose photos lie in the date's folder itself, not
+        in its ``images/`` inbox (nor run from elsewhere): the season cannot see them as a
+        scene, and says so rather than skip them unseen."""
+        prefix = f"{site}/{crop}"
+        photo = (".jpg", ".jpeg", ".png")
+        out = []
+        for name in self._children(prefix):
+            if not _is_date(name) or self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
+                continue
+            inside = self._children(f"{prefix}/{name}")
+            if MANIFEST_NAME not in inside and any(n.lower().endswith(photo) for n in inside):
+                out.append(name)
+        return out
+
     def discover(self, site: str, crop: str, *, with_runs: bool = False) -> list[DiscoveredScene]:
         """Every dated scene of ``site``/``crop`` with images (and with ``with_runs`` every one
         with a run manifest, see :meth:`list_dates`), with its stage statuses."""

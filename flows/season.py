@@ -204,12 +204,18 @@ def process_season(
             crop,
             name,
         )
+    for name in (astray := st.photos_out_of_place(site, crop)):
+        log.warning(
+            "%s/%s/%s has photos beside its images/ folder, not in it: not processed; move "
+            "them into %s/%s/%s/images/",
+            site, crop, name, site, crop, name,
+        )  # fmt: skip
     dates = pending_dates(st, site, crop)
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
     warnings = []
     # a scene run from photos kept elsewhere (cropcraft run --images URI) is one too: its date
     # is in the summary written below, so the warning would contradict it
-    if not dates and not misnamed and not st.list_dates(site, crop, with_runs=True):
+    if not dates and not misnamed and not astray and not st.list_dates(site, crop, with_runs=True):
         # a worker without CROPCRAFT_STORE reads its own ./cropcraft-data: nothing, every night
         warnings.append(
             f"{site}/{crop} has no dated scene in the store {st.url('')}: is it the store the "
@@ -254,6 +260,7 @@ def process_season(
         "scenes": scenes,
         "failed": failed,
         "misnamed": misnamed,
+        "astray": astray,
         "warnings": warnings,
     }
     try:

@@ -528,6 +528,8 @@ def cmd_season(args: argparse.Namespace) -> int:
         print(f"{date}  {state}")
     for name in out.get("misnamed", []):
         print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
+    for name in out.get("astray", []):
+        print(f"{name}  not run: its photos lie beside its images/ folder: move them into it")
     for warning in out.get("warnings", []):
         print(f"WARNING  {warning}")
     print(f"summary  {out.get('csv') or 'not written: ' + out.get('summary_error', '?')}")

@@ -281,12 +281,14 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
         store.put_bytes(f"plotS/{CROP}/{bad}/images/{p.name}", p.read_bytes())
     # a folder whose name is not a date is named, not silently skipped
     store.put_bytes(f"plotS/{CROP}/2024-7-22/images/{photos[0].name}", photos[0].read_bytes())
+    # ... and so is a date whose photos were dropped beside its images/ folder, not in it
+    store.put_bytes(f"plotS/{CROP}/2024-07-29/{photos[0].name}", photos[0].read_bytes())
     assert pending_dates(store, "plotS", CROP) == [good, bad]
 
     out = run_season("plotS", CROP, str(tmp_path / "store"), OVERRIDES)
     assert out["failed"] == [bad] and out["scenes"][good] == "Completed", out["scenes"]
     assert out["state"] == "Failed"  # the run reads Failed in the UI: its alerts fire
-    assert out["misnamed"] == ["2024-7-22"]
+    assert out["misnamed"] == ["2024-7-22"] and out["astray"] == ["2024-07-29"]
     # the reason, named before the date's flow starts: its inbox holds two photos
     assert (
         out["scenes"][bad].startswith("invalid: ") and "at least 3 are needed" in out["scenes"][bad]

@@ -415,6 +415,10 @@ def test_list_dates_and_discover(store):
     ]
     run = store.discover("plotA", "maize", with_runs=True)[-1]
     assert run.scene == sept and run.n_images == 0 and run.has_manifest
+    # photos dropped into the date's folder, not its images/ inbox: named by the season
+    store.put_bytes("plotA/maize/2024-08-19/DJI_0001.JPG", b"a photo one level too high")
+    assert store.photos_out_of_place("plotA", "maize") == ["2024-08-19"]
+    assert "2024-08-19" not in store.list_dates("plotA", "maize", with_runs=True)
     with pytest.raises(ConfigError):
         store.list_dates("../etc", "maize")
 
