@@ -26,7 +26,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
@@ -798,6 +798,26 @@ class _Stored:
     writing: tuple[str, ...] = ()
     """Folders of attempts that began and were never recorded (``Manifest.writing``): judged
     only where nothing settles them first (a cache walk; a run settles them at its start)."""
+    digest: Callable[[str], str | None] | None = None
+    """The sha256 of an object as the store holds it now (None where it cannot be read), for
+    a local store: a file cut short or edited by hand since its stage wrote it is recomputed,
+    not served. None on object storage, whose writes land whole (hashing there would fetch
+    every artefact of every cached stage)."""
+
+
+def _digests(store: SceneStore) -> Callable[[str], str | None]:
+    """:attr:`_Stored.digest` for ``store``: each key hashed once."""
+    seen: dict[str, str | None] = {}
+
+    def digest(key: str) -> str | None:
+        if key not in seen:
+            try:
+                seen[key] = store.sha256(key)
+            except Exception:  # gone or unreadable: the listing's check, or the stage, says
+                seen[key] = None
+        return seen[key]
+
+    return digest
 
 
 def _stored(store: SceneStore, scene: SceneKey, *, pending: bool = False) -> _Stored:
@@ -814,7 +834,7 @@ def _stored(store: SceneStore, scene: SceneKey, *, pending: bool = False) -> _St
         present: frozenset[str] | None = frozenset(store.list(scene.prefix))
     except Exception:  # judged on ``written`` alone; the stage's own reads will say why
         present = None
-    return _Stored(written, present, writing)
+    return _Stored(written, present, writing, _digests(store) if store._local else None)
 
 
 def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
@@ -827,11 +847,31 @@ def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
     hashes = rec["hashes"]
     if any(k.startswith(f"{folder}/") for k in hashes for folder in stored.writing):
         return True
+    inside = f"{scene.prefix}/"
     if stored.present is not None:
-        inside = f"{scene.prefix}/"
         if any(k.startswith(inside) and k not in stored.present for k in hashes):
             return True
-    return any(stored.written.get(k, h) != h for k, h in hashes.items())
+    if any(stored.written.get(k, h) != h for k, h in hashes.items()):
+        return True
+    if stored.digest is not None:  # damaged in place (cut short, edited): recomputed
+        damaged = [k for k, h in hashes.items() if k.startswith(inside) and stored.digest(k) != h]
+        if damaged:
+            _log_damaged(damaged)
+            return True
+    return False
+
+
+def _log_damaged(keys: list[str]) -> None:
+    """Say which stored artefacts no longer hold what their stage wrote (the run's log, or the
+    ``cropcraft`` logger outside one)."""
+    from tasks.common import stage_log
+
+    with contextlib.suppress(Exception):
+        stage_log().warning(
+            "%d stored file(s) no longer hold what their stage wrote (cut short or edited?), "
+            "so the stage is run again: %s",
+            len(keys), ", ".join(keys[:5]) + (", ..." if len(keys) > 5 else ""),
+        )  # fmt: skip
 
 
 def _forget_failure(store: SceneStore, state: Any) -> None:

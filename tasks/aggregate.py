@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cropcraft_core.errors import InputError
 from tasks.common import (
     Timer,
     artefact,
@@ -61,8 +62,13 @@ def aggregate(
     with Timer() as t, workdir("aggregate") as tmp:
         results = []
         for rec in seeds:
-            path = store.get_file(key_of(rec, "seed"), tmp / f"{rec['summary']['seed']}.npz")
-            results.append(SeedResult.load(path))
+            key = key_of(rec, "seed")
+            path = store.get_file(key, tmp / f"{rec['summary']['seed']}.npz")
+            try:
+                results.append(SeedResult.load(path))
+            except InputError as exc:  # named as stored, not as the scratch copy
+                message = str(exc).replace(str(path), store.url(key))
+                raise InputError(f"{message}: rerun the scene to fit that seed again") from None
         seconds = sum(float(r["seconds"]) for r in seeds)
         obs = load_observation(store, upstream) if cfg.reevaluates(crop) else None
         fit = combine(crop, results, cfg, seconds, obs, layout_of(crop, config))

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
+import math
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from prefect import get_run_logger
 
+from cropcraft_core.errors import InputError
 from cropcraft_core.fit import FitConfig, fit_seed
 from cropcraft_core.parallel import numba_threads_per_job
 from tasks.common import (
@@ -114,7 +117,19 @@ def fit_seed_task(
     with Timer() as t:
         obs = load_observation(store, upstream)
         with numba_threads_per_job(cfg.n_seeds):  # the seeds run side by side
-            result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
+            try:
+                result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
+            except InputError as exc:  # a checkpoint cut short or damaged: only a cache
+                if str(ckpt) not in str(exc) or not ckpt.exists():
+                    raise
+                aside = ckpt.with_name(f"{ckpt.stem}.unreadable-{time.time_ns()}.json")
+                ckpt.replace(aside)
+                log.warning(
+                    "seed %s: its checkpoint cannot be used (%s): kept as %s, and the seed "
+                    "starts afresh", tag, exc, aside,
+                )  # fmt: skip
+                best[0] = math.inf
+                result = fit_seed(obs, int(seed), cfg, layout_of(crop, config), ckpt, callback)
         # a local search may converge early
         report_progress(scene, tag, total, total, float(result.best_y))
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)

@@ -1002,6 +1002,39 @@ def test_a_cached_run_whose_artefact_was_deleted_is_recomputed(base_run, scene_d
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
 
 
+def test_a_cached_run_whose_artefacts_were_damaged_in_place_is_recomputed(base_run, scene_dir):
+    """Files cut short or edited by hand in a finished scene (a bundle's canopy.ply, a seed's
+    npz, metrics.json) were served from the cache: `cropcraft run` exited 0 pointing at the cut
+    bundle, `status` said cached, and a damaged upstream file failed every rerun the same way
+    (session 91's crash audit). A local store's artefacts are checked against the sha256 their
+    stage recorded: the stages that wrote them run again, and their files are whole again."""
+    from flows.service_cli import scene_status
+
+    store = SceneStore(str(base_run["store"]))
+    scene = f"plotA/{CROP}/{DATE}"
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    keys = (f"{scene}/export/bundle/canopy.ply", f"{scene}/fit/seed-0.npz")
+    whole = {k: store.get_bytes(k) for k in (*keys, f"{scene}/metrics/metrics.json")}
+    root = Path(base_run["store"])
+    for k in keys:
+        with open(root / k, "r+b") as f:
+            f.truncate(50)
+    (root / f"{scene}/metrics/metrics.json").write_text('{"lai": "nonsense"')
+    assert _cached(base_run["store"], scene_dir) is None
+    listing = {r["stage"]: r for r in scene_status(str(base_run["store"]), scene)}
+    assert listing["metrics"]["cached"] != "yes" and listing["export"]["cached"] != "yes"
+    executed = set(_executed(_run("plotA", base_run["store"], scene_dir)["states"]))
+    assert {"fit_seed-0", "metrics", "export"} <= executed and "fit_seed-1" not in executed
+    assert "ingest" not in executed and "surfaces" not in executed
+    ply, seed, metrics = whole
+    assert store.get_bytes(ply) == whole[ply]  # the same canopy, whole again
+    assert _timeless(store.get_json(metrics)) == _timeless(json.loads(whole[metrics]))
+    again = store.get_npz(seed)
+    with np.load(io.BytesIO(whole[seed])) as before:
+        assert set(again) == set(before.files) and len(again) > 1
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+
+
 def test_a_stage_that_fails_part_way_does_not_leave_a_cached_record_served(
     base_run, scene_dir, monkeypatch
 ):
@@ -1131,6 +1164,32 @@ def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, mo
     clean = fit_observation(obs, cfg, default_layout(CROP))
     for k, v in clean.params.items():
         assert out["params"][k] == pytest.approx(v, rel=1e-6), k
+
+
+def test_a_seeds_unreadable_checkpoint_is_set_aside_and_the_seed_starts_afresh(
+    base_run, scene_dir, monkeypatch
+):
+    """A seed checkpoint cut short (disk damage, a hand edit) failed its seed on every rerun
+    with "rerun the same command" (session 91's crash audit): it is only a cache, so it is kept
+    aside under another name and the seed is fitted from the start."""
+    import tasks.fit_seed as fit_seed_module
+
+    real = fit_seed_module.fit_seed
+    damaged: list[Path] = []
+
+    def cut_short(observation, seed, cfg, layout, checkpoint, *args, **kwargs):
+        if int(seed) == 0 and not damaged:  # as a kill then a disk fault would leave it
+            Path(checkpoint).write_text('{"X": [[0.5, 0.5')
+            damaged.append(Path(checkpoint))
+        return real(observation, seed, cfg, layout, checkpoint, *args, **kwargs)
+
+    monkeypatch.setattr(fit_seed_module, "fit_seed", cut_short)
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.n_evals": 13})
+    assert {"fit_seed-0", "fit_seed-1"} <= set(_executed(out["states"]))
+    (ckpt,) = damaged
+    assert not ckpt.exists()  # removed on success, as any finished seed's
+    (aside,) = ckpt.parent.glob(f"{ckpt.stem}.unreadable-*.json")
+    assert aside.read_text() == '{"X": [[0.5, 0.5'
 
 
 def _copy_without_late_results(src: Path, dst: Path) -> None:
