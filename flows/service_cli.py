@@ -623,11 +623,38 @@ def cmd_status(args: argparse.Namespace) -> int:
             "cached ?: the photos or poses the last run read cannot be read now (moved?), so "
             "what is cached for them cannot be told; a run given their new place says"
         )
+    unreadable = _unreadable_manifest(args.store, args.scene)
+    if unreadable:  # a finished scene's damaged record read as "never run" (crash audit 91)
+        print(
+            f"{unreadable}; its stages' results are kept: the next run sets the record aside "
+            "and serves what is cached",
+            file=sys.stderr,
+        )
+        return 1
     if all(r["status"] in ("pending", "off") and r["cached"] == "no" for r in rows):
         # a mistyped date or site reads as "not run yet": said, and an exit a script can test
         print(f"no run recorded for {args.scene} in this store", file=sys.stderr)
         return 1
     return 0
+
+
+def _unreadable_manifest(store_uri: str | None, scene_text: str) -> str | None:
+    """Why the scene's run record (``manifest.json``) cannot be read, where it is there and
+    cannot; None otherwise."""
+    from cropcraft_core.errors import InputError
+    from cropcraft_core.store import SceneStore, manifest_key
+
+    scene = _parse_scene(scene_text)
+    store = SceneStore(store_uri)
+    try:
+        if not store.isfile(manifest_key(scene)):
+            return None
+        store.load_manifest(scene)
+    except InputError as exc:
+        return str(exc)
+    except Exception:  # the store itself: the table above said what it could
+        return None
+    return None
 
 
 # --------------------------------------------------------------------------- demo

@@ -1057,3 +1057,17 @@ def test_season_without_its_crop_asks_for_site_and_crop(tmp_path, capsys):
         assert main(["season", bad, "--store", str(tmp_path / "s")]) == 2
         err = capsys.readouterr().err
         assert f"season expects SITE/CROP (e.g. plotA/soybean), got '{bad}'" in err
+
+
+def test_status_of_a_scene_whose_run_record_is_unreadable_says_so(tmp_path, capsys):
+    """A finished scene whose manifest.json was damaged read as "no run recorded" (session
+    91's crash audit), though its results are all there and the next run serves them."""
+    from flows.cli import main
+
+    folder = tmp_path / "store" / "plotA" / "soybean" / "2024-07-01"
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text("not json {")
+    assert main(["status", "plotA/soybean/2024-07-01", "--store", str(tmp_path / "store")]) == 1
+    err = capsys.readouterr().err
+    assert "manifest.json is not a valid manifest" in err and "no run recorded" not in err
+    assert "the next run sets the record aside and serves what is cached" in err
