@@ -63,6 +63,10 @@ SEASON_COLUMNS = (
     # how firmly its observation pins LAI down)
     ("lai_seeds_min", "lai_seeds_min_m2_m2"),
     ("lai_seeds_max", "lai_seeds_max_m2_m2"),
+    # done, or failed (its last run; the values, where any, are the run's before); the note:
+    # the run's warnings (too few photos, coverage, ...), or where and why it failed
+    ("status", "status"),
+    ("note", "note"),
 )
 
 
@@ -203,6 +207,20 @@ LEFT_OUT_WHY = {
     "duplicates": "are copies of another photo",
     "in_subfolders": "are in subfolders, which are not read (move them into the folder)",
 }
+
+
+def few_photos_warning(n_photos: int | None) -> str | None:
+    """The warning a run of fewer photos than ``surfaces.FEW_PHOTOS`` gets (a season date of 3
+    photos read LAI -81 % and was published as any other date: session 91's season audit),
+    else None."""
+    from cropcraft_core.surfaces.base import FEW_PHOTOS
+
+    if n_photos is None or n_photos >= FEW_PHOTOS:
+        return None
+    return (
+        f"only {n_photos} photos: a plot's capture takes ~50 (a walk around it) to ~500 (a "
+        "drone), so its reconstruction, and the answer, rest on few views"
+    )
 
 
 def left_out_lines(left: Mapping[str, Sequence[str]] | None) -> list[str]:

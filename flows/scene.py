@@ -1314,6 +1314,7 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
     store = SceneStore(req.store_root)
     from cropcraft_core.fit.fitting import edge_warning
     from cropcraft_core.observe import coverage_warning
+    from cropcraft_core.report import few_photos_warning
 
     seen = records["observe"]["summary"].get("no_surface_fraction")  # older records: None
     rows = records.get("rows")
@@ -1336,6 +1337,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         # the rows against a camera-height hint far from the crop's usual (None: agree, or
         # not asked)
         "scale_warning": records["rowfit"]["summary"].get("scale_warning"),
+        # fewer photos than a plot's reconstruction can rest on (None: enough)
+        "photos_warning": few_photos_warning(records["ingest"]["summary"].get("n_images")),
         # the surfaces against the photos at the photos' cameras (older stores: None)
         "consistency": _consistency(records.get("consistency")),
         # photos the run left out: without a pose in the imported poses, or not seeing the box
@@ -1458,6 +1461,7 @@ def reconstruct_scene(
         lease.check()
     out = summarize(req, records, ex.states)
     for warning in (
+        out["photos_warning"],
         out["scale_warning"],
         out["edge_warning"],
         out["observation"]["warning"],

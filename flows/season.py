@@ -132,38 +132,77 @@ def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
     }
 
 
+def date_warnings(store: SceneStore, scene: SceneKey) -> list[str]:
+    """The warnings of a date's last finished run, as its report lists them (too few photos,
+    the row view's coverage, an answer on the box's edge, photos left out...); [] where the
+    report predates the list."""
+    key = f"{scene.prefix}/report/warnings.json"
+    try:
+        return [str(w) for w in store.get_json(key)] if store.isfile(key) else []
+    except CropCraftError:
+        return []
+
+
+def _failure(store: SceneStore, scene: SceneKey, failed: list[str], earlier: bool) -> str:
+    """A failed date's note: where its last run failed and why, and whether the values beside
+    it are an earlier run's."""
+    from tasks.common import STAGES
+
+    stage = min(failed, key=lambda s: STAGES.index(s) if s in STAGES else len(STAGES))
+    try:
+        error = store.load_manifest(scene).stages[stage].error or "?"
+    except (CropCraftError, KeyError):
+        error = "?"
+    kept = "; the values are its run's before" if earlier else ""
+    return f"the last run failed at {stage}: {error}{kept}"
+
+
 def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
-    """Season summary of every date whose metrics are done: ``{site}/{crop}/season/summary.csv``
-    and ``summary.png``, with each date's share of the row view without a reconstructed
-    surface, its surfaces' net cover against its photos, the parameters its fit was given and
-    (where fitted over several rows) its LAI's range over the rows beside its traits. Returns
-    the keys and the rows."""
+    """Season summary of every date whose metrics are done or whose last run failed:
+    ``{site}/{crop}/season/summary.csv`` and ``summary.png``, with each date's share of the row
+    view without a reconstructed surface, its surfaces' net cover against its photos, the
+    parameters its fit was given and (where fitted over several rows) its LAI's range over the
+    rows beside its traits; its ``status`` (done, failed) and a ``note``: the run's warnings,
+    or where and why it failed (a failed rerun keeps the date's earlier answer, said so).
+    Returns the keys and the rows."""
     from cropcraft_core.report import given_text, season_csv, season_plot_png, season_rows
 
     per_date = {}
     for d in store.discover(site, crop, with_runs=True):  # ad hoc runs' dates too
         key = f"{d.scene.prefix}/metrics/metrics.json"
-        if d.stages.get("metrics") == "done" and store.isfile(key):
+        failed = [s for s, status in d.stages.items() if status == "failed"]
+        done = d.stages.get("metrics") == "done" and store.isfile(key)
+        if not done and not failed:  # not run yet, or running
+            continue
+        entry: dict[str, Any] = {"status": "failed" if failed else "done"}
+        if store.isfile(key):  # a failed rerun keeps the last answer, flagged
             fit_key = f"{d.scene.prefix}/fit/fit.json"
             fit = store.get_json(fit_key) if store.isfile(fit_key) else {}
-            per_date[d.scene.date] = {
-                **store.get_json(key),
-                "parameters_given": given_text((fit.get("config") or {}).get("box")),
-                "no_surface_fraction": _no_surface(store, f"{d.scene.prefix}/observe/"),
-                "photo_net_cover": _net_cover(store, d.scene.prefix),
+            entry.update(
+                store.get_json(key),
+                parameters_given=given_text((fit.get("config") or {}).get("box")),
+                no_surface_fraction=_no_surface(store, f"{d.scene.prefix}/observe/"),
+                photo_net_cover=_net_cover(store, d.scene.prefix),
                 **_rows(store, d.scene),
-            }
+            )
+        entry["note"] = (
+            _failure(store, d.scene, failed, store.isfile(key))
+            if failed
+            else "; ".join(date_warnings(store, d.scene))
+        )
+        per_date[d.scene.date] = entry
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"
     png_key = f"{site}/{crop}/season/summary.png"
     store.put_bytes(csv_key, season_csv(rows).encode("utf-8"))
-    if rows:
+    plotted = any(r.get("lai_m2_m2") is not None for r in rows)
+    if plotted:
         store.put_bytes(png_key, season_plot_png(rows, f"{site} {crop}"))
     elif store.exists(png_key):  # no date has results now: an older plot would show them still
         store.delete(png_key)
     return {
         "csv": store.url(csv_key),
-        "png": store.url(png_key) if rows else None,
+        "png": store.url(png_key) if plotted else None,
         "rows": rows,
     }
 
@@ -233,6 +272,7 @@ def process_season(
         )
         log.warning("%s", warnings[-1])
     scenes: dict[str, str] = {}
+    notes: dict[str, list[str]] = {}
     failed = []
     sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
     for date in dates:
@@ -256,8 +296,11 @@ def process_season(
         if not state.is_completed():
             failed.append(date)
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
+        else:  # its warnings, with its line: a 3-photo date read "Completed" like any other
+            notes[date] = date_warnings(st, SceneKey(site, crop, date))
     out: dict[str, Any] = {
         "scenes": scenes,
+        "notes": {d: w for d, w in notes.items() if w},
         "failed": failed,
         "misnamed": misnamed,
         "astray": astray,

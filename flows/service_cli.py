@@ -423,8 +423,9 @@ def _print_summary(out: Mapping[str, Any]) -> None:
 
 
 def _print_fit_warnings(out: Mapping[str, Any]) -> None:
-    """The rows against a camera-height hint, and an answer pressing the parameter box."""
-    for key in ("scale_warning", "edge_warning"):
+    """Too few photos, the rows against a camera-height hint, and an answer pressing the
+    parameter box."""
+    for key in ("photos_warning", "scale_warning", "edge_warning"):
         if out.get(key):
             print(f"WARNING  {out[key]}")
 
@@ -526,6 +527,8 @@ def cmd_season(args: argparse.Namespace) -> int:
         out = run_season(site, crop, args.store, overrides_of(args), runner=args.runner)
     for date, state in out["scenes"].items():
         print(f"{date}  {state}")
+        for warning in out.get("notes", {}).get(date, []):
+            print(f"            WARNING  {warning}")
     for name in out.get("misnamed", []):
         print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
     for name in out.get("astray", []):

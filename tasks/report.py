@@ -161,23 +161,33 @@ def report(
             timings=_timings(upstream),
             info=info,
             rows=table,
-            warnings=run_warnings(crop, upstream, fit),
+            warnings=(warnings := run_warnings(crop, upstream, fit)),
         )
         key = artefact(scene, "report", "report.html")
         digest = store.put_bytes(key, page.encode("utf-8"))
+        # the same warnings as data, for the season's summary and closing lines
+        listed = artefact(scene, "report", "warnings.json")
+        listed_digest = store.put_json(listed, warnings)
     return make_record(
-        "report", scene, {"report": key}, {key: digest}, {"bytes": len(page)}, t.seconds
+        "report",
+        scene,
+        {"report": key, "warnings": listed},
+        {key: digest, listed: listed_digest},
+        {"bytes": len(page)},
+        t.seconds,
     )
 
 
 def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> list[str]:
-    """The warnings a run prints, for its report: the rows against a camera-height hint, an
-    answer on the parameter box's edge, the row view's coverage and the photos left out."""
+    """The warnings a run prints, for its report: too few photos, the rows against a
+    camera-height hint, an answer on the parameter box's edge, the row view's coverage and the
+    photos left out."""
     from cropcraft_core.fit.fitting import edge_warning
     from cropcraft_core.observe import coverage_warning
-    from cropcraft_core.report import left_out_lines
+    from cropcraft_core.report import few_photos_warning, left_out_lines
 
-    out = [upstream["rowfit"]["summary"].get("scale_warning")]
+    out = [few_photos_warning(upstream["ingest"]["summary"].get("n_images"))]
+    out.append(upstream["rowfit"]["summary"].get("scale_warning"))
     out.append(edge_warning(crop, fit["params"], (fit.get("config") or {}).get("box")))
     seen = upstream["observe"]["summary"].get("no_surface_fraction")
     out.append(None if seen is None else coverage_warning(seen, crop))

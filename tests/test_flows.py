@@ -243,9 +243,12 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     )
     assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
     assert row["parameters_given"] == ""  # the whole box was searched
-    head, line = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().splitlines()
+    import csv
+
+    text = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode()
+    head, line = csv.reader(text.splitlines())
     assert row["photo_net_cover_fraction"] == pytest.approx(out["consistency"]["net"])
-    assert head.split(",")[-7:] == [
+    assert head[-9:] == [
         "row_view_no_surface_fraction",
         "photo_net_cover_fraction",
         "rows_fitted",
@@ -253,12 +256,18 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
         "lai_rows_max_m2_m2",
         "lai_seeds_min_m2_m2",
         "lai_seeds_max_m2_m2",
+        "status",
+        "note",
     ]
-    assert line.startswith(DATE)
-    assert line.split(",")[-5:-2] == ["", "", ""]  # fitted over its best row alone
+    assert line[0] == DATE
+    assert line[-7:-4] == ["", "", ""]  # fitted over its best row alone
     assert row["lai_seeds_min_m2_m2"] == out["metrics"]["lai_seeds_min"]
     assert row["lai_seeds_max_m2_m2"] == out["metrics"]["lai_seeds_max"]
-    assert float(line.split(",")[-1]) == pytest.approx(out["metrics"]["lai_seeds_max"], rel=1e-5)
+    assert float(line[-3]) == pytest.approx(out["metrics"]["lai_seeds_max"], rel=1e-5)
+    # its status, and the warnings its report listed (its small reconstruction's coverage)
+    listed = store.get_json(f"plotA/{CROP}/{DATE}/report/warnings.json")
+    assert line[-2] == "done" and line[-1] == "; ".join(listed) == row["note"]
+    assert "of the row camera's view has no fully supported reconstructed surface" in line[-1]
 
 
 def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
@@ -295,6 +304,9 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     )
     csv = store.get_bytes(f"plotS/{CROP}/season/summary.csv").decode().splitlines()
     assert len(csv) == 2 and csv[1].startswith(good)
+    # the finished date's warnings beside its "Completed", as its report lists them
+    listed = store.get_json(f"plotS/{CROP}/{good}/report/warnings.json")
+    assert out["notes"].get(good, []) == listed
     assert store.isfile(f"plotS/{CROP}/season/summary.png")
     assert store.isfile(f"plotS/{CROP}/{good}/export/bundle/canopy.helios.xml")
     assert pending_dates(store, "plotS", CROP) == [bad]
@@ -1490,9 +1502,11 @@ def _levelled_scale(poses: dict, true_centres: np.ndarray) -> float:
     return float(spread(a) / spread(b))
 
 
-def test_a_season_with_no_date_left_has_no_plot_of_an_older_night(tmp_path):
-    """The one date's photos replaced and its rerun failed: the summary CSV was rewritten with
-    no row, but last night's plot stayed in the store, showing the date still."""
+def test_a_failed_rerun_keeps_the_dates_last_answer_in_the_season_flagged(tmp_path):
+    """The one date's photos replaced (a stray empty upload) and its rerun failed: the date's
+    good answer went from the summary and the plot with it (session 91's season audit). It
+    stays, marked failed with where and why; a date that never finished is listed as failed
+    with no values, and a season of no values has no plot of an older night."""
     from flows.season import write_summary
 
     store = SceneStore(str(tmp_path / "store"))
@@ -1509,9 +1523,18 @@ def test_a_season_with_no_date_left_has_no_plot_of_an_older_night(tmp_path):
     store.update_stage(scene, "fit_seed", status="running")
     store.update_stage(scene, "fit_seed", status="failed", error="no rows found")
     second = write_summary(store, "plotA", CROP)
-    assert second["rows"] == [] and second["png"] is None
+    (row,) = second["rows"]
+    assert row["lai_m2_m2"] == 1.2 and row["status"] == "failed"
+    assert row["note"] == (
+        "the last run failed at fit_seed: no rows found; the values are its run's before"
+    )
+    assert store.isfile(png)
+    store.delete(f"{scene.prefix}/metrics/metrics.json")  # a date that never finished
+    third = write_summary(store, "plotA", CROP)
+    (row,) = third["rows"]
+    assert row["lai_m2_m2"] is None and row["status"] == "failed" and third["png"] is None
     assert not store.isfile(png)
-    assert store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode().count("\n") == 1
+    assert row["note"] == "the last run failed at fit_seed: no rows found"
 
 
 def test_report_opens_with_the_runs_warnings():
