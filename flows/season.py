@@ -250,6 +250,11 @@ def process_season(
             site, crop, name, site, crop, name,
         )  # fmt: skip
     dates = pending_dates(st, site, crop)
+    unchanged = [
+        d.scene.date
+        for d in st.discover(site, crop, with_runs=True)
+        if d.scene.date not in dates and d.stages.get("report") == "done"
+    ]
     log.info("%s/%s: %d date(s) to process: %s", site, crop, len(dates), ", ".join(dates))
     warnings = []
     # a scene run from photos kept elsewhere (cropcraft run --images URI) is one too: its date
@@ -301,6 +306,7 @@ def process_season(
     out: dict[str, Any] = {
         "scenes": scenes,
         "notes": {d: w for d, w in notes.items() if w},
+        "unchanged": unchanged,
         "failed": failed,
         "misnamed": misnamed,
         "astray": astray,

@@ -529,6 +529,10 @@ def cmd_season(args: argparse.Namespace) -> int:
         print(f"{date}  {state}")
         for warning in out.get("notes", {}).get(date, []):
             print(f"            WARNING  {warning}")
+    if out.get("unchanged"):
+        done = out["unchanged"]
+        listed = ", ".join(done[:6]) + (", ..." if len(done) > 6 else "")
+        print(f"finished {len(done)} date(s), no new photos, not run again: {listed}")
     for name in out.get("misnamed", []):
         print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
     for name in out.get("astray", []):

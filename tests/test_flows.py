@@ -310,6 +310,7 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     assert store.isfile(f"plotS/{CROP}/season/summary.png")
     assert store.isfile(f"plotS/{CROP}/{good}/export/bundle/canopy.helios.xml")
     assert pending_dates(store, "plotS", CROP) == [bad]
+    assert out["unchanged"] == []  # nothing had finished before the night
     # field notes added after the night (known.json): the date is refitted with them
     notes = f"plotS/{CROP}/{good}/images/known.json"
     store.put_bytes(notes, b'{"num_nodes": 9}')
@@ -355,6 +356,7 @@ def test_season_names_finished_dates_that_other_settings_answered(base_run, scen
     assert stale_dates(store, "plotA", CROP, other, skip=[DATE]) == []  # run tonight anyway
     out = run_season("plotA", CROP, str(base_run["store"]), other)
     assert out["scenes"] == {}  # its photos are unchanged: not run again
+    assert out["unchanged"] == [DATE]  # and the closing lines say so
     assert any("hold results that these settings" in w and DATE in w for w in out["warnings"])
 
 
