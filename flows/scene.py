@@ -845,7 +845,12 @@ def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
     is there. Such a record is recomputed, not served: the store must hold what a run
     reports."""
     hashes = rec["hashes"]
-    if any(k.startswith(f"{folder}/") for k in hashes for folder in stored.writing):
+    # an unrecorded attempt's folder: on object storage its records are not trusted; a local
+    # store's files are hashed below instead (the seeds beside a killed aggregate's fit.json
+    # stay served: their bytes say so)
+    if stored.digest is None and any(
+        k.startswith(f"{folder}/") for k in hashes for folder in stored.writing
+    ):
         return True
     inside = f"{scene.prefix}/"
     if stored.present is not None:

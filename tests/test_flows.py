@@ -1123,6 +1123,33 @@ def test_a_run_that_dies_before_recording_its_writes_leaves_no_cached_record_ser
     assert store.get_bytes(recipe_key) == default
     assert store.load_manifest(scene).writing == {}
     assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+    # an aggregate killed the same way shares its folder (fit/) with the seeds: their files
+    # are whole, and status said "not cached" for seeds the next run served (crash audit 91)
+    with monkeypatch.context() as m:
+        m.setattr(_PrefectRun, "_record", dies_at("aggregate", real))
+        with pytest.raises(StoreError, match="injected"):
+            _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.combine": "mean"})
+    assert "aggregate" in store.load_manifest(scene).writing
+    listing = {r["stage"]: r for r in scene_status(str(base_run["store"]), scene.prefix)}
+    assert listing["fit_seed"]["cached"] == f"{N_SEEDS} seeds"
+    assert (
+        listing["aggregate"]["cached"] == "no" and listing["aggregate"]["status"] == "interrupted"
+    )
+    out = _run("plotA", base_run["store"], scene_dir)
+    assert "aggregate" in _executed(out["states"])
+    assert not any(k.startswith("fit_seed") for k in _executed(out["states"]))
+
+
+def dies_at(stage_name, real):
+    """``_PrefectRun._record`` refusing ``stage_name``'s record, as a run killed after the
+    stage wrote its files and before the manifest heard of them."""
+
+    def dies(self, stage, upstream, rec, error=None, row=None):
+        if stage == stage_name:
+            raise StoreError("the manifest write failed (injected): the run ends here")
+        return real(self, stage, upstream, rec, error, row)
+
+    return dies
 
 
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
