@@ -403,6 +403,10 @@ EPHEMERAL_STARTUP_TIMEOUT_S = 180
 INTERRUPT_GRACE_S = 15.0
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised as Ctrl-C's ``KeyboardInterrupt`` is (the same clean-up), exit 143."""
+
+
 @contextmanager
 def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
     """Ctrl-C that always ends the command: the first SIGINT raises ``KeyboardInterrupt`` as
@@ -413,7 +417,8 @@ def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
     Needed because a terminal's Ctrl-C also stops Prefect's temporary server, which shares
     the process group, and Prefect then retries the dead server for minutes, while seeds on
     the threads runner, or workers a signal did not reach, go on fitting. Only in the main
-    thread, and not where SIGINT is ignored (a background job).
+    thread, and not where SIGINT is ignored (a background job). SIGTERM (a scheduler's stop,
+    ``kill``, ``timeout``) ends the command as Ctrl-C does, with exit 143.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -423,11 +428,13 @@ def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
         yield
         return
     interrupted = threading.Event()
+    terminated = threading.Event()
 
     def force() -> None:
-        print("cropcraft: interrupted; ending its processes", file=sys.stderr, flush=True)
+        said, code = ("terminated", 143) if terminated.is_set() else ("interrupted", 130)
+        print(f"cropcraft: {said}; ending its processes", file=sys.stderr, flush=True)
         end_children()
-        os._exit(130)
+        os._exit(code)
 
     def on_sigint(signum: int, frame: object) -> None:
         if interrupted.is_set():
@@ -436,13 +443,26 @@ def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
         timer = threading.Timer(grace_s, force)
         timer.daemon = True
         timer.start()
-        raise KeyboardInterrupt
+        raise Terminated if terminated.is_set() else KeyboardInterrupt
 
+    def on_sigterm(signum: int, frame: object) -> None:
+        # a scheduler's stop, `kill`, `timeout`: as a Ctrl-C, exit 143. During a flow run
+        # Prefect's own handler takes SIGTERM and hands it back here once its run has
+        # crashed (the stage's end): then every child, Prefect's temporary server too, ends
+        # (the server outlived the run, orphaned)
+        terminated.set()
+        on_sigint(signum, frame)
+
+    previous_term = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGINT, on_sigint)
+    if previous_term in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, on_sigterm)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        if previous_term in (signal.SIG_DFL, None):
+            signal.signal(signal.SIGTERM, previous_term or signal.SIG_DFL)
 
 
 def end_children(timeout_s: float = 5.0) -> None:
@@ -483,6 +503,9 @@ def main(argv: list[str] | None = None) -> int:
     except CropCraftError as e:
         print(f"cropcraft: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("cropcraft: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("cropcraft: interrupted", file=sys.stderr)
         return 130
