@@ -33,7 +33,10 @@ BUNDLE_FILES = (
 
 
 def check_output_dir(out_dir: str | os.PathLike) -> Path:
-    """Fail early (before any work) unless ``out_dir`` can be created and written."""
+    """Fail early (before any work) unless ``out_dir`` can be created and written; an empty
+    path (an unset shell variable) is refused, not read as the current folder."""
+    if not str(os.fspath(out_dir)).strip():
+        raise OutputError("the output directory is an empty path: give --out a folder")
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)

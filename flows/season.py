@@ -9,7 +9,7 @@ from typing import Any
 from prefect import flow, get_run_logger
 from prefect.states import Failed
 
-from cropcraft_core.errors import CropCraftError
+from cropcraft_core.errors import CropCraftError, InputError
 from cropcraft_core.store import DiscoveredScene, SceneKey, SceneStore, manifest_key
 from flows.runners import DEFAULT_RUNNER
 from flows.scene import SurfacesBackend
@@ -342,6 +342,11 @@ def run_season(
     SceneKey(site, crop, "2000-01-01")
     resolve_config(crop, with_backend(overrides, surfaces_backend))
     parse_runner(runner)
+    unopened = SceneStore(store)
+    if unopened._local and not unopened.fs.isdir(unopened._root_path):
+        # the photos are uploaded into the store: a folder not there is a mistyped --store,
+        # which made itself and reported an empty season, exit 0, every night
+        raise InputError(f"no store at {unopened.root}: check --store (or CROPCRAFT_STORE)")
     SceneStore.connect(store)
     state = process_season(
         site, crop, store, dict(overrides or {}), runner, surfaces_backend, return_state=True

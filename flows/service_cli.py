@@ -483,10 +483,12 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """``cropcraft run SITE/CROP/DATE [--images URI] [--poses URI]``."""
+    from flows.runners import parse_runner
     from flows.scene import cached_result, note_sources, prepare, run_scene
 
     scene = _parse_scene(args.scene)
     overrides = overrides_of(args)
+    parse_runner(args.runner)  # before prepare makes the store's folder (a refusal makes none)
     req = prepare(
         scene.site, scene.crop, scene.date, args.images, args.poses, overrides, args.store
     )
@@ -620,11 +622,11 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
 def cmd_status(args: argparse.Namespace) -> int:
     """``cropcraft status SITE/CROP/DATE``: what is done, cached and failed."""
     rows = scene_status(args.store, args.scene)
-    print(f"{'stage':<12} {'status':<8} {'cached':<9} {'seconds':>8}  error")
+    print(f"{'stage':<12} {'status':<11} {'cached':<9} {'seconds':>8}  error")
     for r in rows:
         sec = f"{r['seconds']:.1f}" if r["seconds"] is not None else "-"
-        err = (r["error"] or "")[:100]
-        print(f"{r['stage']:<12} {r['status']:<8} {r['cached']:<9} {sec:>8}  {err}")
+        err = r["error"] or ""  # whole: its cause comes last, after the paths (SfM's did)
+        print(f"{r['stage']:<12} {r['status']:<11} {r['cached']:<9} {sec:>8}  {err}")
     if any(r["cached"] == "?" for r in rows):
         print(
             "cached ?: the photos or poses the last run read cannot be read now (moved?), so "
@@ -752,10 +754,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     site, crop, date = DEMO_SCENE
-    store = SceneStore.connect(args.store)
     overrides = {**DEMO_OVERRIDES, **overrides_of(args)}
-    resolve_config(crop, overrides)  # bad settings and runners: before the scene is made
+    resolve_config(crop, overrides)  # bad settings and runners: before the store is made
     parse_runner(args.runner)
+    store = SceneStore.connect(args.store)
     ensure_demo_inputs(store)
     req = prepare(site, crop, date, None, None, overrides, args.store)
     out = cached_result(req)

@@ -89,6 +89,22 @@ def test_bad_input_writes_nothing(tmp_path, capsys, args, message):
     assert not out.exists()
 
 
+def test_an_empty_out_or_a_bad_runner_is_refused_writing_nothing(tmp_path, capsys, monkeypatch):
+    """``--out ""`` (an unset shell variable) wrote the bundle into the current folder, and a
+    mistyped --runner was refused after the store's folder was made (session 91's CLI
+    audit)."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["generate", "soybean", "--out", ""]) == 2
+    assert "output directory is an empty path" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    store = tmp_path / "new_store"
+    argv = ["run", "plotA/soybean/2024-07-01", "--store", str(store), "--runner", "proceses"]
+    assert main(argv) == 2
+    assert "unknown runner 'proceses'" in capsys.readouterr().err and not store.exists()
+    assert main(["demo", "--store", str(store), "--set", "fit.n_evalz=3"]) == 2
+    assert "fit.n_evalz" in capsys.readouterr().err and not store.exists()
+
+
 def test_generate_unwritable_output(tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
@@ -962,7 +978,7 @@ def test_status_says_the_cache_is_unknown_when_the_last_runs_photos_have_moved(t
     store.init_manifest(scene, {"images/a.png": "1"}, {}, sources={"images": gone, "poses": None})
     assert main(["status", scene.prefix, "--store", str(tmp_path / "store")]) == 0
     out = capsys.readouterr().out
-    assert "ingest       pending  ?" in out
+    assert "ingest       pending     ?" in out
     assert "cached ?: the photos or poses the last run read cannot be read now" in out
 
 

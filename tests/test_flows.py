@@ -328,6 +328,12 @@ def test_a_season_on_a_store_without_the_site_says_which_store_it_read(prefect_h
     nothing to do every night, so it warns (its log, its result), naming the store it read."""
     from flows.season import run_season
 
+    # a store folder not there at all is a mistyped --store: refused, nothing made (it made
+    # itself and a header-only summary, exit 0: session 91's CLI audit)
+    with pytest.raises(InputError, match=f"no store at file://{tmp_path}/empty: check --store"):
+        run_season("plotZ", CROP, str(tmp_path / "empty"), OVERRIDES)
+    assert not (tmp_path / "empty").exists()
+    (tmp_path / "empty").mkdir()  # there, but not the one the photos go to
     out = run_season("plotZ", CROP, str(tmp_path / "empty"), OVERRIDES)
     assert out["state"] == "Completed" and out["scenes"] == {}
     [warning] = out["warnings"]
