@@ -4,6 +4,7 @@ subflow, then a season summary (LAI, leaf angle, height by date: CSV and a PNG p
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from prefect import flow, get_run_logger
@@ -157,7 +158,9 @@ def _failure(store: SceneStore, scene: SceneKey, failed: list[str], earlier: boo
     return f"the last run failed at {stage}: {error}{kept}"
 
 
-def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
+def write_summary(
+    store: SceneStore, site: str, crop: str, refused: Mapping[str, str] | None = None
+) -> dict[str, Any]:
     """Season summary of every date whose metrics are done or whose last run failed:
     ``{site}/{crop}/season/summary.csv`` and ``summary.png``, with each date's share of the row
     view without a reconstructed surface, its surfaces' net cover against its photos, the
@@ -168,13 +171,15 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
     from cropcraft_core.report import given_text, season_csv, season_plot_png, season_rows
 
     per_date = {}
+    refused = dict(refused or {})
     for d in store.discover(site, crop, with_runs=True):  # ad hoc runs' dates too
         key = f"{d.scene.prefix}/metrics/metrics.json"
         failed = [s for s, status in d.stages.items() if status == "failed"]
         done = d.stages.get("metrics") == "done" and store.isfile(key)
-        if not done and not failed:  # not run yet, or running
+        if not done and not failed and d.scene.date not in refused:  # not run yet, running
             continue
-        entry: dict[str, Any] = {"status": "failed" if failed else "done"}
+        bad = failed or d.scene.date in refused
+        entry: dict[str, Any] = {"status": "failed" if bad else "done"}
         if store.isfile(key):  # a failed rerun keeps the last answer, flagged
             fit_key = f"{d.scene.prefix}/fit/fit.json"
             fit = store.get_json(fit_key) if store.isfile(fit_key) else {}
@@ -185,11 +190,13 @@ def write_summary(store: SceneStore, site: str, crop: str) -> dict[str, Any]:
                 photo_net_cover=_net_cover(store, d.scene.prefix),
                 **_rows(store, d.scene),
             )
-        entry["note"] = (
-            _failure(store, d.scene, failed, store.isfile(key))
-            if failed
-            else "; ".join(date_warnings(store, d.scene))
-        )
+        if d.scene.date in refused:  # refused tonight before any work (its field notes...)
+            kept = "; the values are its run's before" if store.isfile(key) else ""
+            entry["note"] = f"not run: {refused[d.scene.date]}{kept}"
+        elif failed:
+            entry["note"] = _failure(store, d.scene, failed, store.isfile(key))
+        else:
+            entry["note"] = "; ".join(date_warnings(store, d.scene))
         per_date[d.scene.date] = entry
     rows = season_rows(per_date)
     csv_key = f"{site}/{crop}/season/summary.csv"
@@ -313,7 +320,10 @@ def process_season(
         "warnings": warnings,
     }
     try:
-        summary = write_summary(st, site, crop)
+        refused = {
+            d: s.removeprefix("invalid: ") for d, s in scenes.items() if s.startswith("invalid: ")
+        }
+        summary = write_summary(st, site, crop, refused)
         out.update(csv=summary["csv"], png=summary["png"])
     except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
         log.error("%s/%s: the season summary was not written: %s", site, crop, exc)

@@ -303,7 +303,10 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
         out["scenes"][bad].startswith("invalid: ") and "at least 3 are needed" in out["scenes"][bad]
     )
     csv = store.get_bytes(f"plotS/{CROP}/season/summary.csv").decode().splitlines()
-    assert len(csv) == 2 and csv[1].startswith(good)
+    assert len(csv) == 3 and csv[1].startswith(good)
+    # the refused date is listed, failed, with why (it had no row: session 91's audits)
+    assert csv[2].startswith(f"{bad},") and ",failed,not run: " in csv[2]
+    assert "at least 3 are needed" in csv[2]
     # the finished date's warnings beside its "Completed", as its report lists them
     listed = store.get_json(f"plotS/{CROP}/{good}/report/warnings.json")
     assert out["notes"].get(good, []) == listed
@@ -1554,6 +1557,10 @@ def test_a_failed_rerun_keeps_the_dates_last_answer_in_the_season_flagged(tmp_pa
     first = write_summary(store, "plotA", CROP)
     png = f"plotA/{CROP}/season/summary.png"
     assert len(first["rows"]) == 1 and store.isfile(png)
+    # refused tonight before any work (its known.json broken since): failed, values kept
+    (row,) = write_summary(store, "plotA", CROP, {DATE: "known.json: not valid JSON"})["rows"]
+    assert (row["status"], row["lai_m2_m2"]) == ("failed", 1.2)
+    assert row["note"] == "not run: known.json: not valid JSON; the values are its run's before"
     store.init_manifest(scene, {"images/a.png": "2"}, {})  # new photos: its stages reset
     store.update_stage(scene, "fit_seed", status="running")
     store.update_stage(scene, "fit_seed", status="failed", error="no rows found")
