@@ -592,6 +592,24 @@ def read_known(images_uri: str, crop: str) -> dict[str, Any]:
     return known
 
 
+def notes_overridden(known: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> list[str]:
+    """The field notes (:data:`KNOWN_FILE`) a run's own settings go over, one line each, e.g.
+    "--param leaf_length=1 goes over known.json's 0.9": said, not replaced quietly."""
+    out = []
+    for name, noted in known.items():
+        given = (overrides or {}).get(f"fit.box.{name}")
+        if given is None:
+            given = (((overrides or {}).get("fit") or {}).get("box") or {}).get(name)
+        if given is not None and given != noted:
+            shown = (
+                ":".join(f"{float(x):g}" for x in given)
+                if isinstance(given, list | tuple)
+                else f"{float(given):g}"
+            )
+            out.append(f"--param {name}={shown} goes over {KNOWN_FILE}'s {json.dumps(noted)}")
+    return out
+
+
 def known_input(known: Mapping[str, Any]) -> dict[str, str]:
     """The field notes (:data:`KNOWN_FILE`) as a request's input fingerprint: the manifest
     keeps it, so that the season sees notes added or changed after a date's run."""

@@ -236,7 +236,14 @@ def process_season(
     the UI and its alerts fire (:func:`run_season` returns the record either way).
     """
     from flows.runners import make_task_runner
-    from flows.scene import prepare, reconstruct_scene, with_backend
+    from flows.scene import (
+        default_images_uri,
+        notes_overridden,
+        prepare,
+        read_known,
+        reconstruct_scene,
+        with_backend,
+    )
 
     log = get_run_logger()
     overrides = with_backend(overrides, surfaces_backend)
@@ -310,6 +317,13 @@ def process_season(
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
         else:  # its warnings, with its line: a 3-photo date read "Completed" like any other
             notes[date] = date_warnings(st, SceneKey(site, crop, date))
+        # the season's --param over a date's field notes: said (the breeder's count went quietly)
+        over = notes_overridden(
+            read_known(default_images_uri(st, SceneKey(site, crop, date)), crop), overrides
+        )
+        for line in over:
+            log.warning("%s/%s/%s: %s", site, crop, date, line)
+        notes[date] = over + notes.get(date, [])
     out: dict[str, Any] = {
         "scenes": scenes,
         "notes": {d: w for d, w in notes.items() if w},

@@ -484,7 +484,14 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     """``cropcraft run SITE/CROP/DATE [--images URI] [--poses URI]``."""
     from flows.runners import parse_runner
-    from flows.scene import cached_result, note_sources, prepare, run_scene
+    from flows.scene import (
+        cached_result,
+        note_sources,
+        notes_overridden,
+        prepare,
+        read_known,
+        run_scene,
+    )
 
     scene = _parse_scene(args.scene)
     overrides = overrides_of(args)
@@ -492,6 +499,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     req = prepare(
         scene.site, scene.crop, scene.date, args.images, args.poses, overrides, args.store
     )
+    for line in notes_overridden(read_known(req.images, scene.crop), overrides):
+        print(f"WARNING  {line}")
     hit = None if args.force else cached_result(req)
     if hit is not None:
         note_sources(req, args.images, args.poses)

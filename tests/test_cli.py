@@ -1095,3 +1095,18 @@ def test_status_of_a_scene_whose_run_record_is_unreadable_says_so(tmp_path, caps
     err = capsys.readouterr().err
     assert "manifest.json is not a valid manifest" in err and "no run recorded" not in err
     assert "the next run sets the record aside and serves what is cached" in err
+
+
+def test_a_param_over_the_field_notes_is_said():
+    """``--param leaf_length=1`` replaced known.json's measured 0.9 with no word anywhere
+    (session 91's maize season audit): the run and the season say so."""
+    from flows.scene import notes_overridden
+
+    known = {"num_nodes": 9, "leaf_length": 0.9}
+    assert notes_overridden(known, {"fit.box.leaf_length": 1.0}) == [
+        "--param leaf_length=1 goes over known.json's 0.9"
+    ]
+    assert notes_overridden(known, {"fit": {"box": {"num_nodes": [8.0, 11.0]}}}) == [
+        "--param num_nodes=8:11 goes over known.json's 9"
+    ]
+    assert notes_overridden(known, {"fit.box.num_nodes": 9.0, "fit.n_evals": 20}) == []
