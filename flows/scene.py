@@ -705,7 +705,13 @@ def _checked_request(
             )
     if known:
         notes = {f"fit.box.{k}": v for k, v in known.items()}
-        cfg = resolve_config(scene.crop, {**notes, **dict(overrides or {})})
+        try:
+            cfg = resolve_config(scene.crop, {**notes, **dict(overrides or {})})
+        except ConfigError as exc:  # the notes and the run's settings together (all fixed)
+            raise ConfigError(
+                f"{exc} (with the field notes in {uri.rstrip('/')}/{KNOWN_FILE}: "
+                f"{', '.join(f'{k}={json.dumps(v)}' for k, v in known.items())})"
+            ) from None
     return SceneRequest(scene, st.root, uri, poses_uri, cfg, inputs)
 
 

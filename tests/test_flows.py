@@ -1942,6 +1942,11 @@ def test_field_notes_beside_the_photos_are_the_fits_known_parameters(base_run, s
     assert season["rows"][0]["parameters_given"] == "num_nodes=6"
     mine = prepare("plotA", CROP, DATE, str(photos), None, {"fit.box.num_nodes": 7}, str(store))
     assert mine.config["fit"]["box"] == {"num_nodes": 7}
+    # notes and settings that fix every parameter: the notes are named beside the settings
+    rest = {f"fit.box.{p}": 1.0 for p in ("petiole_angle", "petiole_length", "leaf_length")}
+    rest["fit.box.internode_length"] = 1.0
+    with pytest.raises(ConfigError, match=r"nothing is left to fit \(with the field notes in "):
+        prepare("plotA", CROP, DATE, str(photos), None, rest, str(store))
     for text, message in (
         ("[6]", "known.json: must be a JSON object of soybean parameters"),
         ('{"nodes": 6}', "known.json: unknown soybean parameter 'nodes'"),
