@@ -412,8 +412,11 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"scene    {out['scene']}  (store {out['store']})")
     print(f"ran      {', '.join(ran) or '-'}")
     print(f"cached   {', '.join(cached) or '-'}")
+    from cropcraft_core.metrics.traits import HEADLINE_UNITS
+
     for k, v in out.get("metrics", {}).items():
-        print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
+        unit = f"  {HEADLINE_UNITS[k]}" if k in HEADLINE_UNITS else ""
+        print(f"  {k:<22} {v:.4g}{unit}" if isinstance(v, float) else f"  {k:<22} {v}{unit}")
     _print_fit_warnings(out)
     _print_coverage(out)
     _print_left_out(out)

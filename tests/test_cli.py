@@ -630,6 +630,8 @@ def test_run_and_demo_summaries_print_the_fits_warnings(capsys):
     printed = capsys.readouterr().out
     assert "WARNING  the camera height given (1.4 m) and the rows disagree" in printed
     assert "WARNING  the answer lies on the edge of the soybean parameter box" in printed
+    # each number with its unit (a bare "lai 4.198" beside no m2/m2: session 91's CLI audit)
+    assert "  lai                    1.2  m2/m2 (one-sided leaf area per ground area)" in printed
 
 
 def test_run_summary_names_the_photos_sfm_left_out_and_the_copies(capsys):

@@ -56,6 +56,22 @@ HEADLINE_TRAITS = (
 )
 
 
+#: The headline traits' units and meaning in a word, for console summaries (metrics.json's
+#: ``definitions`` have them all in full).
+HEADLINE_UNITS = {
+    "lai": "m2/m2 (one-sided leaf area per ground area)",
+    "lai_gap_fraction": "m2/m2 (as an LAI-2200 would read it)",
+    "leaf_angle_mean_deg": "deg from horizontal",
+    "leaf_angle_std_deg": "deg",
+    "node_count": "nodes per plant, main stem and branches (not num_nodes)",
+    "internode_mean_m": "m",
+    "plant_height_m": "m",
+    "n_plants": "plants in the plot",
+    "lai_seeds_min": "m2/m2 (lowest of the seeds' answers)",
+    "lai_seeds_max": "m2/m2 (highest of the seeds' answers)",
+}
+
+
 @dataclass(frozen=True)
 class Trait:
     """One measured quantity: ``value`` in ``unit``, obtained as ``method`` says.
