@@ -89,7 +89,7 @@ def add_param_option(p: argparse.ArgumentParser) -> None:
         metavar="NAME=VALUE|LOW:HIGH",
         help="what you know of a model parameter: a value is fixed, not fitted (e.g. "
         "num_nodes=9 counted in the field), LOW:HIGH narrows its search (repeatable; "
-        "= --set fit.box.NAME=...)",
+        "a scene's known.json notes hold the same)",
     )
 
 
