@@ -822,26 +822,37 @@ class _Stored:
     writing: tuple[str, ...] = ()
     """Folders of attempts that began and were never recorded (``Manifest.writing``): judged
     only where nothing settles them first (a cache walk; a run settles them at its start)."""
-    digest: Callable[[str], str | None] | None = None
-    """The sha256 of an object as the store holds it now (None where it cannot be read), for
-    a local store: a file cut short or edited by hand since its stage wrote it is recomputed,
-    not served. None on object storage, whose writes land whole (hashing there would fetch
-    every artefact of every cached stage)."""
+    damaged: Callable[[str, str], bool] | None = None
+    """Whether an object no longer holds the bytes of the sha256 its stage recorded (cut
+    short, edited by hand): such a record is recomputed, not served. On a local store every
+    artefact is hashed; on object storage, whose writes land whole, only the small text ones
+    a person or the season reads (metrics.json, fit.json, the report: a metrics.json edited
+    on the bucket was published), as hashing the rest would fetch every artefact of every
+    cached stage each night."""
+    local: bool = True
+    """Whether :attr:`damaged` sees every artefact (a local store): an unrecorded attempt's
+    folder is then judged by its files' bytes, not voided whole."""
 
 
-def _digests(store: SceneStore) -> Callable[[str], str | None]:
-    """:attr:`_Stored.digest` for ``store``: each key hashed once."""
+#: The artefacts object storage has re-hashed before a cached record is served.
+CHECKED_ON_OBJECT_STORAGE = (".json", ".html", ".csv", ".xml", ".txt")
+
+
+def _damage_check(store: SceneStore) -> Callable[[str, str], bool]:
+    """:attr:`_Stored.damaged` for ``store``: each key hashed once."""
     seen: dict[str, str | None] = {}
 
-    def digest(key: str) -> str | None:
+    def damaged(key: str, recorded: str) -> bool:
+        if not store._local and not key.endswith(CHECKED_ON_OBJECT_STORAGE):
+            return False
         if key not in seen:
             try:
                 seen[key] = store.sha256(key)
             except Exception:  # gone or unreadable: the listing's check, or the stage, says
                 seen[key] = None
-        return seen[key]
+        return seen[key] != recorded
 
-    return digest
+    return damaged
 
 
 def _stored(store: SceneStore, scene: SceneKey, *, pending: bool = False) -> _Stored:
@@ -858,7 +869,7 @@ def _stored(store: SceneStore, scene: SceneKey, *, pending: bool = False) -> _St
         present: frozenset[str] | None = frozenset(store.list(scene.prefix))
     except Exception:  # judged on ``written`` alone; the stage's own reads will say why
         present = None
-    return _Stored(written, present, writing, _digests(store) if store._local else None)
+    return _Stored(written, present, writing, _damage_check(store), store._local)
 
 
 def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
@@ -872,7 +883,7 @@ def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
     # an unrecorded attempt's folder: on object storage its records are not trusted; a local
     # store's files are hashed below instead (the seeds beside a killed aggregate's fit.json
     # stay served: their bytes say so)
-    if stored.digest is None and any(
+    if not stored.local and any(
         k.startswith(f"{folder}/") for k in hashes for folder in stored.writing
     ):
         return True
@@ -882,8 +893,8 @@ def _overwritten(stored: _Stored, rec: dict, scene: SceneKey) -> bool:
             return True
     if any(stored.written.get(k, h) != h for k, h in hashes.items()):
         return True
-    if stored.digest is not None:  # damaged in place (cut short, edited): recomputed
-        damaged = [k for k, h in hashes.items() if k.startswith(inside) and stored.digest(k) != h]
+    if stored.damaged is not None:  # damaged in place (cut short, edited): recomputed
+        damaged = [k for k, h in hashes.items() if k.startswith(inside) and stored.damaged(k, h)]
         if damaged:
             _log_damaged(damaged)
             return True

@@ -1303,6 +1303,13 @@ def test_store_and_results_on_s3(base_run, scene_dir, s3_server, monkeypatch):  
     results = fs.find(f"{s3_server.bucket}/flows/plotA/{CROP}/{DATE}/.prefect")
     assert any("/report/" in p for p in results) and any("/fit_seed/" in p for p in results)
     assert first["report"].startswith("s3://")
+    # a metrics.json edited on the bucket (LAI 99) was served and published by the season
+    # (session 91's S3 audit): its stage runs again and writes the answer back
+    key = f"{s3_server.bucket}/flows/plotA/{CROP}/{DATE}/metrics/metrics.json"
+    fs.pipe(key, b'{"lai": 99}')
+    third = _run("plotA", root, scene_dir)
+    assert "metrics" in _executed(third["states"])
+    assert json.loads(fs.cat(key))["lai"] == pytest.approx(first["metrics"]["lai"])
 
 
 def test_imported_poses_of_other_photos_are_named(prefect_harness, scene_dir, tmp_path):
