@@ -576,6 +576,17 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
     store = SceneStore(store_uri)  # read only: connect's probe created a mistyped store's folder
     if store._local and not store.fs.isdir(store._root_path):
         raise InputError(f"no store at {store.root}: check --store (or CROPCRAFT_STORE)")
+    if not store._local:  # a missing bucket read as a scene never run (session 91's S3 audit)
+        bucket = store._root_path.split("/", 1)[0]
+        try:
+            there = store.fs.exists(bucket)
+        except Exception as exc:
+            raise InputError(f"cannot read the store {store.root}: {exc}") from None
+        if not there:
+            raise InputError(
+                f"no store at {store.root}: its bucket {bucket!r} does not exist (check "
+                "--store or CROPCRAFT_STORE, and AWS_ENDPOINT_URL)"
+            )
     try:
         manifest = store.load_manifest(scene)
     except InputError:

@@ -602,12 +602,23 @@ def test_unreachable_endpoint_fails_fast_and_redacted(caplog):
     assert secret not in caplog.text
 
 
-def test_missing_bucket_is_a_store_error(s3_server):
+def test_missing_bucket_is_a_store_error(s3_server, monkeypatch):
     store = SceneStore("s3://no-such-bucket/p", storage_options=s3_server.storage_options())
     with pytest.raises(StoreError, match="bucket"):
         store.check_reachable()
     with pytest.raises(StoreError):
         store.put_bytes("a/b.bin", b"x")
+    # status named no bucket: an all-pending table and "no run recorded" (S3 audit 91)
+    from cropcraft_core.errors import InputError
+    from flows.service_cli import scene_status
+
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", s3_server.key)
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", s3_server.secret)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", s3_server.region)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", s3_server.endpoint)
+    with pytest.raises(InputError, match="its bucket 'no-such-bucket' does not exist"):
+        scene_status("s3://no-such-bucket/p", "plotA/soybean/2024-07-01")
+    assert scene_status(f"s3://{s3_server.bucket}/p", "plotA/soybean/2024-07-01")
 
 
 def test_unwritable_local_root(tmp_path):
