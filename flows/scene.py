@@ -1399,11 +1399,25 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
 
 
 def cached_result(req: SceneRequest) -> dict | None:
-    """The scene's summary if every stage is already cached for this request, else None.
+    """The scene's summary if every stage is already cached for this request, and the scene's
+    manifest records this request's run, else None (then the flow runs, serving the cached
+    stages and recording them: answered here after a failed run of other settings, the
+    manifest kept that failure, and status and the season said "failed").
 
     Reads the persisted stage records along the same keys the flow would compute, without
     starting Prefect.
     """
+    st = SceneStore(req.store_root)
+    try:
+        manifest = st.load_manifest(req.scene)
+    except InputError:
+        return None
+    if (
+        manifest.inputs != manifest_inputs(req.inputs)
+        or manifest.config_hash != config_hash(req.config)
+        or any(rec.status != "done" for rec in manifest.stages.values() if rec.status != "pending")
+    ):
+        return None
     walk = _CacheWalk(req)
     try:
         records = _wire(walk, req)

@@ -1161,6 +1161,35 @@ def dies_at(stage_name, real):
     return dies
 
 
+def test_an_answer_after_a_failed_run_of_other_settings_is_recorded(
+    base_run, scene_dir, monkeypatch
+):
+    """A run of other settings failed before it wrote anything; the earlier settings, all
+    cached still, were answered without a flow, and the manifest kept the failure: status and
+    the season said "failed" beside the answer (session 91's S3 audit). The flow answers
+    them, serving every stage from the cache and recording it."""
+    import tasks.fit_seed as fit_seed_module
+    from flows.scene import cache_walk, prepare
+
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected fault before any seed is written")
+
+    monkeypatch.setattr(fit_seed_module, "fit_seed", broken)
+    with pytest.raises(CropCraftError, match="fit seeds failed"):
+        _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.n_evals": 15})
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    assert store.load_manifest(scene).stages["fit_seed"].status == "failed"
+    images, poses = str(scene_dir / "images"), str(scene_dir / "transforms.json")
+    default = prepare("plotA", CROP, DATE, images, poses, OVERRIDES, str(base_run["store"]))
+    assert cache_walk(default)[1] is None and _cached(base_run["store"], scene_dir) is None
+    assert _executed(_run("plotA", base_run["store"], scene_dir)["states"]) == []
+    assert store.load_manifest(scene).stages["fit_seed"].status == "done"
+    assert _cached(base_run["store"], scene_dir) is not None
+
+
 def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, monkeypatch):
     import tasks.fit_seed as fit_seed_module
     from cropcraft_core.fit import FitConfig, fit_observation
@@ -1238,8 +1267,10 @@ def test_a_seeds_unreadable_checkpoint_is_set_aside_and_the_seed_starts_afresh(
     assert {"fit_seed-0", "fit_seed-1"} <= set(_executed(out["states"]))
     (ckpt,) = damaged
     assert not ckpt.exists()  # removed on success, as any finished seed's
-    (aside,) = ckpt.parent.glob(f"{ckpt.stem}.unreadable-*.json")
+    # the newest set aside (the checkpoint folder is the user's, kept between test runs)
+    aside = max(ckpt.parent.glob(f"{ckpt.stem}.unreadable-*.json"), key=lambda p: p.name)
     assert aside.read_text() == '{"X": [[0.5, 0.5'
+    assert time.time() - aside.stat().st_mtime < 600
 
 
 def _copy_without_late_results(src: Path, dst: Path) -> None:
