@@ -1845,14 +1845,17 @@ class SceneStore:
         """Dated folders of ``site``/``crop`` whose photos lie in the date's folder itself, not
         in its ``images/`` inbox (nor run from elsewhere): the season cannot see them as a
         scene, and says so rather than skip them unseen."""
+        from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
+
         prefix = f"{site}/{crop}"
-        photo = (".jpg", ".jpeg", ".png")
         out = []
         for name in self._children(prefix):
             if not _is_date(name) or self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
                 continue
             inside = self._children(f"{prefix}/{name}")
-            if MANIFEST_NAME not in inside and any(n.lower().endswith(photo) for n in inside):
+            if MANIFEST_NAME not in inside and any(
+                n.lower().endswith(IMAGE_EXTENSIONS) for n in inside
+            ):
                 out.append(name)
         return out
 

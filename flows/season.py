@@ -291,6 +291,7 @@ def process_season(
         )
         log.warning("%s", warnings[-1])
     scenes: dict[str, str] = {}
+    refused: dict[str, str] = {}  # dates refused before any work, and why
     notes: dict[str, list[str]] = {}
     failed = []
     sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
@@ -298,6 +299,7 @@ def process_season(
         try:
             prepare(site, crop, date, None, None, overrides, store)
         except CropCraftError as exc:
+            refused[date] = str(exc)
             scenes[date] = f"invalid: {exc}"
             failed.append(date)
             log.error("%s/%s/%s not run: %s", site, crop, date, exc)
@@ -334,9 +336,6 @@ def process_season(
         "warnings": warnings,
     }
     try:
-        refused = {
-            d: s.removeprefix("invalid: ") for d, s in scenes.items() if s.startswith("invalid: ")
-        }
         summary = write_summary(st, site, crop, refused)
         out.update(csv=summary["csv"], png=summary["png"])
     except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named

@@ -518,24 +518,11 @@ def _photos_below(uri: str, depth: int = 3) -> list[str]:
     JPEG/PNG photos: a camera's card copied whole keeps them in ``DCIM/100MEDIA`` (and
     ``101MEDIA`` after 999 photos), and only the folder itself is read. [] where there is
     none (or it cannot be listed)."""
-    from fsspec.core import url_to_fs
+    from cropcraft_core.sfm.ingest import photos_below
 
-    from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
-
-    try:
-        fs, path = url_to_fs(os.fspath(uri))
-        root = str(path).rstrip("/")
-        found = sorted(fs.find(path, maxdepth=depth))
-    except Exception:
-        return []
-    folders = []
-    for name in found:
-        rel = str(name)[len(root) + 1 :]
-        if "/" in rel and rel.lower().endswith(IMAGE_EXTENSIONS):
-            folder = rel.rsplit("/", 1)[0]
-            if folder not in folders and not folder.startswith("."):
-                folders.append(folder)
-    return folders
+    # photos ``depth`` levels below ``uri`` lie ``depth - 1`` below its subfolders
+    found = photos_below(uri, depth - 1)
+    return list(dict.fromkeys(rel.rsplit("/", 1)[0] for rel in found))
 
 
 def named_ply(fs: Any, path: str, text: str | bytes | None = None) -> tuple[str, str] | None:

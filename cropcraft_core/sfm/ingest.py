@@ -179,6 +179,16 @@ def photos_in_subfolders(fs, root: str, folders: list[str], depth: int = 3) -> l
     return sorted(out)
 
 
+def photos_below(source: str | os.PathLike, depth: int = 3) -> list[str]:
+    """:func:`photos_in_subfolders` of the folder or fsspec URL ``source`` (subfolders ``depth``
+    levels deep); [] where it cannot be listed."""
+    try:
+        fs, _, root, folders = _list_source(os.fspath(source))
+    except Exception:  # a hint's helper: the caller's own error stands
+        return []
+    return photos_in_subfolders(fs, root, folders, depth)
+
+
 def is_listed_file(fs, info: dict) -> bool:
     """Whether a listing's entry is a file to read: a file, or a link to one (fsspec lists a
     local symlink as type ``other``, and photos linked into a folder are common: a folder of
