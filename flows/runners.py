@@ -12,6 +12,7 @@ import copy
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -113,10 +114,12 @@ class LocalProcessPool(ProcessPoolTaskRunner):
         self._initializer = _init_worker
         self._initargs = (_flow_api_url(), self._progress_queue)
         try:
-            return super().__enter__()
+            super().__enter__()
         except BaseException:
             self._stop_relay()
             raise
+        self._executor = _TasksInterruptible(self._executor)
+        return self
 
     def __exit__(self, *exc: Any) -> None:
         try:
@@ -136,15 +139,61 @@ class LocalProcessPool(ProcessPoolTaskRunner):
         self._progress_queue = None
 
 
+class TaskInterrupted(Exception):
+    """A task that Ctrl-C stopped in a :class:`LocalProcessPool` worker, as the flow's process
+    receives it (:func:`_interruptible`)."""
+
+
+class _TasksInterruptible:
+    """The pool's executor, each task submitted through :func:`_interruptible`."""
+
+    def __init__(self, executor: Any) -> None:
+        self._executor = executor
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+        return self._executor.submit(_interruptible, fn, *args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._executor, name)
+
+
+def _interruptible(fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+    """Run one task in a pool worker: Ctrl-C (the terminal's SIGINT, which reaches the
+    workers too) stops the task with ``KeyboardInterrupt``, whose crash Prefect records, and
+    the flow's process gets it back as :class:`TaskInterrupted`, an Exception. A
+    ``KeyboardInterrupt`` sent back as such escaped Prefect's result callback in the flow's
+    process and killed the pool's manager thread (a traceback on the console); the pool's
+    workers were then never told to exit, and the command hung at exit until its 15 s
+    deadline ended it by force (session 91's CLI audit). Between tasks a worker ignores SIGINT
+    (:func:`_init_worker`): an idle worker's ``KeyboardInterrupt`` broke the pool. Where the
+    worker started with SIGINT ignored (a background job), it stays ignored."""
+    main = threading.current_thread() is threading.main_thread()
+    if _SIGINT_AT_START is signal.SIG_IGN or not main:
+        return fn(*args, **kwargs)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise TaskInterrupted("interrupted (Ctrl-C)") from None
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 _IN_WORKER = False
+#: A :class:`LocalProcessPool` worker's SIGINT handling as the worker started.
+_SIGINT_AT_START: Any = None
 
 
 def _init_worker(api_url: str | None, progress_queue: Any) -> None:
-    """A :class:`LocalProcessPool` worker's set-up: the flow's API, progress into the queue."""
-    global _IN_WORKER
+    """A :class:`LocalProcessPool` worker's set-up: the flow's API, progress into the queue,
+    SIGINT ignored between tasks (:func:`_interruptible`)."""
+    global _IN_WORKER, _SIGINT_AT_START
     from tasks.common import set_progress_sink
 
     _IN_WORKER = True
+    _SIGINT_AT_START = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if api_url:
         os.environ["PREFECT_API_URL"] = api_url
 
@@ -158,18 +207,20 @@ def named_errors_in_one_line() -> Callable[[], None]:
     photo, a failed SfM, a busy scene) print on this process's console as its one line,
     without Prefect's traceback; returns the undo. A CLI user read ~90 lines of Prefect's own
     frames (the task's record, then the flow's) before the command's one-line error, which
-    says it all. Any other exception (a defect) keeps its traceback on the console, and the
-    Prefect API (the UI) gets every traceback: the record is shortened for the console's
-    formatting only."""
+    says it all. So are Ctrl-C's records (``KeyboardInterrupt``, :class:`TaskInterrupted`):
+    the command says "interrupted". Any other exception (a defect) keeps its traceback on the
+    console, and the Prefect API (the UI) gets every traceback: the record is shortened for
+    the console's formatting only."""
     from prefect.logging.handlers import PrefectConsoleHandler
 
     from cropcraft_core.errors import CropCraftError
 
+    quiet = (CropCraftError, KeyboardInterrupt, TaskInterrupted)
     handlers = [h for h in logging.getLogger().handlers if isinstance(h, PrefectConsoleHandler)]
     for h in handlers:
 
         def fmt(record: logging.LogRecord, plain: Callable = h.format) -> str:
-            if record.exc_info and isinstance(record.exc_info[1], CropCraftError):
+            if record.exc_info and isinstance(record.exc_info[1], quiet):
                 record = copy.copy(record)
                 record.exc_info = record.exc_text = record.stack_info = None
             return plain(record)
@@ -228,3 +279,66 @@ def _flow_api_url() -> str | None:
     except Exception:  # no API at all: the workers do as they would have
         return None
     return url if url.startswith(("http://", "https://")) and "//ephem" not in url else None
+
+
+#: What the temporary server's process runs in place of ``python -m uvicorn ARGS``
+#: (:func:`keep_temporary_server_apart`): it asks the kernel to end it (SIGTERM, which uvicorn
+#: handles) when the command that started it dies, by any signal, SIGKILL and the OOM killer
+#: included; argv[1] is that command's pid, checked after the request so that a command killed
+#: before it leaves no server either.
+_SERVER_LAUNCH = (
+    "import ctypes, os, runpy, signal, sys\n"
+    "ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))\n"  # PR_SET_PDEATHSIG
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    sys.exit(0)\n"
+    "sys.argv = ['uvicorn', *sys.argv[2:]]\n"
+    "runpy.run_module('uvicorn', run_name='__main__', alter_sys=True)\n"
+)
+
+
+def keep_temporary_server_apart() -> None:
+    """Have the temporary Prefect API server that a flow run without ``PREFECT_API_URL``
+    starts run in a session of its own, ended with the command.
+
+    A terminal's Ctrl-C reaches its whole foreground process group: it stopped that server at
+    once, and the flow's crash handling then retried the dead server (measured: the main
+    thread in ``set_flow_run_state``'s connection retries) until ``cropcraft``'s 15 s deadline
+    ended the command by force (session 91's CLI audit). Apart, the server records the
+    interrupted run, the flow returns, and Prefect stops the server at exit
+    (:func:`flows.cli.end_children` on the forced path); the kernel ends it should the command
+    die without either (:data:`_SERVER_LAUNCH`). Prefect's clients take the one server instance
+    Prefect keeps for "no port given": this registers ours there, unstarted, so a command that
+    answers from the cache starts none. Prefect starts it from the flow's (main) thread, whose
+    end is the process's. Linux only (``prctl``); elsewhere, or where a server is already made,
+    nothing changes.
+    """
+    import subprocess
+    import sys
+
+    from prefect.server.api import server as prefect_server
+
+    base = prefect_server.SubprocessASGIServer
+    if not sys.platform.startswith("linux") or None in base._instances:
+        return
+
+    class ServerApart(base):
+        def _run_uvicorn_command(self) -> Any:
+            # Prefect's own command line, launched apart: its module's `subprocess` is
+            # swapped for the call only (the server starts before any pool or thread spawns)
+            def popen(args: Any, **kwargs: Any) -> subprocess.Popen:
+                cmd = list(args)
+                if cmd[1:3] == ["-m", "uvicorn"]:
+                    cmd = [cmd[0], "-c", _SERVER_LAUNCH, str(os.getpid()), *cmd[3:]]
+                return subprocess.Popen(cmd, start_new_session=True, **kwargs)
+
+            class Apart:
+                def __getattr__(self, name: str) -> Any:
+                    return popen if name == "Popen" else getattr(subprocess, name)
+
+            prefect_server.subprocess = Apart()
+            try:
+                return super()._run_uvicorn_command()
+            finally:
+                prefect_server.subprocess = subprocess
+
+    ServerApart()  # Prefect's SubprocessASGIServer() now returns this instance

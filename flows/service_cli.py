@@ -373,12 +373,16 @@ def _named_errors_in_one_line():
 
 def _before_flow_run() -> None:
     """What a command does before it starts a flow run: the Prefect server it would report to
-    checked (:func:`check_prefect_api`), and Prefect's INFO logging off the console of
+    checked (:func:`check_prefect_api`), Prefect's INFO logging off the console of
     processes started from here on (the ``processes`` runner's workers; this process
     configured its logging when Prefect loaded, and :func:`run_progress` quiets its task
-    runs)."""
+    runs), and a temporary server, where one is needed, kept out of Ctrl-C's reach
+    (:func:`flows.runners.keep_temporary_server_apart`)."""
     check_prefect_api()
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    from flows.runners import keep_temporary_server_apart
+
+    keep_temporary_server_apart()
 
 
 def check_prefect_api() -> None:

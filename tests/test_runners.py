@@ -101,3 +101,99 @@ def test_the_cli_names_the_flows_default_runner():
     parser = argparse.ArgumentParser()
     _add_common(parser)
     assert parser.parse_args([]).runner == DEFAULT_RUNNER
+
+
+_NAP_FLOW = """
+import os, sys, time
+from prefect import flow, task
+from flows.runners import LocalProcessPool
+
+
+@task
+def nap(seconds: float) -> float:
+    open(os.environ["NAP_STARTED"], "w").close()
+    time.sleep(seconds)
+    return seconds
+
+
+@flow(task_runner=LocalProcessPool(max_workers=2))
+def napping(seconds: float) -> float:
+    return nap.submit(seconds).result()
+"""
+
+_NAP_COMMAND = """
+import signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's foreground job
+from flows.cli import interrupt_deadline
+from flows.service_cli import _before_flow_run, _named_errors_in_one_line
+import napflow
+if __name__ == "__main__":
+    _before_flow_run()
+    try:
+        with interrupt_deadline(grace_s=60), _named_errors_in_one_line():
+            napflow.napping(300)
+    except KeyboardInterrupt:
+        print("cropcraft: interrupted", file=sys.stderr)
+        sys.exit(130)
+"""
+
+
+def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
+    """Ctrl-C during a stage of ``cropcraft run`` (SIGINT to the terminal's whole foreground
+    group) printed 115–151 lines holding 4–5 tracebacks and ended only by the 15 s forced
+    path (session 91's CLI audit): the same Ctrl-C had stopped Prefect's temporary server, so
+    the flow's crash handling retried it, and the task's ``KeyboardInterrupt`` from a pool
+    worker killed the pool's manager thread, whose other worker then held the exit. Now the
+    server, apart from the group, records the crash; the worker hands the interrupt back as
+    an Exception; the command ends in seconds, no traceback, no process left."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import psutil
+
+    (tmp_path / "napflow.py").write_text(_NAP_FLOW)
+    (tmp_path / "run.py").write_text(_NAP_COMMAND)
+    root = Path(__file__).resolve().parents[1]
+    started = tmp_path / "started"
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}  # a temporary server
+    env.update(
+        PYTHONPATH=os.pathsep.join([str(tmp_path), str(root)]),
+        NAP_STARTED=str(started),
+        PREFECT_HOME=str(tmp_path / "prefect"),
+        PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(tmp_path / "run.py")],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own group, as a terminal's job
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while not started.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        family = psutil.Process(proc.pid).children(recursive=True)
+        server = [p for p in family if "prefect.server.api.server" in " ".join(p.cmdline())]
+        assert len(server) == 1 and os.getsid(server[0].pid) == server[0].pid  # apart
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)  # what the terminal does on Ctrl-C
+        _, err = proc.communicate(timeout=60)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert elapsed < 10, (elapsed, err)  # before: 20 s, the forced path
+    assert "Traceback" not in err and "ending its processes" not in err, err
+    assert "Finished in state Crashed" in err, err  # the server was there to record it
+    assert "cropcraft: interrupted" in err and len(err.strip().splitlines()) <= 12, err
+    time.sleep(1)
+    left = [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert not left, [p.cmdline() for p in left]
