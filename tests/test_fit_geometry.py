@@ -150,6 +150,13 @@ def test_georeferenced_coordinates_in_single_precision_are_refused(tmp_path):
         load_geometry(tmp_path / "utm_be.ply")
     # as text (ASCII PLY), the digits are all there: read in double precision
     assert len(load_geometry(_write_points(tmp_path / "utm.txt.ply", pts)).points) >= 500
+    # one empty return stored as inf in a local-frame cloud is no survey (session 92's audit:
+    # "reach inf ... a georeferenced survey?"); it is dropped as a NaN is
+    local = (pts - [500_000.0, 4_000_000.0, 0.0]).astype("<f4")
+    local[7, 0] = np.inf
+    (tmp_path / "inf.ply").write_bytes(head.encode() + local.tobytes())
+    geo = load_geometry(tmp_path / "inf.ply")
+    assert geo.meta["dropped_non_finite"] == 1 and np.isfinite(geo.points).all()
 
 
 def test_a_cloud_in_feet_is_named_by_its_row_spacing(canopy_ply):

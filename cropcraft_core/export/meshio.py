@@ -529,9 +529,9 @@ def read_geometry(path: PathLike, empty_faces_as_points: bool = True) -> CanopyM
     ]
     xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
     if single:
-        reach = float(
-            np.nanmax(np.abs(xyz[:, [("x", "y", "z").index(k) for k in single]]), initial=0)
-        )
+        stored = np.abs(xyz[:, [("x", "y", "z").index(k) for k in single]])
+        # finite values only: an inf (a scanner's empty return, as NaN is) is not a reach
+        reach = float(np.max(stored, where=np.isfinite(stored), initial=0))
         if reach > FLOAT32_REACH_M:
             step = float(np.spacing(np.float32(reach)))
             raise InputError(
