@@ -169,8 +169,21 @@ def test_a_cloud_in_feet_is_named_by_its_row_spacing(canopy_ply):
     said = geometry_warnings(obs.meta)
     assert any("is the geometry in metres" in w for w in said), said
     obs, _ = observe_geometry(geo, "soybean")
-    assert not any("metres" in w for w in geometry_warnings(obs.meta))
+    assert not any("metres" in w or "spacing" in w for w in geometry_warnings(obs.meta))
     assert obs.meta["row_spacing_measured_m"] == pytest.approx(0.76, rel=0.15)
+
+
+def test_a_single_row_says_its_spacing_is_assumed(tmp_path):
+    """One planted row fitted with no word (session 92's geometry audit: LAI +58 %): its
+    spacing cannot be measured, and the fit's canopy puts the layout's rows beside it."""
+    from cropcraft_core.fit.geometry import geometry_warnings
+
+    argv = ["generate", "soybean", "--seed", "1", "--plot", "0.76,2", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    obs, _ = observe_geometry(load_geometry(tmp_path / "canopy.ply"), "soybean")
+    said = geometry_warnings(obs.meta)
+    assert any("shows one row, so the row spacing could not be measured" in w for w in said)
+    assert "row_spacing_measured_m" not in obs.meta
 
 
 def test_an_uncoloured_scan_upside_down_is_named(canopy_ply, tmp_path):

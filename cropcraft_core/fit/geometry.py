@@ -241,7 +241,8 @@ def _spacing_check(rowfit, expected: float) -> dict:
     ``expected`` (the row fit's own window, 0.6-1.6 times it); where none lies within
     :data:`SPACING_TOLERANCE` of it, the period over a wide window (0.3-4 times), named when
     that is off too. (The wide window alone picks a multiple of the true period on a small
-    plot: 2.29 m for rows 0.76 m apart.) {} where the rows show no period (one row)."""
+    plot: 2.29 m for rows 0.76 m apart.) Where the rows show no period (one row), a warning
+    that the layout's spacing is assumed."""
     from cropcraft_core.rowfit.fit import estimate_scale_from_rows
 
     def measured(search=(0.6, 1.6)) -> float | None:
@@ -256,8 +257,16 @@ def _spacing_check(rowfit, expected: float) -> dict:
     if near is not None and not off(near):
         return {"row_spacing_measured_m": round(near, 4)}
     wide = measured((0.3, 4.0))
-    if wide is None:
-        return {}
+    if wide is None:  # one row (session 92's audit: LAI +58 % with no word) or no regular rows
+        what = "one row" if rowfit.parallel_rows() <= 1 else "no regular rows"
+        return {
+            "spacing_warning": (
+                f"the geometry shows {what}, so the row spacing could not be measured: the "
+                f"fit's canopy has rows the layout's {expected:.3g} m apart, beside this one "
+                "too; if its rows are otherwise, give --row-spacing (a row standing alone is "
+                "not the canopy the model builds)"
+            )
+        }
     out = {"row_spacing_measured_m": round(wide, 4)}
     if off(wide):
         out["spacing_warning"] = (
