@@ -45,7 +45,7 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
             by_source.setdefault(d["source"], kept)
             by_stem.setdefault(PurePosixPath(d["source"]).stem, kept)
     ingested = {im["name"]: im for im in manifest["images"]}
-    views, missing, dist = [], [], {}
+    views, missing, dist, unlike = [], [], {}, []
     for name, cam in poses:
         new = by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
         if new is None:
@@ -79,14 +79,19 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
                 cy=cam.cy * sy,
             )
         elif (cam.width, cam.height) != size:
-            raise InputError(
-                f"{where} gives {name} as {cam.width}x{cam.height} pixels, but the photo "
-                f"{im['source']} is {im['source_width']}x{im['source_height']} upright: poses "
-                "of other (rotated or cropped?) photos"
+            unlike.append(
+                f"{name} as {cam.width}x{cam.height} pixels, but the photo {im['source']} is "
+                f"{im['source_width']}x{im['source_height']} upright"
             )
+            continue
         views.append((new, cam))
         if lens_of:
             dist[new] = lens_of
+    if unlike:  # every one named at once, not one a rerun (session 92's photos audit)
+        more = f" (and {len(unlike) - 1} more: {'; '.join(unlike[1:])})" if len(unlike) > 1 else ""
+        raise InputError(
+            f"{where} gives {unlike[0]}{more}: poses of other (rotated or cropped?) photos"
+        )
     if len(views) < 3:
         raise InputError(
             f"the imported poses name {len(poses)} images but only {len(views)} of them were "

@@ -278,6 +278,9 @@ def test_imported_poses_follow_the_photos_as_ingested():
     )
     with pytest.raises(InputError, match=r"as 80x70 pixels, but the photo IMG_0.JPG is 320x240"):
         _rename_to_ingested(cropped, {"images": images}, "poses.json")
+    # every such photo named at once, not one a rerun (session 92's photos audit)
+    with pytest.raises(InputError, match=r"IMG_0.JPG is 320x240 upright \(and 2 more: IMG_1"):
+        _rename_to_ingested(cropped, {"images": images}, "poses.json")
     # a Finder copy ("IMG_1 copy.JPG") sorted first and was kept, the posed original dropped
     # as its duplicate: the original's pose is the copy's (session 91's ingest audit)
     copied = [*images[:1], {**images[1], "name": "IMG_1 copy.png", "source": "IMG_1 copy.JPG"}]
