@@ -1015,3 +1015,20 @@ def test_a_drone_capture_filed_under_the_wrong_crop_is_told_where_its_ground_wen
     )
     with pytest.raises(CropCraftError, match=hint):
         surfaces.fn(root, "plotM/soybean/2024-07-01", {"bbox": "auto"}, recs["soybean"])
+
+
+def test_photos_of_one_size_through_two_lenses_get_a_camera_each():
+    """Two phones of the same resolution (or a phone's main and telephoto cameras) shared one
+    SfM camera started at the median of both focal lengths, 25 % off each (session 92's photos
+    audit): split by lens where their EXIF focal lengths part by over LENS_RATIO; one lens's
+    jitter stays one camera, and photos without EXIF join the one lens there is."""
+    from cropcraft_core.sfm.poses import _by_lens
+
+    names = [f"v{i}.jpg" for i in range(6)]
+    two = {n: (258.9 if i % 2 == 0 else 388.3) for i, n in enumerate(names)}
+    assert _by_lens(names, two) == [names[0::2], names[1::2]]
+    jitter = {n: 300.0 * (1 + 0.01 * i) for i, n in enumerate(names[:5])}
+    assert _by_lens(names, jitter) == [names]  # v5 has none: it joins
+    del two["v5.jpg"]
+    assert _by_lens(names, two) == [names[0::2], ["v1.jpg", "v3.jpg"], ["v5.jpg"]]
+    assert _by_lens(names, None) == [names] == _by_lens(names, {})

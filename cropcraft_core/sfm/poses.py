@@ -715,6 +715,38 @@ def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
     return sorted(out)
 
 
+#: Photos of one size whose EXIF focal lengths differ by more than this factor were taken
+#: through different lenses (a phone's main and telephoto cameras, two phones): one camera
+#: each. Within it, one lens (a phone's own focal length written with jitter, a zoom nudged).
+LENS_RATIO = 1.1
+
+
+def _by_lens(group: list[str], focal_priors: dict[str, float] | None) -> list[list[str]]:
+    """``group`` (photos of one size) split by lens: runs of their known focal lengths, sorted,
+    each step within :data:`LENS_RATIO`. Two phones of the same resolution shared one camera
+    that started at the median of both lenses, 25 % off each (session 92's photos audit).
+    Photos without a known focal length join the lens where there is one, else form their own
+    group (no prior)."""
+    known = sorted(
+        (float(focal_priors[n]), n) for n in group if focal_priors and focal_priors.get(n)
+    )
+    if not known:
+        return [group]
+    lenses: list[list[str]] = [[known[0][1]]]
+    for (before, _), (f, name) in zip(known, known[1:], strict=False):
+        if f > LENS_RATIO * before:
+            lenses.append([])
+        lenses[-1].append(name)
+    unknown = [n for n in group if n not in {name for _, name in known}]
+    if unknown:
+        if len(lenses) == 1:
+            lenses[0].extend(unknown)
+        else:
+            lenses.append(unknown)
+    order = {n: i for i, n in enumerate(group)}
+    return [sorted(lens, key=order.__getitem__) for lens in lenses]
+
+
 def run_sfm(
     image_dir: str | os.PathLike,
     work_dir: str | os.PathLike,
@@ -747,7 +779,8 @@ def run_sfm(
     the model with the most registered images is kept and written as a text model to
     ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
     longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images
-    of a size (photos of two sizes, portrait and landscape shots, get one camera each).
+    of a size and lens (photos of two sizes, portrait and landscape shots, get one camera each;
+    so do photos of one size whose EXIF focal lengths differ by more than ``LENS_RATIO``).
     ``focal_length_px``: prior focal length (e.g. from a calibration or EXIF), still refined by
     bundle adjustment; without it COLMAP starts at 1.2 × the longer side, which a short capture
     may not recover from. ``focal_priors``: per image name (ingest's ``focal_px``, from EXIF),
@@ -810,7 +843,11 @@ def run_sfm(
         by_size: dict[tuple[int, int], list[str]] = {}
         for name in names:
             by_size.setdefault(_image_size(Path(image_dir) / name), []).append(name)
-        groups = list(by_size.items())
+        groups = [
+            (size, lens)
+            for size, group in by_size.items()
+            for lens in _by_lens(group, None if focal_length_px is not None else focal_priors)
+        ]
 
     priors: dict[str, float] = {}
 
