@@ -173,6 +173,22 @@ def test_a_cloud_in_feet_is_named_by_its_row_spacing(canopy_ply):
     assert obs.meta["row_spacing_measured_m"] == pytest.approx(0.76, rel=0.15)
 
 
+def test_a_geometry_in_centimetres_or_millimetres_is_named_before_the_fit(canopy_ply):
+    """A cloud in centimetres fitted for 93 s and then failed blaming --plot and --density; in
+    millimetres it read "no rows found" (session 92's geometry audit)."""
+    from cropcraft_core.fit.geometry import Geometry
+
+    geo = load_geometry(canopy_ply, n_points=50_000)
+    for factor, unit in ((100, "centimetres"), (1000, "millimetres")):
+        scaled = Geometry(None, geo.points * factor, geo.colors, dict(geo.meta, kind="points"))
+        with pytest.raises(InputError, match=f"(?i)is it in metres.*in {unit}[a-z ]* 0.5"):
+            observe_geometry(scaled, "soybean")
+    tall = Geometry(None, geo.points * 6, geo.colors, dict(geo.meta, kind="points"))  # 3.4 m
+    with pytest.raises(InputError, match="a soybean canopy can \\(or is it maize\\?\\)"):
+        observe_geometry(tall, "soybean")
+    observe_geometry(tall, "maize")  # a maize canopy may stand that tall
+
+
 def test_a_single_row_says_its_spacing_is_assumed(tmp_path):
     """One planted row fitted with no word (session 92's geometry audit: LAI +58 %): its
     spacing cannot be measured, and the fit's canopy puts the layout's rows beside it."""

@@ -221,6 +221,7 @@ def observe_geometry(
     from cropcraft_core.rowfit import preset as rowfit_preset
 
     geo = source if isinstance(source, Geometry) else load_geometry(source, n_points, seed)
+    _check_height(geo, crop)
     # the paper's scene boxes are in NeRF units; a metric geometry is used whole
     rp = rowfit_preset(crop, box_center=None, box_size=None, row_spacing=row_spacing)
     rowfit = fit_ground_and_rows(geo.points, geo.colors, crop, preset=rp, rng=seed)
@@ -229,6 +230,32 @@ def observe_geometry(
     spacing = _spacing_check(rowfit, row_spacing or default_layout(crop).row_spacing)
     obs = _observe(geo, rowfit, crop, rowfit.camera, preset_overrides, row_spacing, **spacing)
     return obs, rowfit
+
+
+#: The tallest a geometry of each crop stands (metres, from its lowest points, the 0.1th height
+#: percentile, to its 99.5th): the model's tallest canopies stand 1.85 m (soybean) and 3.2 m
+#: (maize), with room for a plot's slope. A geometry in centimetres fitted for 93 s and then
+#: failed blaming --plot and --density, one in millimetres as "no rows found" (session 92's
+#: geometry audit).
+MAX_STANDING_M = {"soybean": 3.0, "maize": 6.0}
+
+
+def _check_height(geo: Geometry, crop: str) -> None:
+    """InputError where ``geo`` stands taller than :data:`MAX_STANDING_M` allows its crop:
+    not metres, not z up, or something tall in the scan."""
+    z = geo.points[:, 2]
+    low, high = np.percentile(z, [GROUND_PERCENTILE, 99.5])
+    tall, most = float(high - low), MAX_STANDING_M.get(crop)
+    if most is None or tall <= most:
+        return
+    other = " (or is it maize?)" if crop == "soybean" and tall <= MAX_STANDING_M["maize"] else ""
+    raise InputError(
+        f"{geo.meta.get('source', 'the geometry')}: it stands {tall:,.4g} units tall (from its "
+        f"lowest points to its 99.5th height percentile), more than the {most:g} m a {crop} "
+        f"canopy can{other}: is it in metres, and z up? In centimetres it would stand "
+        f"{tall / 100:.3g} m, in millimetres {tall / 1000:.3g} m: scale it to metres (or "
+        "turn it z up, or crop a tall object out of it) first"
+    )
 
 
 #: A geometry's measured row spacing this far (relative) from the layout's is named: its units
