@@ -731,8 +731,11 @@ def test_sfm_of_two_captures_that_share_nothing_names_their_separate_models(tmp_
             shutil.copy(p, both / f"{tag}_{p.name}")
     noise = np.random.default_rng(1).integers(0, 255, (120, 160, 3), dtype=np.uint8)
     Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(both / "z_noise.png")
-    with pytest.raises(SfmError, match=r"built 2 separate models \(8, 8 images\) that share"):
+    with pytest.raises(SfmError, match=r"built 2 separate models \(8, 8 images\) that share") as e:
         run_sfm(both, tmp_path / "work", num_threads=2)
+    # a photo in neither model is named as such (session 92's photos audit: 19 of 24 in none
+    # read as two parts that do not overlap)
+    assert "and 1 are in none (z_noise.png): the photos of one part do not" in str(e.value)
 
 
 def test_sfm_small_scene(tmp_path):

@@ -974,14 +974,25 @@ def run_sfm(
         if len(sizes) > 1 and sum(sizes) > len(poses):
             # every photo may be registered, in models that share no verified match (a drone's
             # flight lines with too little side overlap): naming the others "not registered"
-            # sent users looking for bad photos
+            # sent users looking for bad photos. Those in no model at all are named, and where
+            # they are most, the photos share too few features (session 92's photos audit: 19
+            # of 24 in none read "the photos of one part do not overlap the others'")
+            placed = set().union(*(_poses_from_reconstruction(r).names for r in models.values()))
+            nowhere = [n for n in unregistered if n not in placed]
+            listed = f"{', '.join(nowhere[:10])}{' ...' if len(nowhere) > 10 else ''}"
+            why = (
+                "the images share too few matching features (too little overlap or texture?)"
+                if 2 * len(nowhere) > len(names)
+                else "the photos of one part do not overlap the others' enough (a drone's "
+                "flight lines closer together, or more photos)"
+            )
             raise SfmError(
                 f"structure from motion on {len(names)} images in {image_dir} built "
                 f"{len(sizes)} separate models ({', '.join(map(str, sizes))} images) that share "
                 f"no verified matches; the largest holds {100 * frac:.0f} % of them (need "
-                f"{100 * min_registered_fraction:.0f} %): the photos of one part do not "
-                "overlap the others' enough (a drone's flight lines closer together, or more "
-                "photos)"
+                f"{100 * min_registered_fraction:.0f} %)"
+                + (f", and {len(nowhere)} are in none ({listed})" if nowhere else "")
+                + f": {why}"
             )
         raise SfmError(
             f"structure from motion registered only {len(poses)} of {len(names)} images "
