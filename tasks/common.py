@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 import threading
 import time
@@ -386,9 +387,56 @@ def key_of(record: Mapping[str, Any], name: str) -> str:
 
 @contextlib.contextmanager
 def workdir(prefix: str) -> Iterator[Path]:
-    """A private local scratch folder for tools that need real files; removed afterwards."""
-    with tempfile.TemporaryDirectory(prefix=f"cropcraft-{prefix}-") as d:
+    """A private local scratch folder for tools that need real files; removed afterwards.
+
+    Its name carries this process's pid and host (``cropcraft-export@PID.HOST-…``): a stage
+    whose process was ended without unwinding (a deployment's run cancelled from Prefect, a
+    worker killed) left it behind, 40 MB an export (session 92's deployment audit), and no
+    later run removed it. Each new one first sweeps such folders of this host whose process
+    is gone (:func:`sweep_scratch`)."""
+    sweep_scratch()
+    owner = f"{os.getpid()}.{_host_tag()}"
+    with tempfile.TemporaryDirectory(prefix=f"cropcraft-{prefix}@{owner}-") as d:
         yield Path(d)
+
+
+_SCRATCH_NAME = re.compile(r"^cropcraft-\w+@(\d+)\.([0-9a-f]{8})-")
+
+
+def _host_tag() -> str:
+    import hashlib
+    import socket
+
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def sweep_scratch(base: str | Path | None = None) -> list[str]:
+    """Remove the scratch folders (:func:`workdir`) in ``base`` (the temp folder) that a
+    process of this host made and that process is gone; returns their paths. A folder of a
+    live process, another host's, or one this user cannot remove stays."""
+    import shutil
+
+    base = Path(base or tempfile.gettempdir())
+    host, gone = _host_tag(), []
+    try:
+        entries = list(os.scandir(base))
+    except OSError:
+        return gone
+    for entry in entries:
+        m = _SCRATCH_NAME.match(entry.name)
+        if not m or m.group(2) != host or not entry.is_dir(follow_symlinks=False):
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+            continue  # alive
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError):  # another user's live process
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        if not os.path.exists(entry.path):
+            gone.append(entry.path)
+    return gone
 
 
 def checkpoint_dir() -> Path:

@@ -817,3 +817,46 @@ def test_a_deleted_manifest_is_replaced_from_the_files_there(store):
     now = store.put_json(fit, {"a": 2})  # another run's answer ...
     store.delete(f"{scene_prefix(SCENE)}/manifest.json")  # ... and the manifest gone
     assert store.init_manifest(SCENE, {}, {"a": 1}).written == {fit: now}
+
+
+def test_a_killed_stage_leaves_no_scratch_for_long(tmp_path, monkeypatch):
+    """A deployment's run cancelled from Prefect ends its stage's process without unwinding:
+    its scratch folder stayed in the worker's temp folder for good (40 MB an export; session
+    92's deployment audit). The next stage's scratch sweeps those of dead processes of this
+    host, and only those."""
+    import os
+    import signal
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from tasks.common import _host_tag, sweep_scratch, workdir
+
+    code = (
+        "import sys, time\n"
+        "from tasks.common import workdir\n"
+        "with workdir('export') as d:\n"
+        "    (d / 'canopy.ply').write_bytes(b'x' * 1000)\n"
+        "    print(d, flush=True)\n"
+        "    time.sleep(120)\n"
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True
+    )
+    left = Path(proc.stdout.readline().strip())
+    proc.send_signal(signal.SIGKILL)  # no unwinding, as a cancelled run's worker
+    proc.wait()
+    assert left.parent == tmp_path and (left / "canopy.ply").is_file()
+    tag = _host_tag()
+    mine = tmp_path / f"cropcraft-seed@{os.getpid()}.{tag}-live"  # a live process's
+    other = tmp_path / f"cropcraft-seed@{proc.pid}.{'0' * 8 if tag != '0' * 8 else '1' * 8}-x"
+    stranger = tmp_path / f"cropcraft-notes@{proc.pid}"  # not one of ours
+    for d in (mine, other, stranger):
+        d.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with workdir("generate") as fresh:
+        assert fresh.is_dir() and not left.exists()
+    assert not fresh.exists()
+    assert mine.is_dir() and other.is_dir() and stranger.is_dir()
+    assert sweep_scratch(tmp_path) == []
