@@ -343,7 +343,11 @@ def process_season(
         out.update(csv=None, png=None, summary_error=str(exc))
     problems = []
     if failed:
-        problems.append(f"{len(failed)} of {len(dates)} date(s) failed: {', '.join(failed)}")
+        # each with its reason: the run's state message is what the UI's run list, `prefect
+        # flow-run inspect` and an automation's alert show; it named the dates only (session
+        # 92's deployment audit), and the result that held the reasons is not persisted
+        why = "; ".join(f"{d} ({scenes[d]})" for d in failed)
+        problems.append(f"{len(failed)} of {len(dates)} date(s) failed: {why}")
     if "summary_error" in out:
         problems.append("the season summary was not written")
     return Failed(message="; ".join(problems), data=out) if problems else out
@@ -377,4 +381,4 @@ def run_season(
     out = state.result(raise_on_failure=False)
     if isinstance(out, BaseException):  # the flow itself broke (not a date): its own error
         raise out
-    return {**out, "state": state.name}
+    return {**out, "state": state.name, "message": state.message}

@@ -297,6 +297,10 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     out = run_season("plotS", CROP, str(tmp_path / "store"), OVERRIDES)
     assert out["failed"] == [bad] and out["scenes"][good] == "Completed", out["scenes"]
     assert out["state"] == "Failed"  # the run reads Failed in the UI: its alerts fire
+    # ... and its message, which they and the UI's run list show, says why (it named the date
+    # only, and the result holding the reasons is not persisted: session 92's deploy audit)
+    assert out["message"].startswith(f"1 of 2 date(s) failed: {bad} (invalid: ")
+    assert "at least 3 are needed" in out["message"]
     assert out["misnamed"] == ["2024-7-22"] and out["astray"] == ["2024-07-29"]
     # the reason, named before the date's flow starts: its inbox holds two photos
     assert (
