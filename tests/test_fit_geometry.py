@@ -202,6 +202,28 @@ def test_a_single_row_says_its_spacing_is_assumed(tmp_path):
     assert "row_spacing_measured_m" not in obs.meta
 
 
+def test_an_uncoloured_geometry_on_a_slope_stands_on_its_tilted_ground(canopy_ply, tmp_path):
+    """A mesh (or uncoloured scan) tilted 5 degrees, as on a slope or from a scanner not
+    levelled, got a flat ground grid at its lowest point and colours by absolute height: most
+    of its soil read as leaves (session 92's geometry audit: LAI 2.06 for 1.25, no word).
+    Its heights are now taken above the plane of its lowest points, and it is seen as the
+    level one is; a level geometry is read as before, to the bit."""
+    import dataclasses
+
+    mesh = read_ply(canopy_ply)
+    t = np.radians(5.0)
+    turn = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    write_ply(tmp_path / "slope.ply", dataclasses.replace(mesh, vertices=mesh.vertices @ turn.T))
+    level = load_geometry(canopy_ply, n_points=100_000)
+    slope = load_geometry(tmp_path / "slope.ply", n_points=100_000)
+    assert level.meta["ground"].startswith("ground grid added at the lowest points, z = ")
+    assert "tilted 5.0 degrees" in slope.meta["ground"]
+    soil = [float(np.all(g.colors == SOIL_RGB, axis=1)[:100_000].mean()) for g in (level, slope)]
+    assert soil[1] == pytest.approx(soil[0], abs=0.01)  # the same stems' feet, not the slope
+    masks = [observe_geometry(g, "soybean")[0].mask.mean() for g in (level, slope)]
+    assert masks[1] == pytest.approx(masks[0], abs=0.03)  # the audit's: 0.75 for 0.65
+
+
 def test_an_uncoloured_scan_upside_down_is_named(canopy_ply, tmp_path):
     """A scan with its soil (uncoloured) read z up is fitted quietly; the same scan z down (its
     flat soil on top) warns, as it would lay the ground on the canopy's tops. A bare canopy

@@ -6,7 +6,9 @@ geometry (mesh or point cloud) → coloured points → ground plane, rows and ro
 a point cloud by a z-buffer splat) → the usual fit. Geometry without colours is coloured by
 height (soil-brown within 3 cm of the ground level, leaf-green above) and, as a metric z-up
 geometry stands on its lowest point, given a ground grid there for the plane fit (a bare canopy
-mesh has no ground of its own) — both recorded in the observation's ``meta``.
+mesh has no ground of its own; on a slope both follow the plane of its lowest points) — both
+recorded in the observation's ``meta``. A geometry taller than its crop stands is refused
+(not metres?).
 
 Also the paper's Poisson baseline: Open3D Poisson reconstruction of the visible points,
 background removed by height, every remaining face counted as leaf.
@@ -106,20 +108,68 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         # (harmless where a scanned ground exists: it lies in the same plane). Its level is
         # the 0.1th percentile, not the minimum: one stray return below the soil moved the
         # whole ground (0.4 m under: the canopy read 0.96 m tall for 0.58).
-        ground_z = float(np.percentile(pts[:, 2], GROUND_PERCENTILE))
-        warning = _flipped(pts[:, 2], ground_z)
+        # On a slope (or from a scanner not levelled) the lowest points lie on a tilted
+        # plane: heights are taken above it, and the grid laid on it (a flat grid at the
+        # lowest point coloured most of a 5° slope's soil as leaves: LAI +51-64 %, session
+        # 92's geometry audit); the row fit's ground plane then levels the scene, as it
+        # levels a coloured one.
+        slope, tilt = _lowest_surface(pts)
+        lift = pts[:, :2] @ slope
+        ground_z = float(np.percentile(pts[:, 2] - lift, GROUND_PERCENTILE))
+        warning = _flipped(pts[:, 2] - lift, ground_z)
         if warning:
             meta["orientation_warning"] = warning
         lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
         n_g = max(int(0.3 * len(pts)), 1000)
-        grid = np.column_stack(
-            [rng.uniform(lo[0], hi[0], n_g), rng.uniform(lo[1], hi[1], n_g), np.full(n_g, ground_z)]
-        )
+        gxy = np.column_stack([rng.uniform(lo[0], hi[0], n_g), rng.uniform(lo[1], hi[1], n_g)])
+        grid = np.column_stack([gxy, ground_z + gxy @ slope])
         pts = np.concatenate([pts, grid])
-        cols = np.where((pts[:, 2] < ground_z + GROUND_BAND_M)[:, None], SOIL_RGB, LEAF_RGB)
+        above = pts[:, 2] - pts[:, :2] @ slope
+        cols = np.where((above < ground_z + GROUND_BAND_M)[:, None], SOIL_RGB, LEAF_RGB)
         meta["colours"] = "by height"
-        meta["ground"] = f"ground grid added at the lowest points, z = {ground_z:.3f} m"
+        meta["ground"] = (
+            f"ground grid added at the lowest points, z = {ground_z:.3f} m"
+            if tilt is None
+            else f"ground grid added on the lowest points' plane, tilted {tilt:.1f} degrees "
+            f"(z = {ground_z:.3f} m + {slope[0]:.4f} x + {slope[1]:.4f} y)"
+        )
     return Geometry(mesh, pts, cols, meta)
+
+
+#: The lowest surface of an uncoloured geometry is taken as tilted from this many degrees,
+#: where its plane fits the lowest points within ``TILT_FIT_M`` (RMS): a level canopy mesh
+#: reads 0.0-0.4 degrees (its stems' feet and lowest leaves), a 5 degree slope 5.0.
+TILT_MIN_DEG = 1.0
+TILT_FIT_M = 0.02
+
+
+def _lowest_surface(pts: np.ndarray, cell_m: float = 0.1) -> tuple[np.ndarray, float | None]:
+    """``(slope, degrees)``: the plane ``z = slope · (x, y) + c`` under ``pts``, fitted to the
+    lowest point of each ``cell_m`` cell, keeping the lower half of them at each pass (while
+    at least 30 and a tenth remain); ``(0, 0), None`` where it tilts less than
+    :data:`TILT_MIN_DEG` or does not fit the lowest points within :data:`TILT_FIT_M`."""
+    flat = (np.zeros(2), None)
+    ij = np.floor((pts[:, :2] - pts[:, :2].min(0)) / cell_m).astype(np.int64)
+    cell = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((pts[:, 2], cell))
+    first = np.r_[True, cell[order][1:] != cell[order][:-1]]
+    low = pts[order][first]
+    if len(low) < 30:
+        return flat
+    a = np.column_stack([low[:, :2], np.ones(len(low))])
+    keep = np.ones(len(low), bool)
+    for _ in range(8):
+        coef = np.linalg.lstsq(a[keep], low[keep, 2], rcond=None)[0]
+        r = low[:, 2] - a @ coef
+        lower = r <= np.median(r[keep])
+        if lower.sum() < max(30, 0.1 * len(low)):
+            break
+        keep = lower
+    fit = float(np.sqrt(np.mean((low[keep, 2] - a[keep] @ coef) ** 2)))
+    degrees = float(np.degrees(np.arctan(np.hypot(coef[0], coef[1]))))
+    if degrees < TILT_MIN_DEG or fit > TILT_FIT_M:
+        return flat
+    return coef[:2], degrees
 
 
 def _flipped(z: np.ndarray, ground_z: float) -> str | None:
