@@ -1451,8 +1451,15 @@ def _run_owner() -> str:
     return f"process {os.getpid()}"
 
 
+#: A scene's flow runs are named by the scene, not Prefect's random words: the UI's run list,
+#: a season's subflows and the console then say which date each is (session 92's deployment
+#: audit: "weightless-hare").
+SCENE_RUN_NAME = "{site}/{crop}/{date}"
+
+
 @flow(
     name="reconstruct-scene",
+    flow_run_name=SCENE_RUN_NAME,
     persist_result=False,
     validate_parameters=True,
     task_runner=make_task_runner(),  # a deployment's run; run_scene names its own
@@ -1598,7 +1605,12 @@ def warn_local_paths_on_a_remote_cluster(runner: str | None, req: SceneRequest) 
         )
 
 
-@flow(name="process-scene", persist_result=False, validate_parameters=True)
+@flow(
+    name="process-scene",
+    flow_run_name=SCENE_RUN_NAME,
+    persist_result=False,
+    validate_parameters=True,
+)
 def process_scene(
     site: str,
     crop: str,

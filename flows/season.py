@@ -214,7 +214,7 @@ def write_summary(
     }
 
 
-@flow(name="process-season", persist_result=False)
+@flow(name="process-season", flow_run_name="{site}/{crop} season", persist_result=False)
 def process_season(
     site: str,
     crop: str,

@@ -301,6 +301,12 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     # only, and the result holding the reasons is not persisted: session 92's deploy audit)
     assert out["message"].startswith(f"1 of 2 date(s) failed: {bad} (invalid: ")
     assert "at least 3 are needed" in out["message"]
+    # the runs are named by their scene in the UI, not by Prefect's random words
+    from prefect.client.orchestration import get_client
+
+    with get_client(sync_client=True) as client:
+        names = {r.name for r in client.read_flow_runs(limit=200)}
+    assert {f"plotS/{CROP}/{good}", f"plotS/{CROP} season"} <= names, names
     assert out["misnamed"] == ["2024-7-22"] and out["astray"] == ["2024-07-29"]
     # the reason, named before the date's flow starts: its inbox holds two photos
     assert (
