@@ -136,10 +136,18 @@ def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
 def date_warnings(store: SceneStore, scene: SceneKey) -> list[str]:
     """The warnings of a date's last finished run, as its report lists them (too few photos,
     the row view's coverage, an answer on the box's edge, photos left out...); [] where the
-    report predates the list."""
+    report predates the list, but for the row view's coverage, which its observation keeps
+    (session 92's upgrade audit: a date of an older release showing 79 % of its row view
+    without surface read with an empty note, the cleanest of the season)."""
     key = f"{scene.prefix}/report/warnings.json"
     try:
-        return [str(w) for w in store.get_json(key)] if store.isfile(key) else []
+        if store.isfile(key):
+            return [str(w) for w in store.get_json(key)]
+        from cropcraft_core.observe import coverage_warning
+
+        seen = _no_surface(store, f"{scene.prefix}/observe/")
+        said = None if seen is None else coverage_warning(seen, scene.crop)
+        return [said] if said else []
     except CropCraftError:
         return []
 

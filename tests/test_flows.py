@@ -2067,3 +2067,32 @@ def test_a_camera_height_in_other_units_is_refused_before_any_work():
         resolve_config("soybean", {"poses.camera_height": 140})
     for crop, height in (("soybean", 1.2), ("soybean", 4.0), ("maize", 13.0), ("maize", 120.0)):
         assert resolve_config(crop, {"poses.camera_height": height})["poses"]["camera_height"]
+
+
+def test_a_date_of_an_older_release_keeps_its_coverage_warning_in_the_season(tmp_path):
+    """A date run before reports listed their warnings (report/warnings.json) read with an
+    empty note in the season's summary though 79 % of its row view had no surface: the
+    cleanest-looking date of the season (session 92's upgrade audit). Its observation keeps
+    the coverage, which is warned of; a listed report's warnings are read as they are."""
+    import io
+
+    from cropcraft_core.config import default_layout
+    from cropcraft_core.export import write_ply
+    from cropcraft_core.fit.geometry import observe_geometry
+    from cropcraft_core.procedural import generate_canopy, plot_region
+    from flows.season import date_warnings
+
+    lay = default_layout("soybean", plot_length=2.0, plot_width=2.4)
+    c = generate_canopy("soybean", {"num_nodes": 5}, lay, seed=1, region=plot_region(lay, 0.3))
+    write_ply(tmp_path / "c.ply", c.mesh)
+    obs, _ = observe_geometry(str(tmp_path / "c.ply"), "soybean")
+    obs.meta["no_surface_fraction"] = 0.79
+    buf = io.BytesIO()
+    obs.save(buf)
+    store = SceneStore(str(tmp_path / "store"))
+    scene = SceneKey("plotA", "soybean", "2024-07-01")
+    store.put_bytes(f"{scene.prefix}/observe/observation.npz", buf.getvalue())
+    said = date_warnings(store, scene)
+    assert len(said) == 1 and said[0].startswith("79.0 % of the row camera's view has no")
+    store.put_json(f"{scene.prefix}/report/warnings.json", ["listed"])
+    assert date_warnings(store, scene) == ["listed"]
