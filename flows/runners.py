@@ -74,6 +74,7 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
     except ImportError as exc:  # pragma: no cover - a dependency
         raise ConfigError(f"runner {spec!r} needs prefect-dask: pip install prefect-dask") from exc
     if address:
+        check_cluster(address)
         return DaskTaskRunner(address=address)
     return DaskTaskRunner(
         cluster_class=local_cluster,
@@ -84,6 +85,41 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
             "dashboard_address": None,
         },
     )
+
+
+#: Seconds a run waits for an existing Dask scheduler to answer, and then as long again for a
+#: worker to join it (:func:`check_cluster`).
+DASK_WAIT_S = 20.0
+
+
+def check_cluster(address: str, wait_s: float = DASK_WAIT_S) -> int:
+    """The number of workers of the Dask scheduler at ``address``; ConfigError, in one line,
+    where none answers there within ``wait_s`` or it has no worker ``wait_s`` later.
+
+    A wrong address or a stopped scheduler gave a 171-line traceback twice after ~126 s, and a
+    scheduler without workers (the documented ``dask worker`` processes end ~19 s after their
+    scheduler dies, so the rerun an error advised met a restarted scheduler alone) hung the
+    run for good, silent (session 92's Dask audit)."""
+    from distributed import Client
+
+    hint = f"start them as deploy/README.md shows (dask worker {address})"
+    try:
+        client = Client(address, timeout=wait_s, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(
+            f"no Dask scheduler answers at {address} within {wait_s:.0f} s ({exc}): start it "
+            "(dask scheduler; deploy/README.md) or check the runner's address"
+        ) from None
+    try:
+        try:
+            client.wait_for_workers(1, timeout=wait_s)
+        except (OSError, TimeoutError):
+            raise ConfigError(
+                f"the Dask scheduler at {address} has no workers ({wait_s:.0f} s waited): {hint}"
+            ) from None
+        return len(client.scheduler_info().get("workers", {}))
+    finally:
+        client.close()
 
 
 class LocalProcessPool(ProcessPoolTaskRunner):

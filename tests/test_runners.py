@@ -197,3 +197,31 @@ def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
     time.sleep(1)
     left = [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
     assert not left, [p.cmdline() for p in left]
+
+
+def test_an_existing_dask_cluster_is_checked_before_the_run(tmp_path):
+    """dask://HOST:PORT with no scheduler there gave a 171-line traceback twice after ~126 s;
+    a scheduler without workers hung the run for good, silent (session 92's Dask audit). Both
+    are one-line ConfigErrors within the wait; a scheduler with a worker is taken."""
+    import socket
+    import time
+
+    from distributed import LocalCluster
+
+    from flows.runners import check_cluster
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match=f"no Dask scheduler answers at tcp://127.0.0.1:{port}"):
+        make_task_runner(f"dask://127.0.0.1:{port}")  # the runner a run would get
+    assert time.monotonic() - t0 < 60
+    with LocalCluster(
+        n_workers=0, processes=False, dashboard_address=None, scheduler_port=0
+    ) as cluster:
+        address = cluster.scheduler_address
+        with pytest.raises(ConfigError, match="has no workers .*: start them as deploy/README"):
+            check_cluster(address, wait_s=2.0)
+        cluster.scale(1)
+        assert check_cluster(address, wait_s=60.0) == 1
