@@ -345,8 +345,8 @@ def keep_temporary_server_apart() -> None:
     die without either (:data:`_SERVER_LAUNCH`). Prefect's clients take the one server instance
     Prefect keeps for "no port given": this registers ours there, unstarted, so a command that
     answers from the cache starts none. Prefect starts it from the flow's (main) thread, whose
-    end is the process's. Linux only (``prctl``); elsewhere, or where a server is already made,
-    nothing changes.
+    end is the process's (from another thread, it starts apart without the kernel's end).
+    Linux only (``prctl``); elsewhere, or where a server is already made, nothing changes.
     """
     import subprocess
     import sys
@@ -363,7 +363,10 @@ def keep_temporary_server_apart() -> None:
             # swapped for the call only (the server starts before any pool or thread spawns)
             def popen(args: Any, **kwargs: Any) -> subprocess.Popen:
                 cmd = list(args)
-                if cmd[1:3] == ["-m", "uvicorn"]:
+                # the kernel's "parent died" is the starting thread's end: only the main one's
+                # is the process's (a Prefect thread that started it would end it early)
+                main = threading.current_thread() is threading.main_thread()
+                if main and cmd[1:3] == ["-m", "uvicorn"]:
                     cmd = [cmd[0], "-c", _SERVER_LAUNCH, str(os.getpid()), *cmd[3:]]
                 return subprocess.Popen(cmd, start_new_session=True, **kwargs)
 
