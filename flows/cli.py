@@ -414,9 +414,9 @@ def interrupt_deadline(grace_s: float = INTERRUPT_GRACE_S):
     ``grace_s`` later, or at a second SIGINT, every child process (pool workers, Prefect's
     temporary server) is ended and the process exits with 130.
 
-    Needed because a terminal's Ctrl-C also stops Prefect's temporary server, which shares
-    the process group, and Prefect then retries the dead server for minutes, while seeds on
-    the threads runner, or workers a signal did not reach, go on fitting. Only in the main
+    Needed where a stage does not stop: seeds on the threads runner, or workers a signal did
+    not reach, go on fitting (a terminal's Ctrl-C no longer stops Prefect's temporary server,
+    which runs apart: :func:`flows.runners.keep_temporary_server_apart`). Only in the main
     thread, and not where SIGINT is ignored (a background job). SIGTERM (a scheduler's stop,
     ``kill``, ``timeout``) ends the command as Ctrl-C does, with exit 143.
     """

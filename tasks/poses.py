@@ -88,7 +88,8 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
         if lens_of:
             dist[new] = lens_of
     if unlike:  # every one named at once, not one a rerun (session 92's photos audit)
-        more = f" (and {len(unlike) - 1} more: {'; '.join(unlike[1:])})" if len(unlike) > 1 else ""
+        more = "; ".join(unlike[1:8]) + (", ..." if len(unlike) > 8 else "")
+        more = f" (and {len(unlike) - 1} more: {more})" if len(unlike) > 1 else ""
         raise InputError(
             f"{where} gives {unlike[0]}{more}: poses of other (rotated or cropped?) photos"
         )

@@ -281,6 +281,12 @@ def test_imported_poses_follow_the_photos_as_ingested():
     # every such photo named at once, not one a rerun (session 92's photos audit)
     with pytest.raises(InputError, match=r"IMG_0.JPG is 320x240 upright \(and 2 more: IMG_1"):
         _rename_to_ingested(cropped, {"images": images}, "poses.json")
+    # ... a whole folder of them is named by its first eight, as ingest names bad photos
+    many = [{**images[0], "name": f"M{i}.png", "source": f"M{i}.JPG"} for i in range(20)]
+    posed = Poses(tuple((f"M{i}.JPG", dataclasses.replace(quarter, height=70)) for i in range(20)))
+    with pytest.raises(InputError, match=r"\(and 19 more: M1.JPG .*M7.JPG [^;]*, \.\.\.\)") as e:
+        _rename_to_ingested(posed, {"images": many}, "poses.json")
+    assert "M8.JPG" not in str(e.value)
     # a Finder copy ("IMG_1 copy.JPG") sorted first and was kept, the posed original dropped
     # as its duplicate: the original's pose is the copy's (session 91's ingest audit)
     copied = [*images[:1], {**images[1], "name": "IMG_1 copy.png", "source": "IMG_1 copy.JPG"}]

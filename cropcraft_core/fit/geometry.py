@@ -114,9 +114,9 @@ def load_geometry(path: str | Path, n_points: int = 200_000, seed: int = 0) -> G
         # 92's geometry audit); the row fit's ground plane then levels the scene, as it
         # levels a coloured one.
         slope, tilt = _lowest_surface(pts)
-        lift = pts[:, :2] @ slope
-        ground_z = float(np.percentile(pts[:, 2] - lift, GROUND_PERCENTILE))
-        warning = _flipped(pts[:, 2] - lift, ground_z)
+        height = pts[:, 2] - pts[:, :2] @ slope
+        ground_z = float(np.percentile(height, GROUND_PERCENTILE))
+        warning = _flipped(height, ground_z)
         if warning:
             meta["orientation_warning"] = warning
         lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)

@@ -737,7 +737,8 @@ def _by_lens(group: list[str], focal_priors: dict[str, float] | None) -> list[li
         if f > LENS_RATIO * before:
             lenses.append([])
         lenses[-1].append(name)
-    unknown = [n for n in group if n not in {name for _, name in known}]
+    focal_known = {name for _, name in known}
+    unknown = [n for n in group if n not in focal_known]
     if unknown:
         if len(lenses) == 1:
             lenses[0].extend(unknown)
