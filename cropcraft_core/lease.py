@@ -42,7 +42,14 @@ from typing import Any
 
 from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 
-__all__ = ["LEASE_NAME", "LOCK_NAME", "SceneLease", "hold_scene", "scene_holder"]
+__all__ = [
+    "LEASE_NAME",
+    "LOCK_NAME",
+    "SceneLease",
+    "hold_scene",
+    "require_holder",
+    "scene_holder",
+]
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +116,12 @@ class SceneLease:
             self._acquire_object()
         log.info("%s: lease taken by %s", self.scene.prefix, self.holder["owner"])
         return self
+
+    @property
+    def token(self) -> str:
+        """This lease's own token: what a task running elsewhere (a fit seed on a Dask
+        worker) hands :func:`require_holder` to learn whether this run still holds the scene."""
+        return str(self.holder["token"])
 
     def check(self) -> None:
         """Raise :class:`SceneBusyError` where this run no longer holds the scene."""
@@ -313,6 +326,27 @@ def scene_holder(store: SceneStore, scene: SceneKey) -> dict[str, Any] | None:
     it lost the lock with its process). Object storage: the
     lease object, within its ``ttl_s`` of its last renewal."""
     return _holder(store, scene)[0]
+
+
+def require_holder(store: SceneStore, scene: SceneKey, token: str, what: str) -> None:
+    """:class:`SceneBusyError` unless the run whose lease carries ``token``
+    (:attr:`SceneLease.token`) still holds ``scene``: checked by work that runs apart from its
+    run -- a fit seed on a Dask worker goes on after its run failed, was interrupted or lost its
+    client -- before it writes into the scene, so that it never writes after its run's last
+    write, over a later run's results (``what``: the work, for the message)."""
+    holder, _ = _holder(store, scene)
+    if holder is not None and holder.get("token") == token:
+        return
+    now = (
+        "no run holds it now"
+        if holder is None
+        else f"{holder.get('owner') or 'another run'} holds it now"
+    )
+    raise SceneBusyError(
+        f"{what} of {scene.prefix} stops without writing: the run that started it no longer "
+        f"holds the scene ({now}); it ended, was interrupted or lost its lease, and a rerun "
+        "computes what is missing"
+    )
 
 
 def refuse_if_busy(store: SceneStore, scene: SceneKey) -> None:

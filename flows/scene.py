@@ -1183,6 +1183,7 @@ class _PrefectRun:
             upstream=unmapped(upstream),
             seed=seeds,
             row=unmapped(row),
+            lease=unmapped(None if self.lease is None else self.lease.token),
         )
         return dict(zip(seeds, futures, strict=True))
 

@@ -13,7 +13,9 @@ from prefect import get_run_logger
 
 from cropcraft_core.errors import InputError
 from cropcraft_core.fit import FitConfig, fit_seed
+from cropcraft_core.lease import require_holder
 from cropcraft_core.parallel import numba_threads_per_job
+from cropcraft_core.store import SceneKey
 from tasks.common import (
     Timer,
     artefact,
@@ -75,6 +77,7 @@ def fit_seed_task(
     upstream: dict[str, Any],
     seed: int,
     row: int | None = None,
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.fit.fit_seed` for optimiser ``seed`` against the scene's
     observation (``upstream["observe"]``); stores the
@@ -88,9 +91,22 @@ def fit_seed_task(
     goes to :func:`tasks.common.report_progress` every evaluation and to the run's log every
     10 %. Under ``combine="floors"`` (then part of this stage's config) the seed also polishes
     its point to its floor, stored in the seed's record for the aggregate to rank.
+
+    ``lease``: the token of the run's scene lease (not part of the cache key). On a Dask
+    cluster a seed goes on after its run has ended -- failed, interrupted, its client lost --
+    so the seed checks that its run still holds the scene before it starts, every 10 % and
+    before it writes, and stops without writing where it does not
+    (:func:`~cropcraft_core.lease.require_holder`): it never writes over a later run's seeds.
     """
     log = get_run_logger()
     store = open_store(store_root)
+    scene_key = SceneKey.parse(scene)
+
+    def still_held() -> None:
+        if lease is not None:
+            require_holder(store, scene_key, lease, f"fit seed {seed}")
+
+    still_held()
     cfg = fit_config(config)
     crop = scene.split("/")[1]
     digest = stage_key("fit_seed", scene, config, upstream, {"seed": seed, "row": row})
@@ -113,6 +129,7 @@ def fit_seed_task(
         report_progress(scene, tag, done, total, best[0])
         if done % step == 0 or done == total:
             log.info("seed %s: %d/%d evaluations, best loss %.4g", tag, done, total, best[0])
+            still_held()
 
     with Timer() as t:
         obs = load_observation(store, upstream)
@@ -135,6 +152,7 @@ def fit_seed_task(
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)
         with workdir("seed") as tmp:
             path = result.save(tmp / "seed.npz")
+            still_held()
             digest_out = store.put_file(path, key)
     ckpt.unlink(missing_ok=True)
     summary = {

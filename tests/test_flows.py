@@ -1255,6 +1255,28 @@ def test_fault_in_one_seed_then_resume_only_missing_work(base_run, scene_dir, mo
         assert out["params"][k] == pytest.approx(v, rel=1e-6), k
 
 
+def test_a_seed_whose_run_no_longer_holds_the_scene_writes_nothing(
+    base_run, scene_dir, monkeypatch
+):
+    """On a Dask cluster a seed runs on after its run has failed or lost its client, and one
+    wrote its seed file over the scene 9 s after its run had ended (session 92's Dask audit).
+    Each seed carries its run's lease token and checks the scene's lease before it starts,
+    every 10 % and before it writes: seeds handed a token that no longer holds the scene stop,
+    and the stored seeds are left as they were."""
+    from cropcraft_core.lease import SceneLease
+
+    _run("plotA", base_run["store"], scene_dir)  # whatever earlier tests left: the default
+    store = SceneStore(str(base_run["store"]))
+    scene = SceneKey("plotA", CROP, DATE)
+    seeds = {k: store.get_bytes(k) for k in store.list(f"{scene.prefix}/fit") if "seed-" in k}
+    assert len(seeds) >= N_SEEDS
+    monkeypatch.setattr(SceneLease, "token", property(lambda self: "a run that ended"))
+    with pytest.raises(CropCraftError, match="no longer holds the scene") as err:
+        _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "fit.n_evals": 16})
+    assert f"{N_SEEDS} of {N_SEEDS} fit seeds failed" in str(err.value)
+    assert {k: store.get_bytes(k) for k in seeds} == seeds
+
+
 def test_a_seeds_unreadable_checkpoint_is_set_aside_and_the_seed_starts_afresh(
     base_run, scene_dir, monkeypatch
 ):

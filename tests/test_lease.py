@@ -16,7 +16,14 @@ import uuid
 
 import pytest
 
-from cropcraft_core.lease import LEASE_NAME, LOCK_NAME, SceneLease, hold_scene, scene_holder
+from cropcraft_core.lease import (
+    LEASE_NAME,
+    LOCK_NAME,
+    SceneLease,
+    hold_scene,
+    require_holder,
+    scene_holder,
+)
 from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 from tests import conftest_s3
 from tests.conftest_s3 import S3Server
@@ -136,6 +143,22 @@ def test_a_second_run_of_a_held_scene_is_refused_naming_the_first(store):
     with hold_scene(store, SCENE, owner="flow run ad-hoc"):
         pass
     assert not any(k.endswith((LOCK_NAME, LEASE_NAME)) for k in store.list(scene_prefix(SCENE)))
+
+
+def test_work_started_by_a_run_learns_whether_that_run_still_holds_the_scene(store):
+    """A fit seed on a Dask worker goes on after its run has ended; before it writes it asks
+    whether the run that started it (its lease's token) still holds the scene: yes while it
+    does, no once another run holds it or none does (session 92's Dask audit: an orphaned seed
+    wrote over the scene 9 s after its run had failed)."""
+    with hold_scene(store, SCENE, owner="flow run nightly-plotA") as first:
+        require_holder(store, SCENE, first.token, "fit seed 2")  # held: goes on
+        with pytest.raises(SceneBusyError, match="fit seed 2 of plotA/soybean/2024-07-01 stops"):
+            require_holder(store, SCENE, "0" * 32, "fit seed 2")
+    with pytest.raises(SceneBusyError, match="no run holds it now"):
+        require_holder(store, SCENE, first.token, "fit seed 2")
+    with hold_scene(store, SCENE, owner="flow run ad-hoc"):
+        with pytest.raises(SceneBusyError, match="flow run ad-hoc holds it now"):
+            require_holder(store, SCENE, first.token, "fit seed 2")
 
 
 _HOLD = textwrap.dedent(
