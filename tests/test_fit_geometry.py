@@ -248,6 +248,27 @@ def test_an_uncoloured_scan_upside_down_is_named(canopy_ply, tmp_path):
         assert "orientation_warning" not in bare.meta
 
 
+def test_an_uncoloured_geometry_exported_y_up_is_named(canopy_ply, tmp_path):
+    """An uncoloured cloud exported y up (its plot's width read as its height) fitted LAI 6.8
+    for 1.26 with one word, that LAI was "likely underestimated" (session 92's geometry audit).
+    It stands taller than the model's tallest soybean canopy, and says it may not be z up; the
+    same cloud z up says nothing of it."""
+    from cropcraft_core.fit.geometry import geometry_warnings
+
+    pts = sample_mesh(read_ply(canopy_ply), 60_000, np.random.default_rng(0))
+    up = _write_points(tmp_path / "up.ply", pts)
+    y_up = _write_points(tmp_path / "y_up.ply", pts[:, [0, 2, 1]] * [1, 1, -1])
+    obs, _ = observe_geometry(load_geometry(up), "soybean")
+    assert "orientation_warning" not in obs.meta
+    obs, _ = observe_geometry(load_geometry(y_up), "soybean")
+    said = geometry_warnings(obs.meta)
+    assert "taller than the 1.85 m of the model's tallest soybean canopy" in said[0]
+    assert "is the geometry z up?" in said[0] and "(x, -z, y)" in said[0]
+    # turned as it says, it is the z-up cloud again
+    turned = (pts[:, [0, 2, 1]] * [1, 1, -1])[:, [0, 2, 1]] * [1, -1, 1]
+    assert np.allclose(turned, pts)
+
+
 def test_a_point_cloud_is_splatted_as_wide_as_its_points_lie_apart(canopy_ply):
     """The same canopy as a sparse and a dense cloud covers about as much of the row view as
     its mesh (a fixed 2 px splat: 6 % against 65 % for a 52k-point cloud)."""

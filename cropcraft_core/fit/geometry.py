@@ -290,13 +290,33 @@ def observe_geometry(
 MAX_STANDING_M = {"soybean": 3.0, "maize": 6.0}
 
 
+#: The tallest canopy the procedural model builds (metres; see :data:`MAX_STANDING_M`). An
+#: uncoloured geometry standing over ``TALLEST_MARGIN`` times this is named as maybe not z up:
+#: an uncoloured soybean cloud exported y up (its plot's width read as its height, 2.25 m)
+#: fitted LAI 6.8 for 1.26, with only a warning that LAI was "likely underestimated" (session
+#: 92's geometry audit). A coloured one is levelled by its soil's colour.
+MODEL_TALLEST_M = {"soybean": 1.85, "maize": 3.2}
+TALLEST_MARGIN = 1.1
+
+
 def _check_height(geo: Geometry, crop: str) -> None:
     """InputError where ``geo`` stands taller than :data:`MAX_STANDING_M` allows its crop:
-    not metres, not z up, or something tall in the scan."""
+    not metres, not z up, or something tall in the scan. An uncoloured geometry taller than
+    the model's tallest canopy of the crop (:data:`MODEL_TALLEST_M`) but within that is
+    warned of (``orientation_warning``): its heights are all it is read by."""
     z = geo.points[:, 2]
     low, high = np.percentile(z, [GROUND_PERCENTILE, 99.5])
     tall, most = float(high - low), MAX_STANDING_M.get(crop)
     if most is None or tall <= most:
+        model = MODEL_TALLEST_M.get(crop)
+        if geo.meta.get("colours") == "by height" and model and tall > TALLEST_MARGIN * model:
+            said = geo.meta.get("orientation_warning")
+            geo.meta["orientation_warning"] = (f"{said}. " if said else "") + (
+                f"It stands {tall:.3g} m tall, taller than the {model:g} m of the model's "
+                f"tallest {crop} canopy: is the geometry z up? It is read as z up, standing on "
+                "its lowest points, so a y-up export (many tools write one) is read on its side "
+                "(if so, turn it: (x, y, z) -> (x, -z, y))"
+            )
         return
     other = " (or is it maize?)" if crop == "soybean" and tall <= MAX_STANDING_M["maize"] else ""
     raise InputError(
