@@ -70,13 +70,13 @@ def make_task_runner(spec: str | None = DEFAULT_RUNNER, *, workers: int | None =
             return LocalProcessPool(max_workers=n)
         return ThreadPoolTaskRunner(max_workers=n)
     try:
-        from prefect_dask import DaskTaskRunner
+        from flows.dask_runner import DaskTaskRunnerWithProgress as runner
     except ImportError as exc:  # pragma: no cover - a dependency
         raise ConfigError(f"runner {spec!r} needs prefect-dask: pip install prefect-dask") from exc
     if address:
         check_cluster(address)
-        return DaskTaskRunner(address=address)
-    return DaskTaskRunner(
+        return runner(address=address)
+    return runner(
         cluster_class=local_cluster,
         cluster_kwargs={
             "n_workers": n,

@@ -33,6 +33,7 @@ import contextlib
 import json
 import os
 import re
+import sys
 import tempfile
 import threading
 import time
@@ -617,20 +618,48 @@ def set_progress_sink(sink: ProgressSink | None) -> None:
     ``flows.service_cli.run_progress``).
 
     Tasks running in this process report (threads runner), and so do the workers of the
-    ``processes`` runner, through a queue (``flows.runners.LocalProcessPool``); on Dask workers
-    progress goes to the Prefect log instead.
+    ``processes`` runner, through a queue (``flows.runners.LocalProcessPool``), and a Dask
+    cluster's workers, through the scheduler's events (:func:`deliver`; ``flows.dask_runner``).
     """
     global _progress_sink
     with _progress_lock:
         _progress_sink = sink
 
 
+#: The Dask event topic on which a Dask worker's tasks report their progress; the run's Dask
+#: client (``flows.runners``) hands each to its own process's sink.
+PROGRESS_TOPIC = "cropcraft-progress"
+#: A fit seed's ticks a Dask worker sends: every ``1/FIT_TICKS_SENT`` of its evaluations and
+#: its last (each a message through the scheduler; the console prints every 10 %).
+FIT_TICKS_SENT = 100
+
+
 def deliver(tick: Tick) -> None:
-    """Hand ``tick`` to the installed sink (no-op without one; a failing sink is ignored)."""
+    """Hand ``tick`` to the installed sink (no-op without one; a failing sink is ignored).
+    In a Dask worker, which has no sink, it goes to the scheduler as an event on
+    :data:`PROGRESS_TOPIC` for the run's client (a fit seed's ticks thinned to
+    :data:`FIT_TICKS_SENT`): the ``dask`` runners printed no progress at all (session 92's Dask
+    audit)."""
     sink = _progress_sink
     if sink is not None:
         with contextlib.suppress(Exception):
             sink(tick)
+    elif "distributed" in sys.modules:  # only a Dask worker's process can have a worker
+        step = max(1, tick.total // FIT_TICKS_SENT)
+        if tick.kind == "fit" and tick.done % step and tick.done != tick.total:
+            return
+        with contextlib.suppress(Exception):  # not in a worker (ValueError), or it closes
+            from distributed import get_worker
+
+            get_worker().log_event(PROGRESS_TOPIC, tick._asdict())
+
+
+def deliver_event(event: tuple[float, Any]) -> None:
+    """A Dask client's handler of :data:`PROGRESS_TOPIC`: ``event``, ``(time, tick as a
+    dict, to which the scheduler adds the sending ``worker``)``, handed to this process's sink
+    as a :class:`Tick`."""
+    with contextlib.suppress(Exception):  # a malformed event is dropped, never the client
+        deliver(Tick(**{k: v for k, v in event[1].items() if k in Tick._fields}))
 
 
 def report_progress(
