@@ -202,18 +202,20 @@ class SceneLease:
                         continue  # released meanwhile: try to create it again
                     holder = _parse(data.decode("utf-8", "replace"))
                     ttl = float(holder.get("ttl_s") or self.ttl_s)
-                    if age is None or age <= ttl:
+                    if (age is None or age <= ttl) and not _gone_here(holder):
                         raise SceneBusyError(self._busy_message(holder, age))
                     tag = self.store._write_if(self.key, self._body(), theirs)
                     if tag is None:
                         continue  # renewed, released or taken by another run meanwhile
                     log.warning(
-                        "%s: took over the lease of %s on %s, not renewed for %.0f s (its "
-                        "run ended without releasing it)",
+                        "%s: took over the lease of %s on %s, %s (its run ended without "
+                        "releasing it)",
                         self.scene.prefix,
                         holder.get("owner", "an unknown run"),
                         holder.get("host", "an unknown host"),
-                        age,
+                        f"whose process {holder.get('pid')} is gone"
+                        if _gone_here(holder)
+                        else f"not renewed for {age:.0f} s",
                     )
             self._tag = tag
             self._renewer = threading.Thread(
@@ -389,7 +391,27 @@ def _holder(store: SceneStore, scene: SceneKey) -> tuple[dict[str, Any] | None, 
         return None, None
     holder = _parse(data.decode("utf-8", "replace"))
     ttl = float(holder.get("ttl_s") or DEFAULT_TTL_S)
+    if _gone_here(holder):
+        return None, None
     return (holder, age) if age is None or age <= ttl else (None, None)
+
+
+def _gone_here(holder: dict[str, Any]) -> bool:
+    """Whether ``holder`` (an object-storage lease's) ran on this host in a process that is
+    gone: a run killed outright here holds no scene, though its lease lapses only after its
+    ``ttl_s`` (a rerun after a kill -9 was refused for 10 minutes, while the local lock goes
+    with its process; session 91's S3 audit). A pid now another process's reads as alive:
+    that lease lapses as any other."""
+    pid = holder.get("pid")
+    if holder.get("host") != socket.gethostname() or not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # someone else's process: it is there
+        pass
+    return False
 
 
 def _locked(fh: Any) -> bool | None:

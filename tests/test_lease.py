@@ -196,8 +196,9 @@ def _holder(store: SceneStore, ttl_s: float, renew_s: float) -> subprocess.Popen
 
 def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
     """A live holder renews its lease past the lease's time to live and is not taken over;
-    killed outright (no release), a local lock goes with the process and an S3 lease lapses
-    after its time to live: the next run takes the scene."""
+    killed outright (no release), a local lock goes with the process, and so does an S3 lease
+    whose holder ran on this host (its pid is gone): the next run takes the scene at once (it
+    waited out the lease's 10 minutes; session 91's S3 audit)."""
     proc = _holder(store, ttl_s=3.0, renew_s=0.5)
     try:
         time.sleep(4.0)  # past the time to live: only renewals keep it
@@ -207,15 +208,30 @@ def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
-    if not store._local:
-        with pytest.raises(SceneBusyError, match="lapses after 3 s"):
-            SceneLease(store, SCENE, "too soon").acquire()
-        time.sleep(4.5)  # the server's clock counts whole seconds
     assert scene_holder(store, SCENE) is None  # cropcraft status: its stages were interrupted
     lease = SceneLease(store, SCENE, "next").acquire()
     assert scene_holder(store, SCENE)["owner"] == "next"
     lease.release()
     assert scene_holder(store, SCENE) is None
+
+
+def test_an_s3_lease_of_another_host_lapses_only_after_its_time_to_live(s3_server):
+    """A lease written on another host (its process cannot be asked) holds the scene until it
+    has gone unrenewed for its time to live, whatever its pid is here."""
+    store = SceneStore(
+        f"s3://{s3_server.bucket}/{uuid.uuid4().hex}", storage_options=s3_server.storage_options()
+    )
+    key = f"{scene_prefix(SCENE)}/{LEASE_NAME}"
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    holder = {"owner": "elsewhere", "host": "another-host", "pid": int(gone.stdout), "ttl_s": 3}
+    assert store._write_if(key, json.dumps(holder).encode(), None) is not None
+    with pytest.raises(SceneBusyError, match="being run by elsewhere on another-host"):
+        SceneLease(store, SCENE, "too soon").acquire()
+    time.sleep(4.5)  # the server's clock counts whole seconds
+    lease = SceneLease(store, SCENE, "next").acquire()
+    assert scene_holder(store, SCENE)["owner"] == "next"
+    lease.release()
 
 
 def test_a_killed_runs_lock_file_naming_a_live_process_does_not_hold_the_scene(tmp_path):
