@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.options import at_least, output_file, positive, write_json
+from benchmarks.options import at_least, folder, output_file, positive, write_json
 from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
@@ -929,6 +929,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--checkpoint-dir",
+        type=folder,
         help="resumable per-seed checkpoints and each scene's answers (a rerun continues)",
     )
     ap.add_argument(
@@ -977,11 +978,14 @@ def main(argv: list[str] | None = None) -> int:
         "repeatable; such fits keep their own checkpoints",
     )
     a = ap.parse_args(argv)
-    preset_overrides = _parse_preset(a.crop, a.preset)
+    try:  # bad input exits 2 with argparse's line, as the other arguments do (it exited 1)
+        preset_overrides = _parse_preset(a.crop, a.preset)
+    except SystemExit as exc:
+        ap.error(str(exc.code).removeprefix("bench accuracy: "))
     names = {p.name for p in param_space(a.crop)}
     for n in a.known:
         if n not in names:
-            raise SystemExit(f"bench accuracy: --known {n}: not a {a.crop} parameter")
+            ap.error(f"--known {n}: not a {a.crop} parameter")
     default_methods = "bo,trust-region,random,mlp"
     if a.runner:  # Prefect only then: the flow maps seeds, so no mlp (it predicts directly)
         from flows.benchmark import SEED_METHODS
@@ -1007,10 +1011,10 @@ def main(argv: list[str] | None = None) -> int:
         "loss_estimator": a.estimator,
     }
     if a.finished_only and not a.checkpoint_dir:
-        raise SystemExit("bench accuracy: --finished-only reads the seeds in --checkpoint-dir")
+        ap.error("--finished-only reads the seeds in --checkpoint-dir")
     if a.runner:
         if a.finished_only:
-            raise SystemExit("bench accuracy: --finished-only is not available with --runner")
+            ap.error("--finished-only is not available with --runner")
         if (
             preset_overrides
             or a.known
@@ -1021,9 +1025,9 @@ def main(argv: list[str] | None = None) -> int:
             or a.crn_ablation
             or a.draw
         ):
-            raise SystemExit(
-                "bench accuracy: --preset, --known, --first, --only, --diagnose, --draw, "
-                "--checkpoint-dir and --crn-ablation are not available with --runner"
+            ap.error(
+                "--preset, --known, --first, --only, --diagnose, --draw, --checkpoint-dir and "
+                "--crn-ablation are not available with --runner"
             )
         res = _run_flow(a, methods, overrides)
         print_table(res)

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.options import at_least, output_file, write_json
+from benchmarks.options import at_least, json_file, output_file, write_json
 
 TRAITS = ("lai", "node_count", "leaf_angle_mean_deg")
 
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         choices=[r for r in COMBINE_RULES if r not in OPT_IN_RULES],  # floors: seed tasks
         help="answer rule (repeatable; default: the crop's, median, mean)",
     )
-    ap.add_argument("--truth", default=None, help="metrics.json of the true canopy")
+    ap.add_argument("--truth", type=json_file, default=None, help="metrics.json of the true canopy")
     ap.add_argument("--json", type=output_file, default=None)
     a = ap.parse_args(argv)
     res = run(a.store, a.scene, a.set_size, a.rule, a.truth)

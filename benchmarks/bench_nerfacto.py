@@ -34,7 +34,14 @@ from PIL import Image
 # The train half's imports, at the top so that importing this module checks a GPU host has them
 # all (deploy/gpu_check_run.sh does, before anything starts); the compare half's (Open3D, the
 # truth mesh) stay inside it.
-from benchmarks.options import at_least, output_file, parse_kv, seeds_by_evals, write_json
+from benchmarks.options import (
+    at_least,
+    existing_folder,
+    output_file,
+    parse_kv,
+    seeds_by_evals,
+    write_json,
+)
 from cropcraft_core.errors import CropCraftError
 from cropcraft_core.observe import Observation
 from cropcraft_core.rowfit import fit_rows_with_scale
@@ -150,8 +157,10 @@ def scored_views(poses) -> list:
 def train(a: argparse.Namespace) -> dict:
     root, out = Path(a.scene_dir), Path(a.out)
     settings = parse_kv(a.surfaces)  # a bad KEY=VALUE stops the run before the photos load
-    out.mkdir(parents=True, exist_ok=True)
     crop = json.loads((root / "scene.json").read_text())["crop"]
+    unknown = sorted(set(settings) - set(SurfacesConfig.__dataclass_fields__))
+    if unknown:  # a traceback, after an empty --out was made
+        raise SystemExit(f"--surfaces {unknown[0]}: not a setting of the surfaces")
     poses = import_transforms_json(root / "transforms.json")
     images = [
         np.asarray(Image.open(root / "images" / Path(n).name).convert("RGB")) for n, _ in poses
@@ -172,9 +181,10 @@ def train(a: argparse.Namespace) -> dict:
             **settings,
         },
     )
+    backend = make_backend(cfg)  # nerfacto without a GPU is refused before --out is made
+    out.mkdir(parents=True, exist_ok=True)
     sec: dict[str, float] = {}
     t = time.perf_counter()
-    backend = make_backend(cfg)
     # the crop's scene box, as the scene flow gives (the poses are the truth's, metric)
     box = resolve_bbox("auto", crop)
     backend.fit(images, poses.cameras, box)
@@ -440,7 +450,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     sub = ap.add_subparsers(dest="half", required=True)
     tr = sub.add_parser("train", help="the CUDA half: nerfacto → rows → observation")
-    tr.add_argument("--scene-dir", required=True, help="a cropcraft synth scene")
+    tr.add_argument(
+        "--scene-dir",
+        required=True,
+        type=existing_folder("scene.json", "transforms.json"),
+        help="a cropcraft synth scene",
+    )
     tr.add_argument("--iterations", type=at_least(1), default=20_000, help="the paper's 20K")
     tr.add_argument(
         "--max-seconds", type=float, default=None, help="training deadline (nerf_max_seconds)"
@@ -469,8 +484,10 @@ def main(argv: list[str] | None = None) -> int:
         help="surfaces backend (default nerfacto; a CPU one checks this benchmark without a GPU)",
     )
     co = sub.add_parser("compare", help="the CPU half: against the truth, optionally fit")
-    co.add_argument("--scene-dir", required=True)
-    co.add_argument("--kept", required=True, help="the train half's --out")
+    co.add_argument("--scene-dir", required=True, type=existing_folder("scene.json"))
+    co.add_argument(
+        "--kept", required=True, type=existing_folder("row.json"), help="the train half's --out"
+    )
     co.add_argument(
         "--fit", type=seeds_by_evals, default=None, metavar="SEEDSxEVALS", help="also fit"
     )

@@ -44,7 +44,13 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from benchmarks.options import at_least, output_file, write_json  # noqa: E402
+from benchmarks.options import (  # noqa: E402
+    at_least,
+    json_file,
+    non_negative,
+    output_file,
+    write_json,
+)
 from cropcraft_core.optimize import BOConfig, SeedResult, aggregate, evaluation_rng, run_seed  # noqa: E402
 from cropcraft_core.optimize.baselines import run_random, run_trust_region  # noqa: E402
 
@@ -224,13 +230,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-seed", type=at_least(0), default=0)
     p.add_argument("--n", type=at_least(2), help="evaluations per seed (ours, baselines; 500)")
     p.add_argument("--n-initial", type=at_least(2), help="random initial evaluations (200)")
-    p.add_argument("--noise-sd", type=float, default=0.1)
+    p.add_argument("--noise-sd", type=non_negative, default=0.1)
     p.add_argument("--skopt-seeds", type=at_least(0), help="skopt's seeds (1)")
     p.add_argument("--skopt-n", type=at_least(2), help="skopt's evaluations (500)")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--json", type=output_file, help="write the summaries (and seed results) here")
     p.add_argument("--progress", help="skopt: append 'seed eval cpu wall' lines here as it runs")
-    p.add_argument("--load", nargs="*", default=[], help="add summaries from earlier --json runs")
+    p.add_argument(
+        "--load",
+        nargs="*",
+        type=json_file,
+        default=[],
+        help="add summaries from earlier --json runs",
+    )
     a = p.parse_args(argv)
     base = (120, 40, 2, 120, 1) if a.quick else (500, 200, 5, 500, 1)
     given = (a.n, a.n_initial, a.seeds, a.skopt_n, a.skopt_seeds)
@@ -243,11 +255,18 @@ def main(argv: list[str] | None = None) -> int:
     bad = [m for m in methods if m not in METHODS]
     if bad:
         p.error(f"unknown method(s) {', '.join(bad)}: choose from {', '.join(METHODS)}")
+    if skopt_seeds == 0:  # none of skopt's: it ran the others, then failed with no table
+        methods = [m for m in methods if m != "skopt"]
+    if not methods and not a.load:
+        p.error("no method to run (--methods, --skopt-seeds 0) and no --load")
     checkpoints = (250, 300, 400, 500) if not a.quick else (60, 100, 120)
     warnings.filterwarnings("ignore")
     rows: list[dict] = []
     for path in a.load:
-        rows.extend(json.loads(open(path).read())["rows"])
+        loaded = json.loads(open(path).read())
+        if not isinstance(loaded, dict) or not isinstance(loaded.get("rows"), list):
+            p.error(f"--load {path}: not a bench optimizer --json file (no rows)")
+        rows.extend(loaded["rows"])
     dump: dict = {"rows": [], "results": {}}
     for method in methods:
         k = skopt_seeds if method == "skopt" else seeds

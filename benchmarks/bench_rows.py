@@ -27,7 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.options import at_least, output_file, positive, seeds_by_evals, write_json
+from benchmarks.options import (
+    at_least,
+    folder,
+    output_file,
+    positive,
+    seeds_by_evals,
+    write_json,
+)
 from cropcraft_core.config import default_layout
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
@@ -195,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         help="1 scene, 2x20, quarter resolution, re-scoring on 2 canopies with a 4-step polish",
     )
     ap.add_argument("--workers", type=at_least(1), default=os.cpu_count() or 1)
-    ap.add_argument("--checkpoint-dir", help="seed checkpoints and each row's answers")
+    ap.add_argument("--checkpoint-dir", type=folder, help="seed checkpoints and each row's answers")
     ap.add_argument("--json", type=output_file)
     a = ap.parse_args(argv)
     res = run(

@@ -41,6 +41,17 @@ def positive(text: str) -> float:
     return v
 
 
+def non_negative(text: str) -> float:
+    """An argparse type: a finite number >= 0 (a noise's standard deviation)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number >= 0")
+    return v
+
+
 def seeds_by_evals(text: str) -> str:
     """An argparse type: ``SEEDSxEVALS`` (e.g. ``10x500``), at least 1 seed of 5 evaluations
     (a fit's random start takes 2/5 of them, at least 5); returned as written, lower case."""
@@ -66,6 +77,48 @@ def output_file(text: str) -> str:
     if not os.access(folder, os.W_OK):
         raise argparse.ArgumentTypeError(f"{text}: folder {folder} is not writable")
     return text
+
+
+def json_file(text: str) -> str:
+    """An argparse type: a JSON file that exists and parses (a missing or malformed ``--load``
+    or ``--truth`` ended in a traceback)."""
+    p = Path(text)
+    if not p.is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    try:
+        json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise argparse.ArgumentTypeError(f"{text}: not a JSON file ({e})") from None
+    return text
+
+
+def folder(text: str) -> str:
+    """An argparse type: a folder, or a path one can be made at (not a file: a
+    ``--checkpoint-dir`` naming a file failed after the scenes were built)."""
+    p = Path(text)
+    if p.exists() and not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
+    parent = next((q for q in p.absolute().parents if q.exists()), None)
+    if parent is not None and not p.exists() and not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: {parent} is a file, not a folder")
+    return text
+
+
+def existing_folder(*needs: str) -> Callable[[str], str]:
+    """An argparse type: an existing folder holding the files ``needs`` (a scene's
+    ``scene.json``, a train half's ``row.json``)."""
+
+    def parse(text: str) -> str:
+        p = Path(text)
+        if not p.is_dir():
+            raise argparse.ArgumentTypeError(f"{text}: no such folder")
+        missing = [n for n in needs if not (p / n).is_file()]
+        if missing:
+            raise argparse.ArgumentTypeError(f"{text}: holds no {missing[0]}")
+        return text
+
+    parse.__name__ = "folder"
+    return parse
 
 
 def _json_safe(x: Any) -> Any:

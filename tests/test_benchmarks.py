@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -69,6 +70,19 @@ def test_json_results_are_strict_json(tmp_path):
         (["fit-speed", "--arms", "ours,nope"], "unknown arm(s) ['nope']"),
         (["fit-speed", "--arms", "ours+local"], "--arms ours+local needs --local-share"),
         (["fit-speed", "--local-share", "1.5"], "--local-share must be between 0 and 1"),
+        # session 93's bench audit: tracebacks, work done first, a wrong exit status
+        (["optimizer", "--load", "/nonexistent/o.json"], "/nonexistent/o.json: no such file"),
+        (["optimizer", "--load", sys.executable], "not a JSON file"),
+        (["optimizer", "--noise-sd", "-1"], "-1 is not a finite number >= 0"),
+        (["optimizer", "--methods", "skopt", "--skopt-seeds", "0"], "no method to run"),
+        (["draws", "a/soybean/2024-07-01", "--truth", sys.executable], "not a JSON file"),
+        (["accuracy", "--crop", "soybean", "--checkpoint-dir", sys.executable], "is a file"),
+        (["rows", "--crop", "soybean", "--checkpoint-dir", sys.executable], "is a file"),
+        (["accuracy", "--crop", "soybean", "--known", "foo"], "--known foo: not a soybean"),
+        (["accuracy", "--crop", "soybean", "--preset", "foo=1"], "preset setting 'foo'"),
+        (["nerfacto", "train", "--scene-dir", "/nonexistent", "--out", "x"], "no such folder"),
+        (["nerfacto", "compare", "--scene-dir", sys.prefix, "--kept", "x"], "holds no scene.json"),
+        (["fit-speed", "--skip-full", "--skopt-seeds", "0"], "leaves nothing to run"),
     ],
 )
 def test_bad_benchmark_options_stop_before_any_work(argv, message, capsys):
@@ -80,8 +94,10 @@ def test_bad_benchmark_options_stop_before_any_work(argv, message, capsys):
 
 def test_accuracy_with_a_runner_refuses_the_options_it_cannot_honour(capsys):
     for extra in (["--checkpoint-dir", "x"], ["--crn-ablation"], ["--draw", "1"]):
-        with pytest.raises(SystemExit, match="not available with --runner"):
+        with pytest.raises(SystemExit) as e:
             main(["bench", "accuracy", "--crop", "soybean", "--runner", "threads", *extra])
+        assert e.value.code == 2
+        assert "not available with --runner" in capsys.readouterr().err
 
 
 def test_fit_speed_compares_skopt_on_the_objective_fit_seed_optimises(monkeypatch):
@@ -113,9 +129,23 @@ def test_fit_speed_runs_the_seeds_asked_for(tmp_path, capsys):
     out = tmp_path / "fs.json"
     argv = ["--skip-full", "--skopt-first", "3", "--skopt-seeds", "1", "--evals", "7"]
     main(["bench", "fit-speed", *argv, "--initial", "6", "--workers", "1", "--json", str(out)])
-    rows = json.loads(out.read_text())["compare"]
+    got = json.loads(out.read_text())
+    rows = got["compare"]
     assert {k: [r["seed"] for r in v] for k, v in rows.items()} == {"ours": [3], "skopt": [3]}
-    assert "mean of 1 (seeds 3–3)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "mean of 1 (seeds 3–3)" in printed
+    # both halves of the target judged (it printed the time's alone, the loss's never)
+    low = rows["ours"][0]["best"] <= rows["skopt"][0]["best"]
+    verdict = got["verdict"]["ours"]
+    assert verdict["loss_vs_skopt"] == pytest.approx(
+        rows["ours"][0]["best"] / rows["skopt"][0]["best"] - 1.0
+    )
+    assert verdict["met"] == (low and verdict["time_ratio"] >= 10.0)
+    assert f"(target ≤: {'yes' if low else 'NO'})" in printed
+    with pytest.raises(SystemExit) as err:  # nothing to run: it exited 0 having done nothing
+        main(["bench", "fit-speed", "--skip-full", "--skopt-seeds", "0"])
+    assert err.value.code == 2
+    assert "leaves nothing to run" in capsys.readouterr().err
 
 
 def test_fit_speed_local_share_adds_an_arm_and_arms_choose_which_run(tmp_path, capsys, monkeypatch):
@@ -175,6 +205,35 @@ def test_a_reused_scene_is_scored_on_its_own_layout_and_needs_its_true_traits_to
     assert scene_layout(tmp_path / "none", "maize") == default_layout("maize")
     with pytest.raises(SystemExit, match=r"truth/metrics\.json is missing"):
         main(["bench", "pipeline", "--scene-dir", str(tmp_path), "--fit", "1x5"])
+
+
+def test_bench_surfaces_checks_its_settings_first_and_keeps_no_scene(tmp_path, monkeypatch, capsys):
+    """``bench surfaces --set foo=1`` rendered its 50-view scene (41 s) and then ended in a
+    traceback; every run left its scene (74 MB) in the temporary folder (session 93's bench
+    audit). A bad setting is refused in one line first, and a run's own scene goes with it;
+    the run prints its verdict against the L1 target."""
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # re-read TMPDIR
+    for bad, said in (
+        ("foo=1", "--set foo: not a setting of the surfaces"),
+        ("backend=bogus", "unknown surfaces backend 'bogus'"),
+        ("voxel_size=-1", "voxel_size must be a positive number"),
+    ):
+        with pytest.raises(SystemExit) as err:
+            main(["bench", "surfaces", "--set", bad])
+        assert err.value.code == 2 and said in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    assert (
+        main(
+            ["bench", "surfaces", "--views", "6", "--resolution", "160x120", "--set", "n_depths=8"]
+        )
+        == 0
+    )
+    printed = capsys.readouterr().out
+    assert "depth-histogram L1 against the truth" in printed and "(target <= 0.15)" in printed
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bench_surfaces_compares_the_stereo_at_the_default_scale():
