@@ -793,6 +793,20 @@ def print_table(res: dict) -> None:
         if paper:
             cells = "".join(f"{paper[c]:>14.2f}" if c in paper else f"{'':>14}" for c in COLUMNS)
             print(f"{'  paper ' + label:<{w}}{cells}")
+    bo = res["methods"].get("bo")
+    paper = PAPER.get((crop, "bo"))
+    if bo and paper:  # the target: better than the paper's BO row on every column
+        e = bo["errors"]
+        said = [
+            f"{c} {e[c]:.3f} {'<' if e[c] < v else 'NOT <'} {v:g}"
+            for c, v in paper.items()
+            if e.get(c) is not None
+        ]
+        median = e.get("LAIPE_median")
+        if median is not None:
+            said.append(f"median LAIPE {median:.3f} {'<=' if median <= 0.10 else 'NOT <='} 0.10")
+        met = all("NOT" not in x for x in said)
+        print(f"bo against the target: {'; '.join(said)}: {'met' if met else 'NOT met'}")
     for label, r in res["methods"].items():
         cover = r.get("seed_spread")
         if cover:
