@@ -17,6 +17,7 @@ import math
 import os
 import shutil
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -2119,3 +2120,42 @@ def test_a_date_of_an_older_release_keeps_its_coverage_warning_in_the_season(tmp
     assert len(said) == 1 and said[0].startswith("79.0 % of the row camera's view has no")
     store.put_json(f"{scene.prefix}/report/warnings.json", ["listed"])
     assert date_warnings(store, scene) == ["listed"]
+
+
+def test_a_run_whose_dask_cluster_lost_every_worker_fails_naming_it(
+    prefect_harness, tmp_path, monkeypatch
+):
+    """A worker that cannot import the project ends its whole ``dask worker`` command at its
+    first task, and the run waited on that task silently for good (session 93's Dask audit: a
+    nightly season would hang). With no worker for ``NO_WORKER_S`` the run's tasks are
+    cancelled, naming the cause."""
+    from distributed import LocalCluster
+    from prefect import flow
+
+    import flows.dask_runner as dask_runner
+    from flows.runners import make_task_runner
+    from tests.dask_stages import long_stage
+
+    monkeypatch.setattr(dask_runner.DaskTaskRunnerWithProgress, "no_worker_s", 3.0)
+    started = tmp_path / "started"
+
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+
+        @flow(task_runner=make_task_runner(f"dask://{cluster.scheduler_address[6:]}"))
+        def one_long_stage() -> int:
+            return long_stage.submit(str(started)).result()
+
+        def end_the_workers() -> None:  # as the audit's worker did, at its first task
+            deadline = time.monotonic() + 120
+            while not started.exists() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            cluster.scale(0)
+
+        threading.Thread(target=end_the_workers, daemon=True).start()
+        t0 = time.monotonic()
+        with pytest.raises(Exception, match="has had no worker for 3 s") as err:
+            one_long_stage()
+        assert time.monotonic() - t0 < 100  # not the stage's 120 s, nor for good
+        assert "deploy/README.md" in str(err.value)
