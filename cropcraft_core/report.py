@@ -124,6 +124,15 @@ def _depth_pair(observed: np.ndarray, predicted: np.ndarray | None) -> tuple[str
     return a, b
 
 
+def _depth_key(width: int = 256, height: int = 12) -> str:
+    """The depth maps' colour key, near (left) to far (right), as a data URI (the caption
+    named the colour map alone; session 93's report audit)."""
+    from cropcraft_core.render.preview import depth_to_rgb
+
+    ramp = np.tile(np.linspace(0.0, 1.0, width), (height, 1))
+    return data_uri(png_bytes(depth_to_rgb(ramp, 0.0, 1.0)))
+
+
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;color:#222;max-width:1100px}
 h1{font-size:1.5em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ccc}
@@ -306,8 +315,9 @@ def scene_report_html(
         if fin.any():
             d = np.asarray(observed_depth, float)[fin]
             parts.append(
-                f"<p class='small'>colour scale: z-depth {d.min():.3f} m (near) to "
-                f"{d.max():.3f} m (far), turbo colour map; grey = nothing seen.</p>"
+                f"<p class='small'>z-depth below the row camera: {d.min():.3f} m (blue, near) "
+                f"<img alt='colour key' src='{_depth_key()}'> {d.max():.3f} m (red, far); "
+                "grey = no canopy there (the soil, or no surface seen).</p>"
             )
     else:
         parts.append("<p class='small'>no observation</p>")
@@ -428,21 +438,59 @@ def season_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     return buf.getvalue()
 
 
+#: Days either side of a season's dates on its plot's axis, at least (one date spanned 4 years,
+#: its own date unlabelled: session 93's report audit).
+SEASON_PLOT_MARGIN_DAYS = 7
+
+
 def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes:
-    """PNG of LAI, mean leaf angle (± SD) and plant height against date (three panels)."""
+    """PNG of LAI, mean leaf angle (± SD) and plant height against date (three panels):
+    :func:`season_figure`'s."""
+    fig = season_figure(rows, title)  # selects the Agg backend first
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
+    """The season plot's matplotlib figure (Agg). A failed date (``status``) is marked on
+    every panel: a red cross at the foot where it has no values, its values drawn hollow in red
+    where they are an earlier run's (a failed date was left off and a failed rerun's old values
+    drawn as a fresh answer: session 93's report audit)."""
     import datetime as dt
 
     import matplotlib
 
     matplotlib.use("Agg")
+    import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
 
     dates = [dt.date.fromisoformat(r["date"]) for r in rows]
+    failed = np.array([r.get("status") == "failed" for r in rows], bool)
 
     def col(name: str) -> np.ndarray:
         return np.array([np.nan if r.get(name) is None else float(r[name]) for r in rows])
 
-    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    def mark_failed(ax: Any, values: np.ndarray, legend: bool = False) -> None:
+        kept = failed & np.isfinite(values)
+        if kept.any():
+            ax.plot(
+                [d for d, k in zip(dates, kept, strict=True) if k], values[kept], "o",
+                mfc="none", mec="tab:red", ms=11, mew=1.5,
+                label="failed tonight: an earlier run's values" if legend else None,
+            )  # fmt: skip
+        gone = failed & ~np.isfinite(values)
+        if gone.any():
+            ax.plot(
+                [d for d, g in zip(dates, gone, strict=True) if g], [0.03] * int(gone.sum()),
+                "x", color="tab:red", ms=9, mew=2, transform=ax.get_xaxis_transform(),
+                label="failed: no values (summary.csv says why)" if legend else None,
+            )  # fmt: skip
+
+    fig, axes = plt.subplots(3, 1, figsize=(9.5, 7.5), sharex=True)
     axes[0].plot(dates, col("lai_m2_m2"), "o-", label="LAI (leaf area / ground area)")
     lo, hi = col("lai_rows_min_m2_m2"), col("lai_rows_max_m2_m2")
     if np.isfinite(lo).any():
@@ -471,19 +519,25 @@ def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes
         )
     if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
         axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")
+    mark_failed(axes[0], col("lai_m2_m2"), legend=True)
     axes[0].set_ylabel("LAI (m² m⁻²)")
-    axes[0].legend(fontsize=8)
+    # beside the panels, not over a date's points (it hid the gap-fraction LAI of a first night)
+    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     mean, sd = col("leaf_angle_mean_deg"), col("leaf_angle_sd_deg")
     axes[1].errorbar(dates, mean, yerr=np.nan_to_num(sd), fmt="o-", capsize=3)
+    mark_failed(axes[1], mean)
     axes[1].set_ylabel("leaf angle (°), mean ± SD")
     axes[2].plot(dates, col("plant_height_m"), "o-")
+    mark_failed(axes[2], col("plant_height_m"))
     axes[2].set_ylabel("plant height (m)")
     axes[2].set_xlabel("date")
+    margin = dt.timedelta(days=SEASON_PLOT_MARGIN_DAYS)
+    axes[2].set_xlim(min(dates) - margin, max(dates) + margin)
+    locator = mdates.AutoDateLocator(minticks=3, maxticks=9)
+    axes[2].xaxis.set_major_locator(locator)
+    axes[2].xaxis.set_major_formatter(mdates.DateFormatter("%Y-%m-%d"))
     if title:
         axes[0].set_title(title)
     fig.autofmt_xdate()
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return buf.getvalue()
+    return fig

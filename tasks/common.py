@@ -125,7 +125,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # holds the answer's fit record, not only its settings)
     "export": 2,
     # 2: the page opens with the run's warnings (the console's, lost by morning)
-    "report": 2,
+    # 3: ... the reconstruction's net cover against the photos among them (and in
+    # warnings.json, the season's note); the depth maps' caption and colour key
+    "report": 3,
 }
 
 #: Stage folder in the store per stage (``fit_seed`` and ``aggregate`` share ``fit/``).

@@ -180,8 +180,9 @@ def report(
 
 def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> list[str]:
     """The warnings a run prints, for its report: too few photos, the rows against a
-    camera-height hint, an answer on the parameter box's edge, the row view's coverage and the
-    photos left out."""
+    camera-height hint, an answer on the parameter box's edge, the row view's coverage, the
+    reconstruction against the photos (its net cover: printed, but left out of the page's
+    list and so of the season's note; session 93's report audit) and the photos left out."""
     from cropcraft_core.fit.fitting import edge_warning
     from cropcraft_core.observe import coverage_warning
     from cropcraft_core.report import few_photos_warning, left_out_lines
@@ -191,4 +192,5 @@ def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> li
     out.append(edge_warning(crop, fit["params"], (fit.get("config") or {}).get("box")))
     seen = upstream["observe"]["summary"].get("no_surface_fraction")
     out.append(None if seen is None else coverage_warning(seen, crop))
+    out.append(((upstream.get("consistency") or {}).get("summary") or {}).get("warning"))
     return [w for w in out if w] + left_out_lines(photos_left_out(upstream))

@@ -97,6 +97,24 @@ def test_coloured_point_cloud_keeps_its_colours_and_fits_the_rows(canopy_ply, tm
     err = np.abs(obs.depth[both] - ref[both])
     # (sparse points let farther ones show between the nearest: not every pixel is exact)
     assert obs.stats.mask_area > 0.3 and np.median(err) < 0.002 and (err < 0.01).mean() > 0.6
+    # compare.png shows the observation's canopy as the report does: its soil was coloured as
+    # far canopy beside a prediction without soil (session 93's report audit)
+    from PIL import Image
+
+    from cropcraft_core.fit import FitConfig
+    from cropcraft_core.fit.geometry import fit_geometry
+    from cropcraft_core.render.preview import depth_to_rgb
+
+    cfg = FitConfig(n_seeds=1, n_evals=8, n_initial=6, combine="mean")
+    fit_geometry(path, "soybean", tmp_path / "out", config=cfg)
+    soil = ~obs.mask & np.isfinite(obs.depth)
+    assert soil.mean() > 0.05
+    left = np.asarray(Image.open(tmp_path / "out" / "compare.png").convert("RGB"))
+    left = left[:, : obs.depth.shape[1]]
+    none = depth_to_rgb(np.array([[np.nan]]), 0.0, 1.0)[0, 0]
+    rows, cols = np.nonzero(soil)
+    keep = rows > 50  # below the panel's labels
+    assert np.all(left[rows[keep], cols[keep]] == none)
 
 
 def test_bad_geometry_is_named(tmp_path):

@@ -2159,3 +2159,66 @@ def test_a_run_whose_dask_cluster_lost_every_worker_fails_naming_it(
             one_long_stage()
         assert time.monotonic() - t0 < 100  # not the stage's 120 s, nor for good
         assert "deploy/README.md" in str(err.value)
+
+
+def test_season_plot_marks_failed_dates_and_spans_days_around_one():
+    """The season plot left a failed date off and drew a failed rerun's old values as a fresh
+    answer (the PNG byte-identical before and after both failures); a first night's one date
+    spanned 4 years, its own date unlabelled, the legend over its points (session 93's report
+    audit)."""
+    import matplotlib.pyplot as plt
+
+    from cropcraft_core.report import season_figure, season_plot_png
+
+    def day(date, status="done", lai=None):
+        values = {} if lai is None else {"lai_m2_m2": lai, "plant_height_m": 0.5}
+        return {"date": date, "status": status, **values, "leaf_angle_mean_deg": lai and 40.0}
+
+    first = [day("2024-07-01", lai=1.1)]
+    fig = season_figure(first, "plotA soybean")
+    lo, hi = fig.axes[2].get_xlim()
+    assert hi - lo <= 2 * 7 + 1  # days, not years
+    fig.canvas.draw()
+    labels = [t.get_text() for t in fig.axes[2].get_xticklabels()]
+    assert "2024-07-01" in labels, labels
+    legend = fig.axes[0].get_legend().get_window_extent()
+    assert legend.x0 >= fig.axes[0].get_window_extent().x1  # beside the panel, not over it
+    plt.close(fig)
+    plain = season_plot_png([*first, day("2024-07-08", lai=1.3)])
+    kept = season_plot_png([*first, day("2024-07-08", "failed", lai=1.3)])
+    gone = season_plot_png([*first, day("2024-07-08", "failed")])
+    assert len({plain, kept, gone}) == 3
+    fig = season_figure([*first, day("2024-07-08", "failed", lai=1.3), day("2024-07-15", "failed")])
+    said = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "failed tonight: an earlier run's values" in said
+    assert "failed: no values (summary.csv says why)" in said
+    plt.close(fig)
+
+
+def test_the_reports_warnings_hold_the_reconstruction_against_the_photos():
+    """A run printed the reconstruction's net cover against its photos as a warning, but its
+    report listed it only inside a table cell, and warnings.json (the season's note) not at
+    all (session 93's report audit). The depth maps' caption said grey was "nothing seen" where
+    it is the soil too, and keyed no colour."""
+    from cropcraft_core.config import param_space
+    from cropcraft_core.report import scene_report_html
+    from cropcraft_core.surfaces.consistency import consistency_warning
+    from tasks.report import run_warnings
+
+    warning = consistency_warning(0.349, 0.038, 0.15)
+    assert "no surface under 34.9 % of the plant" in warning and "(net cover -31.1 %" in warning
+    upstream = {
+        "ingest": {"summary": {"n_images": 50}},
+        "poses": {"summary": {}},
+        "surfaces": {"summary": {}},
+        "rowfit": {"summary": {}},
+        "observe": {"summary": {}},
+        "consistency": {"summary": {"warning": warning}},
+    }
+    middle = {p.name: (p.low + p.high) / 2 for p in param_space(CROP)}
+    assert run_warnings(CROP, upstream, {"params": middle}) == [warning]
+    depth = np.full((20, 30), np.nan)
+    depth[5:15, 5:25] = 0.6
+    page = scene_report_html("s/soybean/2024-07-01", observed_depth=depth, predicted_depth=depth)
+    assert "0.600 m (blue, near)" in page and "alt='colour key'" in page
+    assert "grey = no canopy there (the soil, or no surface seen)" in page

@@ -699,8 +699,11 @@ def fit_geometry(
         canopy, out, extra={"fit": answer, "observation": obs.meta}, more_metrics=more
     )
     predicted = ForwardModel(obs, layout).depth(answer["params"], seed)
+    # the observation's canopy only, as the report's: its soil coloured as far canopy beside a
+    # prediction without soil, and stretched the scale (session 93's report audit)
+    observed = np.where(obs.mask, obs.depth, np.nan)
     save_png(
-        out / "compare.png", compare_image(obs.depth, predicted, float(obs.preset.render_height))
+        out / "compare.png", compare_image(observed, predicted, float(obs.preset.render_height))
     )
     record = {"fit": answer, "rowfit": rowfit.to_dict(), "observation": obs.meta}
     edge = edge_warning(crop, answer["params"], (answer.get("config") or {}).get("box"))

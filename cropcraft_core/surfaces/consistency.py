@@ -114,13 +114,15 @@ def consistency_warning(
         return None
     if net < 0:
         return (
-            f"the reconstruction has no surface under {unreconstructed:.0%} of the plant the "
-            f"photos show (net cover {net:+.0%} against the photos): leaves are lost, which "
+            f"the reconstruction has no surface under {100 * unreconstructed:.1f} % of the "
+            f"plant the photos show (net cover {100 * net:+.1f} % against the photos): leaves "
+            "are lost, which "
             "pulls the fitted LAI low"
         )
     return (
-        f"the reconstruction raises surface over soil on {extra:.0%} of the photos' plant "
-        f"area (net cover {net:+.0%} against the photos): leaf edges are fattened, which "
+        f"the reconstruction raises surface over soil on {100 * extra:.1f} % of the photos' "
+        f"plant area (net cover {100 * net:+.1f} % against the photos): leaf edges are "
+        "fattened, which "
         "pulls the fitted LAI high"
     )
 
