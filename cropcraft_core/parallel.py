@@ -30,7 +30,7 @@ SHARED: dict[str, Any] = {}
 ORPHAN_CHECK_S = 1.0
 
 
-def _exit_when_orphaned(parent: int) -> None:
+def exit_when_orphaned(parent: int) -> None:
     while os.getppid() == parent:
         time.sleep(ORPHAN_CHECK_S)
     os._exit(1)  # reparented: the parent is gone, and nobody will read what this computes
@@ -47,7 +47,7 @@ def one_thread(shared: dict[str, Any] | None, parent: int) -> None:
     from threadpoolctl import threadpool_limits
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
+    threading.Thread(target=exit_when_orphaned, args=(parent,), daemon=True).start()
     threadpool_limits(1)
     numba.set_num_threads(1)
     SHARED.update(shared or {})

@@ -148,7 +148,7 @@ class LocalProcessPool(ProcessPoolTaskRunner):
         )
         self._progress_thread.start()
         self._initializer = _init_worker
-        self._initargs = (_flow_api_url(), self._progress_queue)
+        self._initargs = (_flow_api_url(), self._progress_queue, os.getpid())
         try:
             super().__enter__()
         except BaseException:
@@ -221,11 +221,18 @@ _IN_WORKER = False
 _SIGINT_AT_START: Any = None
 
 
-def _init_worker(api_url: str | None, progress_queue: Any) -> None:
+def _init_worker(api_url: str | None, progress_queue: Any, parent: int | None = None) -> None:
     """A :class:`LocalProcessPool` worker's set-up: the flow's API, progress into the queue,
-    SIGINT ignored between tasks (:func:`_interruptible`)."""
+    SIGINT ignored between tasks (:func:`_interruptible`), and an end with its ``parent`` (the
+    run's process): a ``kill -9`` of the command left its workers running, finishing their
+    stage and writing it into the scene over a rerun's files (session 93's overlap audit),
+    as :func:`cropcraft_core.parallel.one_thread`'s workers already end."""
     global _IN_WORKER, _SIGINT_AT_START
+    from cropcraft_core.parallel import exit_when_orphaned
     from tasks.common import set_progress_sink
+
+    if parent is not None:
+        threading.Thread(target=exit_when_orphaned, args=(parent,), daemon=True).start()
 
     _IN_WORKER = True
     _SIGINT_AT_START = signal.getsignal(signal.SIGINT)

@@ -138,21 +138,12 @@ if __name__ == "__main__":
 """
 
 
-def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
-    """Ctrl-C during a stage of ``cropcraft run`` (SIGINT to the terminal's whole foreground
-    group) printed 115–151 lines holding 4–5 tracebacks and ended only by the 15 s forced
-    path (session 91's CLI audit): the same Ctrl-C had stopped Prefect's temporary server, so
-    the flow's crash handling retried it, and the task's ``KeyboardInterrupt`` from a pool
-    worker killed the pool's manager thread, whose other worker then held the exit. Now the
-    server, apart from the group, records the crash; the worker hands the interrupt back as
-    an Exception; the command ends in seconds, no traceback, no process left."""
-    import signal
+def _napping_command(tmp_path):
+    """``_NAP_COMMAND`` started as a terminal's job (its own group), and the file its task
+    touches once it runs in a pool worker."""
     import subprocess
     import sys
-    import time
     from pathlib import Path
-
-    import psutil
 
     (tmp_path / "napflow.py").write_text(_NAP_FLOW)
     (tmp_path / "run.py").write_text(_NAP_COMMAND)
@@ -164,6 +155,9 @@ def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
         NAP_STARTED=str(started),
         PREFECT_HOME=str(tmp_path / "prefect"),
         PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180",
+        # as flows.cli.main sets it: the server's telemetry heartbeat, racing its own start on
+        # SQLite, printed a "database is locked" traceback now and then (a flaky test)
+        PREFECT_SERVER_ANALYTICS_ENABLED="false",
     )
     proc = subprocess.Popen(
         [sys.executable, str(tmp_path / "run.py")],
@@ -174,6 +168,23 @@ def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
         text=True,
         start_new_session=True,  # its own group, as a terminal's job
     )
+    return proc, started
+
+
+def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
+    """Ctrl-C during a stage of ``cropcraft run`` (SIGINT to the terminal's whole foreground
+    group) printed 115–151 lines holding 4–5 tracebacks and ended only by the 15 s forced
+    path (session 91's CLI audit): the same Ctrl-C had stopped Prefect's temporary server, so
+    the flow's crash handling retried it, and the task's ``KeyboardInterrupt`` from a pool
+    worker killed the pool's manager thread, whose other worker then held the exit. Now the
+    server, apart from the group, records the crash; the worker hands the interrupt back as
+    an Exception; the command ends in seconds, no traceback, no process left."""
+    import signal
+    import time
+
+    import psutil
+
+    proc, started = _napping_command(tmp_path)
     try:
         deadline = time.monotonic() + 300
         while not started.exists():
@@ -196,6 +207,41 @@ def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
     assert "cropcraft: interrupted" in err and len(err.strip().splitlines()) <= 12, err
     time.sleep(1)
     left = [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert not left, [p.cmdline() for p in left]
+
+
+def test_a_killed_commands_pool_workers_end_with_it(tmp_path):
+    """A ``kill -9`` of ``cropcraft run`` left its pool workers running: they finished their
+    stage and wrote it into the scene, over the files of a rerun that already held it (session
+    93's overlap audit). A worker mid-stage now ends within seconds of its command, and so does
+    the temporary server."""
+    import signal
+    import time
+
+    import psutil
+
+    proc, started = _napping_command(tmp_path)
+    try:
+        deadline = time.monotonic() + 300
+        while not started.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        family = psutil.Process(proc.pid).children(recursive=True)
+        assert len(family) >= 2  # the server and the pool's worker(s), one napping
+        os.kill(proc.pid, signal.SIGKILL)  # the command alone, as kill -9 PID
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            left = [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+            if not left:
+                break
+            time.sleep(0.5)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    left = [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    for p in left:
+        p.kill()
     assert not left, [p.cmdline() for p in left]
 
 
