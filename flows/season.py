@@ -243,6 +243,8 @@ def process_season(
     the summary could not be written, as the data of a Failed state, so the run reads Failed in
     the UI and its alerts fire (:func:`run_season` returns the record either way).
     """
+    from cropcraft_core.lease import refuse_if_busy
+    from cropcraft_core.store import SceneBusyError
     from flows.runners import make_task_runner
     from flows.scene import (
         default_images_uri,
@@ -302,8 +304,19 @@ def process_season(
     refused: dict[str, str] = {}  # dates refused before any work, and why
     notes: dict[str, list[str]] = {}
     failed = []
+    busy: list[str] = []  # dates another run holds tonight: that run answers them
     sub = reconstruct_scene.with_options(task_runner=make_task_runner(runner))
     for date in dates:
+        try:
+            refuse_if_busy(st, SceneKey(site, crop, date))
+        except SceneBusyError as exc:
+            # not a failure: two overlapping seasons each ended Failed, their alerts firing,
+            # for the date the other was running, which both then listed done (session 93's
+            # overlap audit)
+            scenes[date] = f"busy: {exc}"
+            busy.append(date)
+            log.warning("%s/%s/%s not run: %s", site, crop, date, exc)
+            continue
         try:
             prepare(site, crop, date, None, None, overrides, store)
         except CropCraftError as exc:
@@ -322,7 +335,10 @@ def process_season(
         )
         # what the UI and the CLI print: the final state, with the reason where it failed
         scenes[date] = state.name if state.is_completed() else f"{state.name}: {state.message}"
-        if not state.is_completed():
+        if not state.is_completed() and "SceneBusyError" in (state.message or ""):
+            busy.append(date)  # taken by another run between the check above and its start
+            log.warning("%s/%s/%s not run: %s", site, crop, date, state.message)
+        elif not state.is_completed():
             failed.append(date)
             log.error("%s/%s/%s failed: %s", site, crop, date, state.message)
         else:  # its warnings, with its line: a 3-photo date read "Completed" like any other
@@ -339,6 +355,7 @@ def process_season(
         "notes": {d: w for d, w in notes.items() if w},
         "unchanged": unchanged,
         "failed": failed,
+        "busy": busy,
         "misnamed": misnamed,
         "astray": astray,
         "warnings": warnings,

@@ -2222,3 +2222,21 @@ def test_the_reports_warnings_hold_the_reconstruction_against_the_photos():
     page = scene_report_html("s/soybean/2024-07-01", observed_depth=depth, predicted_depth=depth)
     assert "0.600 m (blue, near)" in page and "alt='colour key'" in page
     assert "grey = no canopy there (the soil, or no surface seen)" in page
+
+
+def test_a_season_leaves_a_date_another_run_holds_to_that_run(prefect_harness, scene_dir, tmp_path):
+    """Two overlapping seasons each ended Failed (their alerts firing) for the date the other
+    was running, which both then listed done (session 93's overlap audit). A date another run
+    holds is left to it: said, not failed."""
+    from cropcraft_core.lease import hold_scene
+    from flows.season import run_season
+
+    store = SceneStore(str(tmp_path / "store"))
+    date = "2024-07-08"
+    for p in sorted((scene_dir / "images").iterdir()):
+        store.put_bytes(f"plotB/{CROP}/{date}/images/{p.name}", p.read_bytes())
+    with hold_scene(store, SceneKey("plotB", CROP, date), owner="flow run last-night"):
+        out = run_season("plotB", CROP, str(tmp_path / "store"), OVERRIDES)
+    assert out["state"] == "Completed" and out["failed"] == [] and out["busy"] == [date]
+    assert out["scenes"][date].startswith("busy: scene plotB/soybean/2024-07-08 is being run by")
+    assert "flow run last-night" in out["scenes"][date]
