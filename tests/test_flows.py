@@ -1737,7 +1737,8 @@ def test_report_builder_is_self_contained():
         },
         timings={"ingest": 1.0},
     )
-    assert page.count("data:image/png;base64,") == 3 and "m2 m-2" in page
+    # a thumbnail, the observed and predicted depths and their colour key
+    assert page.count("data:image/png;base64,") == 4 and "m2 m-2" in page
     assert "Warnings" not in page  # none given
     # the two spreads' definitions differ (params_std: ddof 1; the seeds' traits: ddof 0)
     assert "SD over seeds (÷n−1)" in page and "<th>SD (÷n)</th>" in page
