@@ -171,6 +171,19 @@ def _napping_command(tmp_path):
     return proc, started
 
 
+def _napping_family(proc, started):
+    """The command's processes (its server, its pool's workers) once its task is napping."""
+    import time
+
+    import psutil
+
+    deadline = time.monotonic() + 300
+    while not started.exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.2)
+    return psutil.Process(proc.pid).children(recursive=True)
+
+
 def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
     """Ctrl-C during a stage of ``cropcraft run`` (SIGINT to the terminal's whole foreground
     group) printed 115–151 lines holding 4–5 tracebacks and ended only by the 15 s forced
@@ -186,11 +199,7 @@ def test_ctrl_c_on_a_flow_ends_it_in_seconds_in_one_line_each(tmp_path):
 
     proc, started = _napping_command(tmp_path)
     try:
-        deadline = time.monotonic() + 300
-        while not started.exists():
-            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
-            time.sleep(0.2)
-        family = psutil.Process(proc.pid).children(recursive=True)
+        family = _napping_family(proc, started)
         server = [p for p in family if "prefect.server.api.server" in " ".join(p.cmdline())]
         assert len(server) == 1 and os.getsid(server[0].pid) == server[0].pid  # apart
         t0 = time.monotonic()
@@ -222,11 +231,7 @@ def test_a_killed_commands_pool_workers_end_with_it(tmp_path):
 
     proc, started = _napping_command(tmp_path)
     try:
-        deadline = time.monotonic() + 300
-        while not started.exists():
-            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
-            time.sleep(0.2)
-        family = psutil.Process(proc.pid).children(recursive=True)
+        family = _napping_family(proc, started)
         assert len(family) >= 2  # the server and the pool's worker(s), one napping
         os.kill(proc.pid, signal.SIGKILL)  # the command alone, as kill -9 PID
         proc.wait(timeout=30)
