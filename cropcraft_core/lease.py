@@ -91,6 +91,7 @@ class SceneLease:
             "owner": owner or f"process {os.getpid()}",
             "host": socket.gethostname(),
             "pid": os.getpid(),
+            "pid_namespace": _pid_namespace(),
             "acquired": _now(),
             "token": uuid.uuid4().hex,
             "ttl_s": self.ttl_s,
@@ -405,6 +406,9 @@ def _gone_here(holder: dict[str, Any]) -> bool:
     pid = holder.get("pid")
     if holder.get("host") != socket.gethostname() or not isinstance(pid, int) or pid <= 0:
         return False
+    # the same pids: containers sharing the host's name (host networking) do not share them
+    if holder.get("pid_namespace") is None or holder.get("pid_namespace") != _pid_namespace():
+        return False
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -412,6 +416,15 @@ def _gone_here(holder: dict[str, Any]) -> bool:
     except OSError:  # someone else's process: it is there
         pass
     return False
+
+
+def _pid_namespace() -> int | None:
+    """This process's pid namespace (Linux: its inode), where a lease's pid can be asked; None
+    elsewhere (then no holder is taken as gone before its lease lapses)."""
+    try:
+        return os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return None
 
 
 def _locked(fh: Any) -> bool | None:

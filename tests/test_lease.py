@@ -216,22 +216,28 @@ def test_a_run_holds_its_scene_against_another_process_until_it_dies(store):
 
 
 def test_an_s3_lease_of_another_host_lapses_only_after_its_time_to_live(s3_server):
-    """A lease written on another host (its process cannot be asked) holds the scene until it
-    has gone unrenewed for its time to live, whatever its pid is here."""
-    store = SceneStore(
-        f"s3://{s3_server.bucket}/{uuid.uuid4().hex}", storage_options=s3_server.storage_options()
-    )
-    key = f"{scene_prefix(SCENE)}/{LEASE_NAME}"
+    """A lease written on another host (its process cannot be asked), or here in another pid
+    namespace (a container sharing the host's name), holds the scene until it has gone
+    unrenewed for its time to live, whatever its pid is here."""
+    import socket
+
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True, check=True)  # fmt: skip
-    holder = {"owner": "elsewhere", "host": "another-host", "pid": int(gone.stdout), "ttl_s": 3}
-    assert store._write_if(key, json.dumps(holder).encode(), None) is not None
-    with pytest.raises(SceneBusyError, match="being run by elsewhere on another-host"):
-        SceneLease(store, SCENE, "too soon").acquire()
-    time.sleep(4.5)  # the server's clock counts whole seconds
-    lease = SceneLease(store, SCENE, "next").acquire()
-    assert scene_holder(store, SCENE)["owner"] == "next"
-    lease.release()
+    pid = int(gone.stdout)
+    for where in ({"host": "another-host"}, {"host": socket.gethostname(), "pid_namespace": 1}):
+        store = SceneStore(
+            f"s3://{s3_server.bucket}/{uuid.uuid4().hex}",
+            storage_options=s3_server.storage_options(),
+        )
+        key = f"{scene_prefix(SCENE)}/{LEASE_NAME}"
+        holder = {"owner": "elsewhere", "pid": pid, "ttl_s": 3, **where}
+        assert store._write_if(key, json.dumps(holder).encode(), None) is not None
+        with pytest.raises(SceneBusyError, match=f"being run by elsewhere on {where['host']}"):
+            SceneLease(store, SCENE, "too soon").acquire()
+        time.sleep(4.5)  # the server's clock counts whole seconds
+        lease = SceneLease(store, SCENE, "next").acquire()
+        assert scene_holder(store, SCENE)["owner"] == "next"
+        lease.release()
 
 
 def test_a_killed_runs_lock_file_naming_a_live_process_does_not_hold_the_scene(tmp_path):
