@@ -480,7 +480,7 @@ def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
             ax.plot(
                 [d for d, k in zip(dates, kept, strict=True) if k], values[kept], "o",
                 mfc="none", mec="tab:red", ms=11, mew=1.5,
-                label="failed tonight: an earlier run's values" if legend else None,
+                label="failed: an earlier run's values" if legend else None,
             )  # fmt: skip
         gone = failed & ~np.isfinite(values)
         if gone.any():

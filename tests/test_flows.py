@@ -2191,7 +2191,7 @@ def test_season_plot_marks_failed_dates_and_spans_days_around_one():
     assert len({plain, kept, gone}) == 3
     fig = season_figure([*first, day("2024-07-08", "failed", lai=1.3), day("2024-07-15", "failed")])
     said = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
-    assert "failed tonight: an earlier run's values" in said
+    assert "failed: an earlier run's values" in said
     assert "failed: no values (summary.csv says why)" in said
     plt.close(fig)
 
