@@ -780,6 +780,10 @@ class SceneStore:
         raw_root = os.fspath(root) if root is not None else None
         raw_root = raw_root or os.environ.get("CROPCRAFT_STORE") or DEFAULT_ROOT
         self._raw_root = raw_root
+        #: Called before each object is moved into place or deleted; what it raises stops the
+        #: write, leaving the key as it was (a stage's task: its run still holds the scene,
+        #: ``tasks.common.open_store``).
+        self.before_write: Callable[[], None] | None = None
         self._storage_options: dict[str, Any] = dict(storage_options or {})
         self.protocol = _protocol_of(raw_root)
         if self.protocol in _S3_PROTOCOLS:
@@ -940,7 +944,13 @@ class SceneStore:
         handle.size = writer.size
 
     def _commit(self, tmp: str, final: str) -> None:
-        """Move a finished temporary object onto its final key."""
+        """Move a finished temporary object onto its final key (:attr:`before_write` first)."""
+        if self.before_write is not None:
+            try:
+                self.before_write()
+            except BaseException:
+                self._rm_quiet(tmp)
+                raise
         if self._local:
             os.replace(tmp, final)
             return
@@ -1182,6 +1192,8 @@ class SceneStore:
 
         Deleting a missing key is not an error.
         """
+        if self.before_write is not None:
+            self.before_write()
         key = _check_key(key)
         full = self._full(key)
         with self._io("delete", key, reading=False):

@@ -1121,6 +1121,7 @@ class _PrefectRun:
             scene=self.req.scene.prefix,
             config=self.req.stages[stage],
             upstream=upstream,
+            lease=None if self.lease is None else self.lease.token,
             **kwargs,
         )
 

@@ -41,6 +41,7 @@ def aggregate(
     config: dict[str, Any],
     upstream: dict[str, Any],
     row: int | None = None,
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.fit.combine` over every ``seed-*`` record in ``upstream``
     (re-scored against ``upstream["observe"]``'s observation where the rule needs it); stores
@@ -52,7 +53,7 @@ def aggregate(
     from cropcraft_core.optimize import SeedResult
     from tasks.fit_seed import layout_of
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="aggregate")
     cfg = fit_config(config)
     crop = scene.split("/")[1]
     seeds = sorted(

@@ -303,17 +303,31 @@ def core(stage: str, module: str, *names: str) -> Any:
 # --------------------------------------------------------------------------- store plumbing
 
 
-def open_store(root: str) -> SceneStore:
+def open_store(
+    root: str, *, scene: str | None = None, lease: str | None = None, what: str = "a stage"
+) -> SceneStore:
     """The scene store at ``root`` (credentials from the worker's own environment).
 
     Every stage opens its store first, on whatever worker runs it, so this is also where the
     worker's process is made fit for array work: :func:`cropcraft_core.parallel.reuse_freed_memory`
     undoes the small malloc thresholds a Dask nanny pins on its workers (a no-op elsewhere).
+
+    ``lease``: the token of the run's scene lease (``scene``'s; not part of any cache key).
+    Each write into the store then first asks that the run still holds the scene
+    (:func:`~cropcraft_core.lease.require_holder`): a stage on a Dask worker goes on after its
+    run ended (a Ctrl-C, a killed command, a lost client) and would write over a rerun's files,
+    as a killed run's pool workers did (session 93's overlap audit).
     """
     from cropcraft_core.parallel import reuse_freed_memory
 
     reuse_freed_memory()
-    return SceneStore(root)
+    store = SceneStore(root)
+    if lease is not None and scene is not None:
+        from cropcraft_core.lease import require_holder
+
+        key = SceneKey.parse(scene)
+        store.before_write = lambda: require_holder(store, key, lease, what)
+    return store
 
 
 def load_observation(store: SceneStore, upstream: Mapping[str, Any]):

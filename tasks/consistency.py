@@ -12,7 +12,11 @@ from tasks.surfaces import _surfaces_api
 
 @stage_task("consistency")
 def consistency(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.surfaces.consistency.photo_consistency` of the fitted surfaces
     against up to ``max_views`` of the ingested photos, over the plot (the fitted ground plane
@@ -39,7 +43,7 @@ def consistency(
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="consistency")
     crop = scene.split("/")[1]
     a_below = config.get("plant_a_below")
     if a_below is None:

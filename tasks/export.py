@@ -11,7 +11,11 @@ from tasks.generate import canopy_from_recipe
 
 @stage_task("export")
 def export(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """The bundle of ``cropcraft generate`` and ``cropcraft fit``
     (:func:`cropcraft_core.bundle.write_bundle_files`) for the generated canopy under
@@ -21,7 +25,7 @@ def export(
     (the metrics stage's)."""
     from cropcraft_core.bundle import write_bundle_files
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="export")
     recipe = store.get_json(key_of(upstream["generate"], "recipe"))
     values = store.get_json(key_of(upstream["metrics"], "metrics"))
     fit = store.get_json(key_of(upstream["aggregate"], "fit"))

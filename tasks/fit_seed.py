@@ -99,7 +99,7 @@ def fit_seed_task(
     (:func:`~cropcraft_core.lease.require_holder`): it never writes over a later run's seeds.
     """
     log = get_run_logger()
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what=f"fit seed {seed}")
     scene_key = SceneKey.parse(scene)
 
     def still_held() -> None:
@@ -152,8 +152,7 @@ def fit_seed_task(
         key = artefact(scene, "fit_seed", f"seed-{int(seed)}.npz", row=row)
         with workdir("seed") as tmp:
             path = result.save(tmp / "seed.npz")
-            still_held()
-            digest_out = store.put_file(path, key)
+            digest_out = store.put_file(path, key)  # asks the lease too (open_store)
     ckpt.unlink(missing_ok=True)
     summary = {
         "seed": int(seed),

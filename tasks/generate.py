@@ -20,7 +20,11 @@ def canopy_from_recipe(recipe: dict[str, Any]):
 
 @stage_task("generate")
 def generate(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.procedural.generate_canopy` with the fitted parameters; stores the
     recipe (``canopy.json``: crop, params, seed, layout; later stages rebuild the identical
@@ -31,7 +35,7 @@ def generate(
     from cropcraft_core.export import write_ply
     from cropcraft_core.procedural import generate_canopy
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="generate")
     crop = scene.split("/")[1]
     fit = store.get_json(key_of(upstream["aggregate"], "fit"))
     with Timer() as t, workdir("generate") as tmp:

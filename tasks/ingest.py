@@ -18,7 +18,12 @@ from tasks.common import (
 
 @stage_task("ingest")
 def ingest(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any], images: str
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    images: str,
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Run :func:`cropcraft_core.sfm.ingest_images` on ``images`` and store the result under
     ``{scene}/ingest/`` (``images/*.png`` and ``manifest.json``).
@@ -27,7 +32,7 @@ def ingest(
     upstream: ``{"inputs": fingerprint of the photos}`` (cache identity only).
     """
     ingest_images = core("ingest", "cropcraft_core.sfm", "ingest_images")
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="ingest")
     with Timer() as t, workdir("ingest") as tmp:
         manifest = ingest_images(
             images,

@@ -11,7 +11,11 @@ from tasks.generate import canopy_from_recipe
 
 @stage_task("metrics")
 def metrics(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.bundle.measure_canopy` of the generated canopy (gap-fraction rays
     through a wider border, so they see no edge); stores ``{scene}/metrics/metrics.json``
@@ -37,7 +41,7 @@ def metrics(
         seed_traits,
     )
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="metrics")
     recipe = store.get_json(key_of(upstream["generate"], "recipe"))
     seeds = None
     if "aggregate" in upstream and config.get("seed_traits", True):

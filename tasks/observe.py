@@ -82,7 +82,11 @@ def _npz(obs: Any) -> bytes:
 
 @stage_task("observe")
 def observe(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Render the fitted surfaces from the row camera and build the
     :class:`~cropcraft_core.observe.Observation` (``Observation.from_surfaces``: the paper's mask
@@ -107,7 +111,7 @@ def observe(
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="observe")
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))
@@ -143,7 +147,11 @@ def observe(
 
 @stage_task("observe_rows")
 def observe_rows(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Observations over the best row's neighbours
     (:func:`cropcraft_core.rowfit.neighbours.neighbour_row_views`: the row camera moved by ±k
@@ -169,7 +177,7 @@ def observe_rows(
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="observe_rows")
     crop = scene.split("/")[1]
     with Timer() as t:
         rf = store.get_json(key_of(upstream["rowfit"], "rowfit"))

@@ -142,6 +142,7 @@ def poses(
     config: dict[str, Any],
     upstream: dict[str, Any],
     poses_uri: str | None = None,
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Poses of the ingested images, stored as ``{scene}/poses/poses.json`` (and, after SfM, the
     sparse points as ``points.npz``).
@@ -191,7 +192,7 @@ def poses(
         summary["metric"] = frame.metric
         return out_poses, out_points
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="poses")
     ing = upstream["ingest"]
     manifest = store.get_json(key_of(ing, "manifest"))
     hashes: dict[str, str] = {}

@@ -54,7 +54,11 @@ def _percent(x: float | None) -> str | None:
 
 @stage_task("report")
 def report(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Build ``{scene}/report/report.html`` with :func:`cropcraft_core.report.scene_report_html`:
     input thumbnails, observed vs predicted row-camera depth (the predicted canopy rendered by
@@ -68,7 +72,7 @@ def report(
     from cropcraft_core.fit import ForwardModel
     from cropcraft_core.report import scene_report_html, thumbnail
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="report")
     crop = scene.split("/")[1]
     with Timer() as t:
         thumbs = []

@@ -9,7 +9,11 @@ from tasks.common import Timer, artefact, key_of, make_record, open_store, stage
 
 @stage_task("rowfit")
 def rowfit(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.rowfit.fit_ground_and_rows` on ``{scene}/surfaces/points.npz``;
     stores ``{scene}/rowfit/rowfit.json`` (``RowFit.to_dict()`` plus ``camera_in_scene``, the
@@ -32,7 +36,7 @@ def rowfit(
     from cropcraft_core.sfm.poses import Poses
     from tasks.fit_seed import layout_of
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="rowfit")
     crop = scene.split("/")[1]
     with Timer() as t:
         cloud = store.get_npz(key_of(upstream["surfaces"], "points"))

@@ -10,7 +10,11 @@ from tasks.fit_seed import layout_of
 
 @stage_task("rows")
 def rows(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """:func:`cropcraft_core.metrics.rows.compare_rows` over the best row's fit
     (``upstream["aggregate"]``) and every neighbour row's (``upstream["aggregate@{index}"]``,
@@ -25,7 +29,7 @@ def rows(
     """
     from cropcraft_core.metrics.rows import compare_rows, rows_answer
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="rows")
     crop = scene.split("/")[1]
     tried = upstream["observe_rows"]["summary"]["rows"]
     offsets = {int(e["index"]): e["offset_m"] for e in tried}

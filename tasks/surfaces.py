@@ -74,7 +74,11 @@ def ground_hint(crop: str, frame: dict[str, Any] | None) -> str | None:
 
 @stage_task("surfaces")
 def surfaces(
-    store_root: str, scene: str, config: dict[str, Any], upstream: dict[str, Any]
+    store_root: str,
+    scene: str,
+    config: dict[str, Any],
+    upstream: dict[str, Any],
+    lease: str | None = None,
 ) -> dict[str, Any]:
     """Fit a surfaces backend (``config["backend"]``: tsdf or points on CPU, nerfacto on
     CUDA) to the ingested images (undistorted into their pinhole cameras) and their poses;
@@ -89,7 +93,7 @@ def surfaces(
     SurfacesConfig, make_backend = _surfaces_api()
     from cropcraft_core.surfaces import SurfacesError, resolve_bbox, views_in_box
 
-    store = open_store(store_root)
+    store = open_store(store_root, scene=scene, lease=lease, what="surfaces")
     cfg = dict(config)
     bbox = resolve_bbox(cfg.pop("bbox", None), scene.split("/")[1])
     n_points = int(cfg.pop("n_points", 100_000))

@@ -329,3 +329,32 @@ def test_a_server_that_ignores_conditional_writes_is_refused(s3_server):
     with hold_scene(honest, SCENE, "second"):
         honest.fs.invalidate_cache()
         assert [p.rsplit("/", 1)[-1] for p in honest.fs.find(root)] == [LEASE_NAME]
+
+
+def test_a_stage_whose_run_no_longer_holds_the_scene_writes_nothing(store, request, monkeypatch):
+    """A stage on a Dask worker goes on after its run ended (a Ctrl-C, a killed command), and
+    a killed run's stage wrote its surfaces over those of a rerun that held the scene, which
+    then failed (session 93's overlap audit). A stage's store asks its run's lease before each
+    object is moved into place or deleted: the rerun's files stay as they were."""
+    from tasks.common import open_store
+
+    if not store._local:  # a stage reads the credentials from its worker's environment
+        server: S3Server = request.getfixturevalue("s3_server")
+        monkeypatch.setenv("AWS_ACCESS_KEY_ID", server.key)
+        monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", server.secret)
+        monkeypatch.setenv("AWS_DEFAULT_REGION", server.region)
+        monkeypatch.setenv("AWS_ENDPOINT_URL", server.endpoint)
+    key = f"{scene_prefix(SCENE)}/surfaces/surfaces.json"
+    with hold_scene(store, SCENE, owner="flow run first") as first:
+        ours = open_store(store._raw_root, scene=SCENE.prefix, lease=first.token, what="surfaces")
+        ours.put_bytes(key, b"first")  # held: written
+    with hold_scene(store, SCENE, owner="flow run rerun") as rerun:
+        store.put_bytes(key, b"rerun")
+        late = open_store(store._raw_root, scene=SCENE.prefix, lease=first.token, what="surfaces")
+        with pytest.raises(SceneBusyError, match="surfaces of plotA/soybean/2024-07-01 stops"):
+            late.put_bytes(key, b"late")
+        with pytest.raises(SceneBusyError, match="flow run rerun holds it now"):
+            late.delete(key)
+        assert store.get_bytes(key) == b"rerun" and rerun.token != first.token
+    hidden = [k for k in store.fs.find(store._full(scene_prefix(SCENE))) if "/.tmp-" in k]
+    assert hidden == []  # the refused write's temporary object went with it
