@@ -2130,17 +2130,18 @@ def test_a_run_whose_dask_cluster_lost_every_worker_fails_naming_it(
     first task, and the run waited on that task silently for good (session 93's Dask audit: a
     nightly season would hang). With no worker for ``NO_WORKER_S`` the run's tasks are
     cancelled, naming the cause."""
-    from distributed import LocalCluster
     from prefect import flow
 
     import flows.dask_runner as dask_runner
-    from flows.runners import make_task_runner
+    from flows.runners import local_cluster, make_task_runner
     from tests.dask_stages import long_stage
 
     monkeypatch.setattr(dask_runner.DaskTaskRunnerWithProgress, "no_worker_s", 3.0)
     started = tmp_path / "started"
 
-    with LocalCluster(
+    # the runner's own cluster: a plain LocalCluster's nanny writes Dask's malloc pin into this
+    # process's environment for good (os.environ.update), and later clusters' workers inherit it
+    with local_cluster(
         n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
     ) as cluster:
 
