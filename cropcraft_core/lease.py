@@ -40,6 +40,7 @@ import uuid
 from collections.abc import Iterator
 from typing import Any
 
+from cropcraft_core.parallel import process_gone
 from cropcraft_core.store import SceneBusyError, SceneKey, SceneStore, StoreError, scene_prefix
 
 __all__ = [
@@ -203,7 +204,8 @@ class SceneLease:
                         continue  # released meanwhile: try to create it again
                     holder = _parse(data.decode("utf-8", "replace"))
                     ttl = float(holder.get("ttl_s") or self.ttl_s)
-                    if (age is None or age <= ttl) and not _gone_here(holder):
+                    gone = _gone_here(holder)
+                    if (age is None or age <= ttl) and not gone:
                         raise SceneBusyError(self._busy_message(holder, age))
                     tag = self.store._write_if(self.key, self._body(), theirs)
                     if tag is None:
@@ -215,7 +217,7 @@ class SceneLease:
                         holder.get("owner", "an unknown run"),
                         holder.get("host", "an unknown host"),
                         f"whose process {holder.get('pid')} is gone"
-                        if _gone_here(holder)
+                        if gone
                         else f"not renewed for {age:.0f} s",
                     )
             self._tag = tag
@@ -375,13 +377,13 @@ def _holder(store: SceneStore, scene: SceneKey) -> tuple[dict[str, Any] | None, 
         if not holder or locked is False:  # released, or its run was killed
             return None, None
         pid = holder.get("pid")
-        if locked is None and holder.get("host") == socket.gethostname() and isinstance(pid, int):
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                return None, None
-            except OSError:  # someone else's process: it is there
-                pass
+        if (
+            locked is None
+            and holder.get("host") == socket.gethostname()
+            and isinstance(pid, int)
+            and process_gone(pid)
+        ):
+            return None, None
         return holder, None
     key = f"{scene_prefix(scene)}/{LEASE_NAME}"
     try:
@@ -409,13 +411,7 @@ def _gone_here(holder: dict[str, Any]) -> bool:
     # the same pids: containers sharing the host's name (host networking) do not share them
     if holder.get("pid_namespace") is None or holder.get("pid_namespace") != _pid_namespace():
         return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except OSError:  # someone else's process: it is there
-        pass
-    return False
+    return process_gone(pid)
 
 
 def _pid_namespace() -> int | None:

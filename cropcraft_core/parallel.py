@@ -30,6 +30,18 @@ SHARED: dict[str, Any] = {}
 ORPHAN_CHECK_S = 1.0
 
 
+def process_gone(pid: int) -> bool:
+    """Whether no process of this host's pid namespace has ``pid`` (another user's live
+    process, which the signal may not reach, is there; an impossible pid is not gone)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (OSError, OverflowError):  # no permission: another user's process is there
+        return False
+    return False
+
+
 def exit_when_orphaned(parent: int) -> None:
     while os.getppid() == parent:
         time.sleep(ORPHAN_CHECK_S)

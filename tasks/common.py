@@ -433,6 +433,8 @@ def sweep_scratch(base: str | Path | None = None) -> list[str]:
     live process, another host's, or one this user cannot remove stays."""
     import shutil
 
+    from cropcraft_core.parallel import process_gone
+
     base = Path(base or tempfile.gettempdir())
     host, gone = _host_tag(), []
     try:
@@ -443,12 +445,7 @@ def sweep_scratch(base: str | Path | None = None) -> list[str]:
         m = _SCRATCH_NAME.match(entry.name)
         if not m or m.group(2) != host or not entry.is_dir(follow_symlinks=False):
             continue
-        try:
-            os.kill(int(m.group(1)), 0)
-            continue  # alive
-        except ProcessLookupError:
-            pass
-        except (PermissionError, OverflowError):  # another user's live process
+        if not process_gone(int(m.group(1))):  # alive (another user's too)
             continue
         shutil.rmtree(entry.path, ignore_errors=True)
         if not os.path.exists(entry.path):

@@ -13,9 +13,7 @@ from prefect import get_run_logger
 
 from cropcraft_core.errors import InputError
 from cropcraft_core.fit import FitConfig, fit_seed
-from cropcraft_core.lease import require_holder
 from cropcraft_core.parallel import numba_threads_per_job
-from cropcraft_core.store import SceneKey
 from tasks.common import (
     Timer,
     artefact,
@@ -100,12 +98,9 @@ def fit_seed_task(
     """
     log = get_run_logger()
     store = open_store(store_root, scene=scene, lease=lease, what=f"fit seed {seed}")
-    scene_key = SceneKey.parse(scene)
-
-    def still_held() -> None:
-        if lease is not None:
-            require_holder(store, scene_key, lease, f"fit seed {seed}")
-
+    # the store's own check before each write (its run's lease), asked at the start and every
+    # 10 % too: a seed whose run ended stops instead of fitting on for no one
+    still_held = store.before_write or (lambda: None)
     still_held()
     cfg = fit_config(config)
     crop = scene.split("/")[1]

@@ -116,14 +116,12 @@ def consistency_warning(
         return (
             f"the reconstruction has no surface under {100 * unreconstructed:.1f} % of the "
             f"plant the photos show (net cover {100 * net:+.1f} % against the photos): leaves "
-            "are lost, which "
-            "pulls the fitted LAI low"
+            "are lost, which pulls the fitted LAI low"
         )
     return (
         f"the reconstruction raises surface over soil on {100 * extra:.1f} % of the photos' "
         f"plant area (net cover {100 * net:+.1f} % against the photos): leaf edges are "
-        "fattened, which "
-        "pulls the fitted LAI high"
+        "fattened, which pulls the fitted LAI high"
     )
 
 
