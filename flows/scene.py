@@ -1539,6 +1539,11 @@ def reconstruct_scene(
         out["flow_run_id"] = str(flow_run.id)
     except Exception:  # pragma: no cover - outside a run
         pass
+    # what the UI shows of the run beside its logs: its traits, warnings, stages and files
+    from flows.artifacts import publish_scene
+    from flows.season import date_warnings
+
+    publish_scene(out, site, crop, date_warnings(st, req.scene), ex.log)
     return out
 
 

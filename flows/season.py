@@ -363,6 +363,17 @@ def process_season(
     try:
         summary = write_summary(st, site, crop, refused)
         out.update(csv=summary["csv"], png=summary["png"])
+        from flows.artifacts import publish_season
+
+        tonight = ", ".join(f"{d} {s.partition(':')[0]}" for d, s in scenes.items())
+        publish_season(
+            summary["rows"],
+            site,
+            crop,
+            f"{site}/{crop} season, {len(summary['rows'])} date(s); run tonight: "
+            f"{tonight or 'none'}",
+            log,
+        )
     except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
         log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
         out.update(csv=None, png=None, summary_error=str(exc))

@@ -215,6 +215,57 @@ def test_scene_flow_produces_everything(base_run):
     assert len(repr(out)) < 20_000
 
 
+def _artifacts(key: str) -> list:
+    """The Prefect artifacts under ``key``, newest first, read back from the API."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+    from prefect.client.schemas.sorting import ArtifactSort
+
+    with get_client(sync_client=True) as client:
+        return client.read_artifacts(
+            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key])),
+            sort=ArtifactSort.CREATED_DESC,
+        )
+
+
+def test_a_scene_run_shows_its_results_in_the_prefect_ui(base_run):
+    """The UI showed a finished scene run's state and logs only (its result is not
+    persisted): the run now publishes a markdown artifact under its plot's key, linked to its
+    flow run, with the traits and their units, the report's warnings and where the files are."""
+    from flows.artifacts import artifact_key
+
+    out = base_run["first"]
+    key = artifact_key("plotA", CROP, "scene")
+    assert key.startswith("plota-") and key.endswith(f"-{CROP}-scene")
+    found = [a for a in _artifacts(key) if str(a.flow_run_id) == out["flow_run_id"]]
+    assert len(found) == 1, found
+    md = found[0].data
+    assert md.startswith(f"# plotA/{CROP}/{DATE}\n")
+    assert f"| lai | {out['metrics']['lai']:.4g} | m2/m2" in md
+    assert f"| num_nodes | {out['params']['num_nodes']:.4g} |" in md
+    assert f"{N_SEEDS} fit seeds" in md and out["report"] in md and out["bundle"] in md
+    store = SceneStore(str(base_run["store"]))
+    for warning in store.get_json(f"plotA/{CROP}/{DATE}/report/warnings.json"):
+        assert warning.replace("|", "\\|") in md
+
+
+def test_artifact_keys_keep_prefects_alphabet_and_plots_apart():
+    from flows.artifacts import MAX_KEY, artifact_key, season_table
+
+    assert artifact_key("plota", "soybean", "scene") == "plota-soybean-scene"
+    sites = ("PlotA", "plota", "plot_a", "plot.a", "plot-a")
+    keys = {artifact_key(s, "maize", "season") for s in sites}
+    assert len(keys) == 5
+    long = artifact_key("x" * 200, "soybean", "season")
+    assert len(long) <= MAX_KEY and long != artifact_key("x" * 199, "soybean", "season")
+    for k in keys | {long}:
+        assert all(c.isdigit() or c == "-" or "a" <= c <= "z" for c in k), k
+    # the season's table: NaN (JSON has none) as an empty cell
+    assert season_table([{"date": "2024-07-01", "lai_m2_m2": math.nan, "note": ""}]) == [
+        {"date": "2024-07-01", "lai_m2_m2": None, "note": ""}
+    ]
+
+
 def test_the_seeds_traits_can_be_left_out(base_run, scene_dir):
     """``metrics.seed_traits=false``: metrics.json without the seeds' traits, only the
     metrics stage and what follows it recomputed; a setting that is no boolean is named."""
@@ -308,6 +359,13 @@ def test_season_flow_runs_pending_dates_and_survives_a_bad_one(
     with get_client(sync_client=True) as client:
         names = {r.name for r in client.read_flow_runs(limit=200)}
     assert {f"plotS/{CROP}/{good}", f"plotS/{CROP} season"} <= names, names
+    # ... and the season's summary is a table in the UI under the plot's key, a row a date
+    from flows.artifacts import artifact_key
+
+    table = json.loads(_artifacts(artifact_key("plotS", CROP, "season"))[0].data)
+    assert [r["date"] for r in table] == [good, bad]
+    assert table[0]["status"] == "done" and table[0]["lai_m2_m2"] > 0
+    assert table[1]["status"] == "failed" and "at least 3 are needed" in table[1]["note"]
     assert out["misnamed"] == ["2024-7-22"] and out["astray"] == ["2024-07-29"]
     # the reason, named before the date's flow starts: its inbox holds two photos
     assert (
