@@ -455,11 +455,21 @@ def season_plot_png(rows: Sequence[Mapping[str, Any]], title: str = "") -> bytes
     return buf.getvalue()
 
 
+#: The year a season plot of several years draws every date in (a leap year: 29 February has a
+#: place), so that each year's dates lie over one axis of days in the year.
+_PLOT_YEAR = 2000
+
+
 def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
     """The season plot's matplotlib figure (Agg). A failed date (``status``) is marked on
     every panel: a red cross at the foot where it has no values, its values drawn hollow in red
     where they are an earlier run's (a failed date was left off and a failed rerun's old values
-    drawn as a fresh answer: session 93's report audit)."""
+    drawn as a fresh answer: session 93's report audit).
+
+    Dates of more than one year (a plot photographed again the next season, under the same
+    site and crop) are drawn a series per year over the days of the year (``Jul 01``), each
+    year in its own colour, rather than along one time axis on which each season shrank to a
+    strip beside a year's empty gap."""
     import datetime as dt
 
     import matplotlib
@@ -468,7 +478,45 @@ def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
     import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
 
-    dates = [dt.date.fromisoformat(r["date"]) for r in rows]
+    all_dates = [dt.date.fromisoformat(r["date"]) for r in rows]
+    years = sorted({d.year for d in all_dates})
+    several = len(years) > 1
+    fig, axes = plt.subplots(3, 1, figsize=(9.5, 7.5), sharex=True)
+    for n, year in enumerate(years):
+        part = [r for r, d in zip(rows, all_dates, strict=True) if d.year == year]
+        dates = [d.replace(year=_PLOT_YEAR) if several else d for d in all_dates if d.year == year]
+        colour = f"C{n % 10}" if several else None
+        _season_series(axes, part, dates, colour, f" {year}" if several else "")
+    axes[0].set_ylabel("LAI (m² m⁻²)")
+    # beside the panels, not over a date's points (it hid the gap-fraction LAI of a first night);
+    # each kind of mark once, whichever years drew it
+    handles, labels = axes[0].get_legend_handles_labels()
+    once = dict(zip(labels, handles, strict=True))
+    axes[0].legend(
+        once.values(), once.keys(), fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+        borderaxespad=0,
+    )  # fmt: skip
+    axes[1].set_ylabel("leaf angle (°), mean ± SD")
+    axes[2].set_ylabel("plant height (m)")
+    axes[2].set_xlabel("day of the year" if several else "date")
+    drawn = [d.replace(year=_PLOT_YEAR) if several else d for d in all_dates]
+    margin = dt.timedelta(days=SEASON_PLOT_MARGIN_DAYS)
+    axes[2].set_xlim(min(drawn) - margin, max(drawn) + margin)
+    locator = mdates.AutoDateLocator(minticks=3, maxticks=9)
+    axes[2].xaxis.set_major_locator(locator)
+    axes[2].xaxis.set_major_formatter(mdates.DateFormatter("%b %d" if several else "%Y-%m-%d"))
+    if title:
+        axes[0].set_title(title)
+    fig.autofmt_xdate()
+    fig.tight_layout()
+    return fig
+
+
+def _season_series(
+    axes: Any, rows: Sequence[Mapping[str, Any]], dates: list, colour: str | None, year: str
+) -> None:
+    """One year's dates on the season plot's three panels (``year``: "" or " 2025", added to
+    its LAI lines' legend labels)."""
     failed = np.array([r.get("status") == "failed" for r in rows], bool)
 
     def col(name: str) -> np.ndarray:
@@ -490,8 +538,9 @@ def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
                 label="failed: no values (summary.csv says why)" if legend else None,
             )  # fmt: skip
 
-    fig, axes = plt.subplots(3, 1, figsize=(9.5, 7.5), sharex=True)
-    axes[0].plot(dates, col("lai_m2_m2"), "o-", label="LAI (leaf area / ground area)")
+    axes[0].plot(
+        dates, col("lai_m2_m2"), "o-", color=colour, label=f"LAI (leaf area / ground area){year}"
+    )
     lo, hi = col("lai_rows_min_m2_m2"), col("lai_rows_max_m2_m2")
     if np.isfinite(lo).any():
         has = np.isfinite(lo) & np.isfinite(hi)
@@ -512,32 +561,19 @@ def season_figure(rows: Sequence[Mapping[str, Any]], title: str = "") -> Any:
             (lo[has] + hi[has]) / 2,
             yerr=(hi[has] - lo[has]) / 2,
             fmt="none",
-            ecolor="tab:blue",
+            ecolor=colour or "tab:blue",
             capsize=4,
             alpha=0.6,
             label="LAI over the seeds' answers (not always the answer's)",
         )
     if np.isfinite(col("lai_gap_fraction_m2_m2")).any():
-        axes[0].plot(dates, col("lai_gap_fraction_m2_m2"), "s--", label="LAI (gap fraction)")
+        axes[0].plot(
+            dates, col("lai_gap_fraction_m2_m2"), "s--", color=colour,
+            label=f"LAI (gap fraction){year}",
+        )  # fmt: skip
     mark_failed(axes[0], col("lai_m2_m2"), legend=True)
-    axes[0].set_ylabel("LAI (m² m⁻²)")
-    # beside the panels, not over a date's points (it hid the gap-fraction LAI of a first night)
-    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     mean, sd = col("leaf_angle_mean_deg"), col("leaf_angle_sd_deg")
-    axes[1].errorbar(dates, mean, yerr=np.nan_to_num(sd), fmt="o-", capsize=3)
+    axes[1].errorbar(dates, mean, yerr=np.nan_to_num(sd), fmt="o-", capsize=3, color=colour)
     mark_failed(axes[1], mean)
-    axes[1].set_ylabel("leaf angle (°), mean ± SD")
-    axes[2].plot(dates, col("plant_height_m"), "o-")
+    axes[2].plot(dates, col("plant_height_m"), "o-", color=colour)
     mark_failed(axes[2], col("plant_height_m"))
-    axes[2].set_ylabel("plant height (m)")
-    axes[2].set_xlabel("date")
-    margin = dt.timedelta(days=SEASON_PLOT_MARGIN_DAYS)
-    axes[2].set_xlim(min(dates) - margin, max(dates) + margin)
-    locator = mdates.AutoDateLocator(minticks=3, maxticks=9)
-    axes[2].xaxis.set_major_locator(locator)
-    axes[2].xaxis.set_major_formatter(mdates.DateFormatter("%Y-%m-%d"))
-    if title:
-        axes[0].set_title(title)
-    fig.autofmt_xdate()
-    fig.tight_layout()
-    return fig

@@ -2226,6 +2226,8 @@ def test_season_plot_marks_failed_dates_and_spans_days_around_one():
     answer (the PNG byte-identical before and after both failures); a first night's one date
     spanned 4 years, its own date unlabelled, the legend over its points (session 93's report
     audit)."""
+    import datetime
+
     import matplotlib.pyplot as plt
 
     from cropcraft_core.report import season_figure, season_plot_png
@@ -2252,6 +2254,25 @@ def test_season_plot_marks_failed_dates_and_spans_days_around_one():
     said = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert "failed: an earlier run's values" in said
     assert "failed: no values (summary.csv says why)" in said
+    plt.close(fig)
+    # last year's dates under the same site and crop: a series per year over the days of the
+    # year, not one axis on which each season was a strip beside a year's gap (session 91)
+    fig = season_figure(
+        [day("2025-06-20", lai=0.4), day("2025-07-30", "failed"), *first, day("2024-08-02", lai=2)]
+    )
+    lo, hi = fig.axes[2].get_xlim()
+    assert hi - lo <= (datetime.date(2000, 8, 2) - datetime.date(2000, 6, 20)).days + 2 * 7 + 1
+    said = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert (
+        "LAI (leaf area / ground area) 2024" in said
+        and "LAI (leaf area / ground area) 2025" in said
+    )
+    assert said.count("failed: no values (summary.csv says why)") == 1
+    fig.canvas.draw()
+    labels = [t.get_text() for t in fig.axes[2].get_xticklabels()]
+    assert any(t.startswith("Jul") for t in labels) and not any("20" in t[:2] for t in labels), (
+        labels
+    )
     plt.close(fig)
 
 
