@@ -114,6 +114,11 @@ TMP_PREFIX = ".tmp-"
 
 MANIFEST_NAME = "manifest.json"
 IMAGES_STAGE = "images"
+#: The folder of ``{site}/{crop}`` the season summary is written to (not a date).
+SEASON_FOLDER = "season"
+#: How many levels below a folder of ``{site}/{crop}`` the season looks for photos that are not
+#: in an ``images/`` inbox (a camera card's ``DCIM/100MEDIA/`` copied under a date: two).
+PHOTO_SEARCH_DEPTH = 3
 _CHUNK = 1 << 20
 
 
@@ -1182,7 +1187,7 @@ class SceneStore:
         with self._io("list", prefix, reading=True):
             try:
                 entries = self.fs.ls(full, detail=False)
-            except FileNotFoundError:
+            except (FileNotFoundError, NotADirectoryError):  # an object stands there
                 return []
         names = {e.rstrip("/").rsplit("/", 1)[-1] for e in entries}
         return sorted(n for n in names if n and not n.startswith("."))
@@ -1833,7 +1838,7 @@ class SceneStore:
             raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(sorted(CROPS))}")
         prefix = f"{site}/{crop}"
         dates = []
-        for name in self._children(prefix):
+        for name in self._folders(prefix):
             if not _is_date(name):
                 continue
             if self._children(f"{prefix}/{name}/{IMAGES_STAGE}") or (
@@ -1842,34 +1847,88 @@ class SceneStore:
                 dates.append(name)
         return dates
 
+    def _folders(self, prefix: str) -> list[str]:
+        """Names of the immediate sub-folders of a folder key: the objects beside them left out
+        (a ``notes.txt`` or ``Thumbs.db`` beside a site's date folders is no date, and listing
+        it as a folder failed the whole season: session 94's folders audit)."""
+        full = self._full(prefix)
+        self._invalidate(full)
+        with self._io("list", prefix, reading=True):
+            try:
+                entries = self.fs.ls(full, detail=True)
+            except (FileNotFoundError, NotADirectoryError):
+                return []
+        names = {
+            str(e["name"]).rstrip("/").rsplit("/", 1)[-1]
+            for e in entries
+            if e.get("type") == "directory"
+        }
+        return sorted(n for n in names if n and not n.startswith("."))
+
+    def _photos_below(self, prefix: str) -> str | None:
+        """The folder (relative to ``prefix``, "" for itself) of the first photo at most
+        :data:`PHOTO_SEARCH_DEPTH` levels below ``prefix``, hidden files and folders left out;
+        None where there is none."""
+        from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
+
+        full = self._full(prefix)
+        self._invalidate(full)
+        with self._io("list", prefix, reading=True):
+            try:
+                paths = self.fs.find(full, maxdepth=PHOTO_SEARCH_DEPTH)
+            except (FileNotFoundError, NotADirectoryError):
+                return None
+        found = []
+        for path in paths:
+            rel = self._rel(path)
+            if rel is None or not rel.startswith(prefix + "/"):
+                continue
+            inner = rel[len(prefix) + 1 :]
+            if inner.lower().endswith(IMAGE_EXTENSIONS) and not any(
+                part.startswith(".") for part in inner.split("/")
+            ):
+                found.append(inner.rpartition("/")[0])
+        return min(found, key=lambda f: (f.count("/"), f)) if found else None
+
     def misnamed_dates(self, site: str, crop: str) -> list[str]:
-        """Folders of ``site``/``crop`` with photos in an ``images/`` inbox whose names are not
-        ISO dates (``2024-7-02``, ``20240703``, ``2024-02-30``): the season cannot run them,
-        and says so rather than skip them unseen."""
+        """Folders of ``site``/``crop`` holding photos (in an ``images/`` inbox, or anywhere
+        :data:`PHOTO_SEARCH_DEPTH` levels down: ``20240707/*.jpg``) whose names are not ISO dates
+        (``2024-7-02``, ``20240703``, ``2024-02-30``): the season cannot run them, and says so
+        rather than skip them unseen. The season summary's own folder is none of them."""
         prefix = f"{site}/{crop}"
         return [
             name
-            for name in self._children(prefix)
-            if not _is_date(name) and self._children(f"{prefix}/{name}/{IMAGES_STAGE}")
+            for name in self._folders(prefix)
+            if not _is_date(name)
+            and name != SEASON_FOLDER
+            and (
+                self._children(f"{prefix}/{name}/{IMAGES_STAGE}")
+                or self._photos_below(f"{prefix}/{name}") is not None
+            )
         ]
 
     def photos_out_of_place(self, site: str, crop: str) -> list[str]:
-        """Dated folders of ``site``/``crop`` whose photos lie in the date's folder itself, not
-        in its ``images/`` inbox (nor run from elsewhere): the season cannot see them as a
-        scene, and says so rather than skip them unseen."""
-        from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
-
+        """Where a dated folder of ``site``/``crop`` holds photos outside its ``images/``
+        inbox, and has no inbox (nor a run from elsewhere): the date (its photos in the date's
+        folder itself) or the folder below it that holds them (``2024-07-14/Images``,
+        ``2024-07-10/DCIM/100MEDIA``: an inbox in another case, or a camera card copied whole).
+        The season cannot see them as a scene, and says so rather than skip them unseen."""
         prefix = f"{site}/{crop}"
         out = []
-        for name in self._children(prefix):
+        for name in self._folders(prefix):
             if not _is_date(name) or self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
                 continue
-            inside = self._children(f"{prefix}/{name}")
-            if MANIFEST_NAME not in inside and any(
-                n.lower().endswith(IMAGE_EXTENSIONS) for n in inside
-            ):
-                out.append(name)
+            if self.isfile(f"{prefix}/{name}/{MANIFEST_NAME}"):
+                continue
+            where = self._photos_below(f"{prefix}/{name}")
+            if where is not None:
+                out.append(f"{name}/{where}" if where else name)
         return out
+
+    def sites_like(self, site: str) -> list[str]:
+        """Sites in the store spelled as ``site`` up to case (``PlotA`` for ``plota``), itself
+        left out: a season of a mistyped site found nothing, said only "is it the store?"."""
+        return [n for n in self._folders("") if n.lower() == site.lower() and n != site]
 
     def discover(self, site: str, crop: str, *, with_runs: bool = False) -> list[DiscoveredScene]:
         """Every dated scene of ``site``/``crop`` with images (and with ``with_runs`` every one

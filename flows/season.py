@@ -11,7 +11,13 @@ from prefect import flow, get_run_logger
 from prefect.states import Failed
 
 from cropcraft_core.errors import CropCraftError, InputError
-from cropcraft_core.store import DiscoveredScene, SceneKey, SceneStore, manifest_key
+from cropcraft_core.store import (
+    SEASON_FOLDER,
+    DiscoveredScene,
+    SceneKey,
+    SceneStore,
+    manifest_key,
+)
 from flows.runners import DEFAULT_RUNNER
 from flows.scene import SurfacesBackend
 
@@ -222,6 +228,10 @@ def write_summary(
     }
 
 
+class _NothingToSummarise(Exception):
+    """The season found no scene of its site and crop, and no summary of theirs stands."""
+
+
 @flow(name="process-season", flow_run_name="{site}/{crop} season", persist_result=False)
 def process_season(
     site: str,
@@ -269,9 +279,9 @@ def process_season(
         )
     for name in (astray := st.photos_out_of_place(site, crop)):
         log.warning(
-            "%s/%s/%s has photos beside its images/ folder, not in it: not processed; move "
+            "%s/%s/%s holds photos, but its date has no images/ inbox: not processed; move "
             "them into %s/%s/%s/images/",
-            site, crop, name, site, crop, name,
+            site, crop, name, site, crop, name.partition("/")[0],
         )  # fmt: skip
     dates = pending_dates(st, site, crop)
     unchanged = [
@@ -283,12 +293,21 @@ def process_season(
     warnings = []
     # a scene run from photos kept elsewhere (cropcraft run --images URI) is one too: its date
     # is in the summary written below, so the warning would contradict it
-    if not dates and not misnamed and not astray and not st.list_dates(site, crop, with_runs=True):
+    empty = (
+        not dates and not misnamed and not astray and not st.list_dates(site, crop, with_runs=True)
+    )
+    if empty:
         # a worker without CROPCRAFT_STORE reads its own ./cropcraft-data: nothing, every night
+        like = st.sites_like(site)  # or the site typed in another case (plota for PlotA)
         warnings.append(
-            f"{site}/{crop} has no dated scene in the store {st.url('')}: is it the store the "
-            "photos are uploaded to (CROPCRAFT_STORE on the worker, or the flow's store "
-            "parameter)?"
+            f"{site}/{crop} has no dated scene in the store {st.url('')}: "
+            + (
+                f"the store holds {' and '.join(like)}, spelled otherwise (site names are "
+                "case-sensitive)"
+                if like
+                else "is it the store the photos are uploaded to (CROPCRAFT_STORE on the "
+                "worker, or the flow's store parameter)?"
+            )
         )
         log.warning("%s", warnings[-1])
     stale = stale_dates(st, site, crop, overrides, dates)
@@ -361,6 +380,10 @@ def process_season(
         "warnings": warnings,
     }
     try:
+        if empty and not st.exists(f"{site}/{crop}/{SEASON_FOLDER}"):
+            # nothing to summarise: a mistyped site's run wrote an empty summary, making a
+            # folder for a site that is not there (session 94's folders audit)
+            raise _NothingToSummarise
         summary = write_summary(st, site, crop, refused)
         out.update(csv=summary["csv"], png=summary["png"])
         from flows.artifacts import publish_season
@@ -374,6 +397,8 @@ def process_season(
             f"{tonight or 'none'}",
             log,
         )
+    except _NothingToSummarise:
+        out.update(csv=None, png=None, summary_note=f"no dated scene of {site}/{crop}")
     except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
         log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
         out.update(csv=None, png=None, summary_error=str(exc))

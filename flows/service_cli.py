@@ -554,10 +554,12 @@ def cmd_season(args: argparse.Namespace) -> int:
     for name in out.get("misnamed", []):
         print(f"{name}  not run: the folder has photos but its name is not a date (YYYY-MM-DD)")
     for name in out.get("astray", []):
-        print(f"{name}  not run: its photos lie beside its images/ folder: move them into it")
+        date = name.partition("/")[0]
+        print(f"{name}  not run: its photos are not in {date}/images/: move them into it")
     for warning in out.get("warnings", []):
         print(f"WARNING  {warning}")
-    print(f"summary  {out.get('csv') or 'not written: ' + out.get('summary_error', '?')}")
+    why = out.get("summary_error") or out.get("summary_note") or "?"
+    print(f"summary  {out.get('csv') or 'not written: ' + why}")
     print(f"plot     {out.get('png') or 'none: no date has results yet'}")
     return 0 if out.get("state", "Completed") == "Completed" else 1
 

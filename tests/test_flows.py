@@ -410,13 +410,18 @@ def test_a_season_on_a_store_without_the_site_says_which_store_it_read(prefect_h
     assert out["state"] == "Completed" and out["scenes"] == {}
     [warning] = out["warnings"]
     assert f"no dated scene in the store file://{tmp_path}/empty" in warning
+    # ... and writes nothing there: it made the site's folder and an empty summary
+    assert out["csv"] is None and list((tmp_path / "empty").iterdir()) == []
+    # a site typed in another case (plotz for PlotZ) is named (session 94's folders audit)
+    photos = SceneStore(str(tmp_path / "empty"))
+    photos.put_bytes(f"PlotZ/{CROP}/{DATE}/images/a.jpg", b"a photo")
+    [warning] = run_season("plotz", CROP, str(tmp_path / "empty"), OVERRIDES)["warnings"]
+    assert "the store holds PlotZ, spelled otherwise" in warning
+    assert sorted(p.name for p in (tmp_path / "empty").iterdir()) == ["PlotZ"]
+    photos.delete("PlotZ", recursive=True)
     # a scene run ad hoc from photos kept elsewhere is a dated scene of the site: no warning
     # (it said "no dated scene" beside a summary that listed the date)
-    from cropcraft_core.store import SceneKey, SceneStore
-
-    SceneStore(str(tmp_path / "empty")).init_manifest(
-        SceneKey("plotZ", CROP, DATE), {"images/a.png": "1"}, {}
-    )
+    photos.init_manifest(SceneKey("plotZ", CROP, DATE), {"images/a.png": "1"}, {})
     assert run_season("plotZ", CROP, str(tmp_path / "empty"), OVERRIDES)["warnings"] == []
 
 

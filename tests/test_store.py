@@ -423,6 +423,32 @@ def test_list_dates_and_discover(store):
         store.list_dates("../etc", "maize")
 
 
+def test_a_sites_folder_as_people_copy_it(store):
+    """Session 94's folders audit: one stray file beside a site's date folders (notes.txt,
+    Thumbs.db) failed the whole season on a local store; photos in ``Images/``, in a camera
+    card's ``DCIM/100MEDIA/`` under a date, or straight in a ``20240707/`` folder were neither
+    run nor named; a site typed in another case was a new, empty site."""
+    photo = b"not decoded here"
+    store.put_bytes("PlotA/soybean/2024-07-01/images/a.jpg", photo)
+    for stray in ("notes.txt", "Thumbs.db", "2024-07-02", "IMG_0001.JPG"):
+        store.put_bytes(f"PlotA/soybean/{stray}", b"beside the dates")
+    store.put_bytes("PlotA/soybean/2024-07-14/Images/a.JPG", photo)
+    store.put_bytes("PlotA/soybean/2024-07-10/DCIM/100MEDIA/DJI_0001.JPG", photo)
+    store.put_bytes("PlotA/soybean/20240707/a.jpg", photo)
+    store.put_bytes("PlotA/soybean/old-flights/2023/a.png", photo)
+    store.put_bytes("PlotA/soybean/season/summary.png", photo)  # the season's own plot
+    # macOS junk only (hidden: the store's own API refuses such keys): nothing there
+    store.fs.makedirs(store._full("PlotA/soybean/2024-07-20"), exist_ok=True)
+    store.fs.pipe_file(store._full("PlotA/soybean/2024-07-20/._a.jpg"), photo)
+    assert store.list_dates("PlotA", "soybean") == ["2024-07-01"]
+    assert store.misnamed_dates("PlotA", "soybean") == ["20240707", "old-flights"]
+    assert store.photos_out_of_place("PlotA", "soybean") == [
+        "2024-07-10/DCIM/100MEDIA",
+        "2024-07-14/Images",
+    ]
+    assert store.sites_like("plota") == ["PlotA"] and store.sites_like("PlotA") == []
+
+
 def test_reachable_and_pickle(store):
     store.check_reachable()
     clone = pickle.loads(pickle.dumps(store))
