@@ -119,14 +119,26 @@ def _fetch(uri: str, dest: Path) -> Path:
     fs, path = url_to_fs(uri)
     target = dest / PurePosixPath(path.rstrip("/")).name
     if fs.isdir(path):
-        fs.get(path.rstrip("/") + "/", str(target), recursive=True)
+        root = path.rstrip("/")
+        for src in fs.find(root):  # every file below, by name (no glob: see _copy)
+            _copy(fs, src, target / PurePosixPath(src).relative_to(root))
         return target
-    fs.get(path, str(target))
+    _copy(fs, path, target)
     ply = named_ply(fs, path, target.read_bytes())  # not JSON: the import names the problem
     if ply is not None:
-        (target.parent / ply[0]).parent.mkdir(parents=True, exist_ok=True)
-        fs.get(ply[1], str(target.parent / ply[0]))
+        _copy(fs, ply[1], target.parent / ply[0])
     return target
+
+
+def _copy(fs, src: str, dst: Path) -> None:
+    """One file to a local path, opened by its name: ``fs.get`` reads a path as a glob
+    pattern, and a folder named ``Plot [rep 2]`` matched nothing (a bare ``FileNotFoundError:
+    []``: session 94's folders audit)."""
+    import shutil
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    with fs.open(src, "rb") as fin, open(dst, "wb") as fout:
+        shutil.copyfileobj(fin, fout, 1 << 20)
 
 
 def focal_priors(manifest: dict) -> dict[str, float]:

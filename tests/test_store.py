@@ -766,6 +766,25 @@ def test_a_transforms_json_brings_the_sparse_points_it_names(tmp_path):
     assert sorted(fingerprint(str(src / "transforms.json"), what="poses")) == ["transforms.json"]
 
 
+def test_poses_in_a_folder_named_with_brackets_are_fetched(tmp_path):
+    """``Trial [rep 2]/``: fsspec's ``get`` read the path as a glob pattern, and the poses
+    stage failed on a bare ``FileNotFoundError: []`` (session 94's folders audit)."""
+    from tasks.poses import _fetch
+
+    src = tmp_path / "Plot [rep 2]"
+    (src / "colmap" / "sparse" / "0").mkdir(parents=True)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        (src / "colmap" / "sparse" / "0" / name).write_text(name)
+    (src / "transforms.json").write_text(json.dumps({"ply_file_path": "sparse [1].ply"}))
+    (src / "sparse [1].ply").write_text("ply points")
+    dest = tmp_path / "dest"
+    dest.mkdir()
+    got = _fetch(str(src / "colmap"), dest)
+    assert (got / "sparse" / "0" / "images.txt").read_text() == "images.txt"
+    got = _fetch(str(src / "transforms.json"), dest)
+    assert (got.parent / "sparse [1].ply").read_text() == "ply points"
+
+
 def test_the_checkpoint_folder_is_the_users_own_and_a_bad_one_is_named(tmp_path, monkeypatch):
     """Fit seeds' checkpoints default to a per-user folder of the temp dir (mode 0700): one
     folder for every user belonged to the first, and the next user's seeds failed on a bare
