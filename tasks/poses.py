@@ -34,20 +34,28 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
     turn_upright, mirroring = core(
         "poses", "cropcraft_core.geometry.lens", "turn_upright", "MIRRORING_ORIENTATIONS"
     )
-    by_source = {im["source"]: im["name"] for im in manifest["images"]}
+    # names compared in one Unicode form: macOS writes "été" decomposed (NFD), JSON writers
+    # and COLMAP's text files as typed (NFC), and the same-looking names did not match
+    # (session 94's folders audit)
+    by_source = {_nfc(im["source"]): im["name"] for im in manifest["images"]}
     by_stem = {PurePosixPath(src).stem: name for src, name in by_source.items()}
-    posed = {by_source.get(n) or by_stem.get(PurePosixPath(n).stem) for n in poses.names}
+
+    def ingested_as(name: str) -> str | None:
+        name = _nfc(name)
+        return by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
+
+    posed = {ingested_as(n) for n in poses.names}
     for d in manifest.get("duplicates") or ():
         # a dropped copy's pose is the pose of the photo kept in its place, where that has
         # none of its own (Finder's "view_003 copy.jpg" sorts first and is kept)
-        kept = by_source.get(d["duplicate_of"])
+        kept = by_source.get(_nfc(d["duplicate_of"]))
         if kept is not None and kept not in posed:
-            by_source.setdefault(d["source"], kept)
-            by_stem.setdefault(PurePosixPath(d["source"]).stem, kept)
+            by_source.setdefault(_nfc(d["source"]), kept)
+            by_stem.setdefault(PurePosixPath(_nfc(d["source"])).stem, kept)
     ingested = {im["name"]: im for im in manifest["images"]}
     views, missing, dist, unlike = [], [], {}, []
     for name, cam in poses:
-        new = by_source.get(name) or by_stem.get(PurePosixPath(name).stem)
+        new = ingested_as(name)
         if new is None:
             missing.append(name)
             continue
@@ -99,6 +107,13 @@ def _rename_to_ingested(poses, manifest: dict, where: str):
             f"ingested (e.g. missing: {', '.join(missing[:5])}); give the poses of these photos"
         )
     return Poses(tuple(views), dist), missing
+
+
+def _nfc(name: str) -> str:
+    """``name`` in Unicode's composed form (NFC)."""
+    import unicodedata
+
+    return unicodedata.normalize("NFC", name)
 
 
 def _same_view(cam, upright: tuple[int, int]) -> bool:

@@ -295,6 +295,17 @@ def test_imported_poses_follow_the_photos_as_ingested():
     ghost = Poses((*poses.views, ("IMG_9.JPG", cam)))  # a frame whose photo is not here
     out, photoless = _rename_to_ingested(ghost, {"images": copied, "duplicates": [dup]}, "t")
     assert out.names == ["IMG_0.png", "IMG_1 copy.png", "IMG_2.png"] and photoless == ["IMG_9.JPG"]
+    # accented names as macOS writes them (decomposed) against poses that name them as typed
+    # (composed): "0 of them were ingested" for photos plainly there (session 94's folders audit)
+    import unicodedata
+
+    nfd = [
+        {**im, "source": unicodedata.normalize("NFD", f"été_{i}.JPG")}
+        for i, im in enumerate(images)
+    ]
+    accented = Poses(tuple((unicodedata.normalize("NFC", f"été_{i}.JPG"), cam) for i in range(3)))
+    out, photoless = _rename_to_ingested(accented, {"images": nfd}, "t")
+    assert out.names == ["IMG_0.png", "IMG_1.png", "IMG_2.png"] and photoless == []
     images[2].update(width=120, height=160, source_width=240, source_height=320)
     with pytest.raises(InputError, match=r"poses.json gives IMG_2.JPG as 320x240 pixels, but"):
         _rename_to_ingested(poses, {"images": images}, "poses.json")
