@@ -507,7 +507,12 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
     """
     from fsspec.core import url_to_fs
 
-    from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS, UNSUPPORTED_EXTENSIONS, is_listed_file
+    from cropcraft_core.sfm.ingest import (
+        IMAGE_EXTENSIONS,
+        UNSUPPORTED_EXTENSIONS,
+        check_photo_links,
+        is_listed_file,
+    )
 
     try:
         fs, path = url_to_fs(os.fspath(uri))
@@ -524,11 +529,14 @@ def fingerprint(uri: str, *, what: str = "images") -> dict[str, str]:
                     infos[ply[0]] = fs.info(ply[1])
         else:
             depth = 1 if what == "images" else None
+            found = fs.find(path, maxdepth=depth, detail=True).items()
             infos = {
                 str(name)[len(root) + 1 :]: i
-                for name, i in fs.find(path, maxdepth=depth, detail=True).items()
+                for name, i in found
                 if is_listed_file(fs, i) and str(name).startswith(root + "/")
             }
+            if what == "images":
+                check_photo_links(fs, [i for _, i in found], uri)
             for name, i in list(infos.items()):
                 if i.get("islink") and getattr(fs, "local_file", False):  # the target's size, time
                     infos[name] = {**i, **fs.info(os.path.realpath(i["name"]))}

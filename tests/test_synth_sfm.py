@@ -660,6 +660,21 @@ def test_ingest_follows_linked_photos_and_sees_them_change(tmp_path):
     assert sorted(before) == ["p0.png", "p1.png", "p2.png"]
     _png((1, 2, 3), size=(41, 30)).save(dump / "p1.png")  # the linked photo replaced
     assert fingerprint(str(links))["p1.png"] != before["p1.png"]
+    # links into a git-annex checkout whose content was never fetched: named, before any
+    # work and by ingest; they were dropped without a word (fewer photos, or "no images found"
+    # for a folder of them only: session 94's folders audit)
+    for i in (7, 8):
+        (links / f"p{i}.png").symlink_to(tmp_path / "annex" / f"p{i}.png")
+    for read in (fingerprint, lambda src: ingest_images(src, tmp_path / "out2")):
+        with pytest.raises(
+            InputError, match=r"2 photo\(s\) in .* links whose target is not there: p7"
+        ):
+            read(str(links))
+    # a link to a folder of photos is a folder: its photos named as a subfolder's
+    (tmp_path / "card").mkdir()
+    (tmp_path / "card" / "photos").symlink_to(dump, target_is_directory=True)
+    with pytest.raises(InputError, match="the photos are in 'photos' below it"):
+        fingerprint(str(tmp_path / "card"))
 
 
 def test_ingest_leaves_a_cameras_raw_and_band_files_beside_its_jpegs(tmp_path):

@@ -135,7 +135,8 @@ class IngestManifest:
 
 def _list_source(source: str) -> tuple[object, list[str], str, list[str]]:
     """(filesystem, sorted file paths directly in the source folder, root path, sorted paths
-    of its subfolders)."""
+    of its subfolders and links to folders); InputError naming its photos that are links to
+    nothing (:func:`check_photo_links`)."""
     import fsspec
 
     try:
@@ -154,8 +155,34 @@ def _list_source(source: str) -> tuple[object, list[str], str, list[str]]:
     except (OSError, PermissionError) as e:
         raise InputError(f"cannot list image source {source!r}: {e}") from None
     files = sorted(e["name"] for e in entries if is_listed_file(fs, e))
-    folders = sorted(e["name"] for e in entries if e.get("type") == "directory")
+    # a link to a folder of photos is a folder (its photos then named as in a subfolder)
+    folders = sorted(
+        e["name"]
+        for e in entries
+        if e.get("type") == "directory" or (e.get("islink") and fs.isdir(e["name"]))
+    )
+    check_photo_links(fs, entries, source)
     return fs, files, root, folders
+
+
+def check_photo_links(fs, entries: list[dict], where: str) -> None:
+    """InputError naming the JPEG/PNG photos among a listing's ``entries`` that are links
+    whose target is not there (a git-annex or DVC checkout whose content was never fetched):
+    dropped without a word, they read as "no images found" or as fewer photos (session 94's
+    folders audit)."""
+    broken = sorted(
+        str(e["name"]).rsplit("/", 1)[-1]
+        for e in entries
+        if e.get("islink")
+        and str(e["name"]).lower().endswith(IMAGE_EXTENSIONS)
+        and not fs.exists(e["name"])
+    )
+    if broken:
+        raise InputError(
+            f"{len(broken)} photo(s) in {where} are links whose target is not there: "
+            f"{', '.join(broken[:8])}{', ...' if len(broken) > 8 else ''}; a git-annex or DVC "
+            "checkout not fetched yet (git annex get, dvc pull)? Fetch them, or remove the links"
+        )
 
 
 def photos_in_subfolders(fs, root: str, folders: list[str], depth: int = 3) -> list[str]:
