@@ -677,6 +677,23 @@ def test_ingest_follows_linked_photos_and_sees_them_change(tmp_path):
         fingerprint(str(tmp_path / "card"))
 
 
+def test_photos_named_with_backslashes_are_written_under_names_the_store_keys(tmp_path):
+    """A Windows-made zip unpacked here names its photos ``DCIM\\100MEDIA\\DJI_0001.JPG``: the
+    run failed on an internal store-key error after decoding every photo (session 94's
+    folders audit). The written name is keyable; the source name is kept for the poses."""
+    from cropcraft_core.store import _check_key
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for i in range(3):
+        _png((60 * i, 90, 60)).save(src / f"DCIM\\100MEDIA\\DJI_000{i}.png")
+    man = ingest_images(str(src), tmp_path / "out")
+    assert man.names == [f"DCIM_100MEDIA_DJI_000{i}.png" for i in range(3)]
+    assert [im.source for im in man.images] == [f"DCIM\\100MEDIA\\DJI_000{i}.png" for i in range(3)]
+    for name in man.names:
+        _check_key(f"plotA/soybean/2024-07-01/ingest/images/{name}")
+
+
 def test_ingest_leaves_a_cameras_raw_and_band_files_beside_its_jpegs(tmp_path):
     """A drone's RAW+JPEG mode or a multispectral drone's band TIFFs sit beside the JPEGs:
     ignored and listed, not an error; without any JPEG/PNG they are named, and a phone's

@@ -26,6 +26,7 @@ import io
 import json
 import math
 import os
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
 
@@ -131,6 +132,11 @@ class IngestManifest:
             return cls(**d)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise InputError(f"cannot read the ingest manifest {p}: {e}") from None
+
+
+#: Characters a written photo's name cannot hold as a store key (``store._check_key``):
+#: backslashes and control characters, each written as ``_``.
+_UNKEYABLE = re.compile(r"[\\\x00-\x1f\x7f]")
 
 
 def _list_source(source: str) -> tuple[object, list[str], str, list[str]]:
@@ -430,7 +436,10 @@ def ingest_images(
             size = (max(1, round(sw * scale)), max(1, round(sh * scale)))
             img = img.resize(size, Image.Resampling.LANCZOS)
             scale = size[0] / sw
-        stem = PurePosixPath(base).stem
+        # a name the store can key: a Windows zip unpacked here names its photos
+        # "DCIM\\100MEDIA\\DJI_0001.JPG", and the run failed on an internal store-key error
+        # after decoding every photo (session 94's folders audit)
+        stem = _UNKEYABLE.sub("_", PurePosixPath(base).stem)
         name = f"{stem}.{output_format}"
         k = 1
         while name in used_names:
