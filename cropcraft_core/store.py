@@ -1230,6 +1230,10 @@ class SceneStore:
         bucket, path, _ = self.fs.split_path(self._full(key))
         return bucket, path
 
+    def _s3_key_root(self) -> tuple[str, str]:
+        bucket, path, _ = self.fs.split_path(self._root_path)
+        return bucket, path
+
     def _read_tagged(self, key: str) -> tuple[bytes | None, str | None, float | None]:
         """``(bytes, version tag, age in seconds)`` of a small object, or ``(None, None, None)``
         where there is none. On S3 the tag is the ETag and the age the server's own clock
@@ -1398,11 +1402,16 @@ class SceneStore:
             "(AWS S3 and current MinIO have them), or a local store"
         )
 
-    def sweep_tmp(self, prefix: str = "", older_than_s: float = 3600.0) -> list[str]:
-        """Remove temporary objects left by killed writers, older than ``older_than_s``.
+    def sweep_tmp(self, prefix: str = "", older_than_s: float | None = 3600.0) -> list[str]:
+        """Remove temporary objects left by killed writers, older than ``older_than_s``; with
+        ``None`` every one under ``prefix``, and on S3 the multipart uploads a killed writer
+        of a large object left unfinished (invisible to listings, billed until aborted).
 
         Returns the (relative) paths removed. Safe to run while writers are active as long as no
-        single write takes longer than ``older_than_s``.
+        single write takes longer than ``older_than_s``; ``None`` only by the holder of the
+        scene's lease before its own writes (no other run writes there then: a killed run's
+        leftover was kept an hour, and a rerun within it kept it for good once the scene
+        finished, since nothing runs a finished scene's flow again: session 94's store audit).
         """
         prefix = _check_key(prefix, allow_empty=True)
         full = self._full(prefix)
@@ -1413,18 +1422,40 @@ class SceneStore:
             try:
                 paths = self.fs.find(full)
             except FileNotFoundError:
-                return []
+                paths = []
             for path in paths:
                 if not path.rsplit("/", 1)[-1].startswith(TMP_PREFIX):
                     continue
-                try:
-                    age = now - self.fs.modified(path).timestamp()
-                except (NotImplementedError, FileNotFoundError):
-                    continue
-                if age >= older_than_s:
-                    self._rm_quiet(path)
-                    removed.append(self._rel(path) or path)
+                if older_than_s is not None:
+                    try:
+                        age = now - self.fs.modified(path).timestamp()
+                    except (NotImplementedError, FileNotFoundError):
+                        continue
+                    if age < older_than_s:
+                        continue
+                self._rm_quiet(path)
+                removed.append(self._rel(path) or path)
+            if older_than_s is None and self.protocol in _S3_PROTOCOLS:
+                removed += self._abort_uploads(prefix)
         return removed
+
+    def _abort_uploads(self, prefix: str) -> list[str]:
+        """Abort the unfinished multipart uploads of temporary objects under ``prefix`` (S3);
+        the keys they were for."""
+        bucket, path = self._s3_key(prefix) if prefix else self._s3_key_root()
+        listed = self.fs.call_s3(
+            "list_multipart_uploads", Bucket=bucket, Prefix=path.rstrip("/") + "/" if path else ""
+        )
+        out = []
+        for up in listed.get("Uploads") or []:
+            if not str(up["Key"]).rsplit("/", 1)[-1].startswith(TMP_PREFIX):
+                continue
+            with contextlib.suppress(FileNotFoundError):
+                self.fs.call_s3(
+                    "abort_multipart_upload", Bucket=bucket, Key=up["Key"], UploadId=up["UploadId"]
+                )
+            out.append(self._rel(f"{bucket}/{up['Key']}") or up["Key"])
+        return out
 
     # ---- reachability -----------------------------------------------------------------------
 

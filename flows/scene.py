@@ -1514,8 +1514,10 @@ def reconstruct_scene(
                 req.scene.prefix,
                 len(settled),
             )
-        try:  # temporaries of writers killed mid-write (an hour old: no write takes that long)
-            swept = st.sweep_tmp(req.scene.prefix)
+        try:  # temporaries of writers killed mid-write: all of them, this run holding the
+            # scene before its own first write (one kept under an hour old stayed for good
+            # once a rerun finished the scene: session 94's store audit)
+            swept = st.sweep_tmp(req.scene.prefix, older_than_s=None)
             if swept:
                 ex.log.info("%s: removed %d stale temporary objects", req.scene.prefix, len(swept))
         except Exception as exc:  # housekeeping must not fail the run

@@ -488,6 +488,18 @@ def _print_coverage(out: Mapping[str, Any]) -> None:
 # --------------------------------------------------------------------------- run
 
 
+def _sweep_stale(req: Any) -> None:
+    """A cached answer's housekeeping: the scene's temporary objects over an hour old (a
+    writer killed after the scene's last record; no lease is taken for a cached answer, so the
+    young ones, which a run now writing may own, stay). Never fails the answer."""
+    from cropcraft_core.store import SceneStore
+
+    try:
+        SceneStore(req.store_root).sweep_tmp(req.scene.prefix)
+    except Exception:  # housekeeping
+        pass
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``cropcraft run SITE/CROP/DATE [--images URI] [--poses URI]``."""
     from flows.runners import parse_runner
@@ -511,6 +523,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     hit = None if args.force else cached_result(req)
     if hit is not None:
         note_sources(req, args.images, args.poses)
+        _sweep_stale(req)
         _print_summary(hit)
         return 0
     _before_flow_run()

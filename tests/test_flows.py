@@ -266,6 +266,20 @@ def test_artifact_keys_keep_prefects_alphabet_and_plots_apart():
     ]
 
 
+def test_a_run_sweeps_its_scenes_temporaries_whatever_their_age(base_run, scene_dir):
+    """A run killed mid-write left a temporary object; a rerun within the hour kept it (only
+    those an hour old were swept), and once that rerun finished the scene nothing ran its flow
+    again: kept for good, a whole artefact's size (session 94's store audit). A run holding
+    the scene now sweeps them all before its first write."""
+    store = SceneStore(str(base_run["store"]))
+    young = f"plotA/{CROP}/{DATE}/surfaces/{TMP_PREFIX}killed-surface.ply"
+    store.fs.pipe_file(store._full(young), b"a whole surface")
+    out = _run("plotA", base_run["store"], scene_dir, {**OVERRIDES, "metrics.seed_traits": False})
+    assert "metrics" in _executed(out["states"])
+    assert not store.fs.exists(store._full(young))
+    _run("plotA", base_run["store"], scene_dir)  # back to the default for the tests after
+
+
 def test_the_seeds_traits_can_be_left_out(base_run, scene_dir):
     """``metrics.seed_traits=false``: metrics.json without the seeds' traits, only the
     metrics stage and what follows it recomputed; a setting that is no boolean is named."""

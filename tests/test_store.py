@@ -241,6 +241,24 @@ def test_tmp_objects_are_hidden_and_swept(store):
     removed = store.sweep_tmp(older_than_s=0)
     assert removed == [f"{stage_prefix(SCENE, 'rowfit')}/{TMP_PREFIX}dead-rows.json"]
     assert not [p for p in backend_paths(store) if TMP_PREFIX in p]
+    # the scene's lease holder sweeps them all, young ones too; on S3 also the multipart
+    # uploads a writer of a large object left unfinished (invisible, billed until aborted),
+    # other uploads left alone (session 94's store audit)
+    store.fs.pipe_file(stale, b"partial")
+    uploads = []
+    if store.protocol in ("s3", "s3a"):
+        for rel in (f"{stage_prefix(SCENE, 'surfaces')}/{TMP_PREFIX}dead-big.npz", "other/big.npz"):
+            bucket, path = store._s3_key(rel)
+            store.fs.call_s3("create_multipart_upload", Bucket=bucket, Key=path)
+            uploads.append(path)
+    removed = store.sweep_tmp(SCENE.prefix, older_than_s=None)
+    assert f"{stage_prefix(SCENE, 'rowfit')}/{TMP_PREFIX}dead-rows.json" in removed
+    assert not [p for p in backend_paths(store) if TMP_PREFIX in p]
+    if uploads:
+        bucket = store._s3_key("x")[0]
+        left = store.fs.call_s3("list_multipart_uploads", Bucket=bucket).get("Uploads") or []
+        assert [u["Key"] for u in left if u["Key"] in uploads] == [uploads[1]]
+        assert f"{stage_prefix(SCENE, 'surfaces')}/{TMP_PREFIX}dead-big.npz" in removed
 
 
 # ---- manifest -----------------------------------------------------------------------------
