@@ -692,6 +692,15 @@ def test_photos_named_with_backslashes_are_written_under_names_the_store_keys(tm
     assert [im.source for im in man.images] == [f"DCIM\\100MEDIA\\DJI_000{i}.png" for i in range(3)]
     for name in man.names:
         _check_key(f"plotA/soybean/2024-07-01/ingest/images/{name}")
+    # ... and a name longer than a file system holds once the store's temporary sibling
+    # adds its prefix (249 bytes: legal where it came from) is written shortened, still apart
+    long = tmp_path / "long"
+    long.mkdir()
+    for i in range(3):
+        _png((60 * i, 90, 60)).save(long / f"{'写' * 80}_{i}.png")
+    man = ingest_images(str(long), tmp_path / "out-long")
+    assert len(set(man.names)) == 3
+    assert all(len(n.encode()) <= 200 and n.startswith("写") for n in man.names)
 
 
 def test_ingest_leaves_a_cameras_raw_and_band_files_beside_its_jpegs(tmp_path):

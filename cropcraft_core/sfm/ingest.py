@@ -139,6 +139,22 @@ class IngestManifest:
 _UNKEYABLE = re.compile(r"[\\\x00-\x1f\x7f]")
 
 
+#: Longest stem (UTF-8 bytes) of a written photo's name: a file system holds 255 bytes a name,
+#: and the store's temporary sibling adds 38 (a 249-byte name, legal where it came from,
+#: failed at storing, blaming the store: session 94's folders audit).
+MAX_STEM_BYTES = 160
+
+
+def _short(stem: str) -> str:
+    """``stem``, or where longer than :data:`MAX_STEM_BYTES` its start and a digest of the
+    whole (distinct names stay distinct)."""
+    raw = stem.encode("utf-8")
+    if len(raw) <= MAX_STEM_BYTES:
+        return stem
+    head = raw[: MAX_STEM_BYTES - 13].decode("utf-8", errors="ignore")
+    return f"{head}-{hashlib.sha256(raw).hexdigest()[:12]}"
+
+
 def _list_source(source: str) -> tuple[object, list[str], str, list[str]]:
     """(filesystem, sorted file paths directly in the source folder, root path, sorted paths
     of its subfolders and links to folders); InputError naming its photos that are links to
@@ -439,7 +455,7 @@ def ingest_images(
         # a name the store can key: a Windows zip unpacked here names its photos
         # "DCIM\\100MEDIA\\DJI_0001.JPG", and the run failed on an internal store-key error
         # after decoding every photo (session 94's folders audit)
-        stem = _UNKEYABLE.sub("_", PurePosixPath(base).stem)
+        stem = _short(_UNKEYABLE.sub("_", PurePosixPath(base).stem))
         name = f"{stem}.{output_format}"
         k = 1
         while name in used_names:
