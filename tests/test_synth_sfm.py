@@ -873,24 +873,53 @@ def test_sfm_stage_starts_each_camera_from_the_photos_exif_focal_length(tmp_path
     assert rec["summary"]["camera_params"][0] == pytest.approx(truth.cameras[0].fx, rel=0.01)
 
 
-def test_sfm_closes_the_loop_before_matching_every_pair(tmp_path, monkeypatch):
+def test_sfm_closes_the_loop_before_matching_the_unplaced_images(tmp_path, monkeypatch):
     """``auto`` matching's three passes through real pycolmap: the neighbours in name order,
-    then the pairs round the end of the order (the list pycolmap imports), then every other
-    pair, each pass followed by mapping until enough images are registered. Here 8 views (the
-    auto threshold lowered to them) and a registration target no model can meet, so all three
-    run; each pass's time is reported."""
+    then the pairs round the end of the order (the list pycolmap imports), then each image
+    outside the largest model with every other, mapping again only after a pass that verified a
+    pair reaching such an image. Here 8 views and one frame of noise (a drone's take-off shot),
+    the auto threshold lowered to them: the noise frame is matched with the 8 others, not every
+    pair of all 9 (a 500-photo flight's 25 such frames cost ~3 h of every-pair matching and a
+    mapping per pass: session 94's drone audit), and no pass maps again for it."""
+    import pycolmap
+
     out, truth = _sfm_scene(tmp_path, 8, 20.0, seed=5)
+    noise = np.random.default_rng(1).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    Image.fromarray(noise).resize((640, 480), Image.NEAREST).save(out / "images" / "z_noise.png")
     monkeypatch.setattr(sfm_poses, "EXHAUSTIVE_MAX_IMAGES", 4)
+    mappings = []
+    real = pycolmap.incremental_mapping
+
+    def counted(*args, **kwargs):
+        mappings.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", counted)
     res = run_sfm(
         out / "images", tmp_path / "work", num_threads=2, sequential_overlap=3,
-        complete_below=1.01, focal_length_px=1.03 * truth.cameras[0].fx,
+        focal_length_px=1.03 * truth.cameras[0].fx,
     )  # fmt: skip
-    assert res.matcher == "sequential+loop+exhaustive"
-    assert {"matching_sequential", "matching_loop", "matching_exhaustive"} <= set(res.seconds)
-    listed = (tmp_path / "work" / "loop_pairs.txt").read_text().split("\n")
+    assert res.matcher == "sequential+loop+unplaced" and len(mappings) == 1
+    assert {"matching_sequential", "matching_loop", "matching_unplaced"} <= set(res.seconds)
     names = sorted(p.name for p in (out / "images").iterdir())
-    assert listed[:-1] == [f"{names[a]} {names[b]}" for a, b in loop_pairs(8, 3)]
-    _check_sfm(res, truth, 8)
+    listed = (tmp_path / "work" / "loop_pairs.txt").read_text().split("\n")
+    assert listed[:-1] == [f"{names[a]} {names[b]}" for a, b in loop_pairs(9, 3)]
+    listed = (tmp_path / "work" / "unplaced_pairs.txt").read_text().split("\n")[:-1]
+    assert sorted(listed) == sorted(f"{n} z_noise.png" for n in names[:-1])
+    assert sorted(res.poses.names) == names[:-1]  # the 8 views, as well as before
+    _check_sfm(dataclasses.replace(res, registered_fraction=8 / 8), truth, 8)  # noise aside
+
+
+def test_completion_pairs_match_the_unplaced_with_every_other_image():
+    """By hand: 10 images, 8 and 9 unplaced: each with the 9 others, the pair (8, 9) once (17
+    of 45 pairs); where those would be most of all pairs (7, 8, 9: 24 of 45), None (every
+    pair)."""
+    pairs = sfm_poses.completion_pairs(10, [8, 9])
+    assert pairs == sorted({(a, 8) for a in range(8)} | {(a, 9) for a in range(9)})
+    assert len(pairs) == 17
+    assert sfm_poses.completion_pairs(10, [7, 8, 9]) is None
+    assert sfm_poses.completion_pairs(500, list(range(25)))[-1] == (24, 499)
+    assert len(sfm_poses.completion_pairs(500, list(range(25)))) == 12_175
 
 
 def test_loop_pairs_take_sequential_matching_round_the_end():

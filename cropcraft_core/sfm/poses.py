@@ -150,8 +150,9 @@ class SfmResult:
     camera_model / camera_params: the COLMAP camera of the first registered image (distortion is
     also in ``poses.distortion``).  seconds: wall time per stage.  model_dir: the kept model as a
     COLMAP text model.  matcher: the matching passes run, ``+``-joined in order ("exhaustive",
-    "sequential", "sequential+loop", "sequential+loop+exhaustive", ...).  focal_priors: the
-    focal length (px) each image's camera started from, for those that had a prior.
+    "sequential", "sequential+loop", "sequential+loop+unplaced", "sequential+exhaustive",
+    ...).  focal_priors: the focal length (px) each image's camera started from, for those
+    that had a prior.
     """
 
     poses: Poses
@@ -696,6 +697,35 @@ def choose_matcher(n_images: int, matcher: str = "auto") -> str:
 SIFT_PEAK_THRESHOLD = 0.02 / 9
 
 
+def completion_pairs(n: int, outside: list[int]) -> list[tuple[int, int]] | None:
+    """The pairs that match each of ``outside`` (indices of images outside the largest model)
+    with every other of ``n`` images, each pair once; None where they would be more than half
+    of all pairs (then every pair is matched: the order told little)."""
+    out = {(min(a, b), max(a, b)) for a in outside for b in range(n) if b != a}
+    if 2 * len(out) > n * (n - 1) // 2:
+        return None
+    return sorted(out)
+
+
+def _verified_pairs(db: Path, min_inliers: int) -> set[tuple[str, str]]:
+    """The image pairs (names) of a COLMAP database with at least ``min_inliers`` verified
+    inlier matches."""
+    import pycolmap
+
+    base = pycolmap.Database.open(str(db))
+    try:
+        name = {im.image_id: im.name for im in base.read_all_images()}
+        pair_ids, inliers = base.read_two_view_geometry_num_inliers()
+    finally:
+        base.close()
+    out = set()
+    for pid, k in zip(pair_ids, inliers, strict=True):
+        if k >= min_inliers:
+            a, b = pycolmap.pair_id_to_image_pair(pid)
+            out.add((name[a], name[b]))
+    return out
+
+
 def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
     """The pairs that close a loop of ``n`` images in name order: sequential matching's pairs
     (each image with the next ``overlap`` and those ``2**k`` on, COLMAP's quadratic overlap)
@@ -774,9 +804,12 @@ def run_sfm(
     (sequential: ``sequential_overlap`` neighbours, quadratic overlap, no loop detection;
     auto: sequential; where fewer than ``complete_below`` of the images registered, the pairs
     that close the name order's loop (``loop_pairs``: a walk round the plot ends where it
-    began), and where still too few, every remaining pair — on the 50-view synthetic walk the
-    verified pairs are 94 % within three neighbours; names with whitespace skip the loop pass,
-    which pycolmap's pair list cannot hold), incremental mapping after each pass;
+    began), and where still too few, each image outside the largest model with every other
+    (``completion_pairs``; every pair where those are most of them) — on the 50-view synthetic
+    walk the verified pairs are 94 % within three neighbours; names with whitespace, which
+    pycolmap's pair list cannot hold, skip the loop pass and complete by every pair), incremental
+    mapping after the first pass and after each later one that verified a pair reaching an
+    image outside the largest model;
     the model with the most registered images is kept and written as a text model to
     ``work_dir/model``. ``camera_model``: COLMAP model fitted (focal length starts at 1.2 × the
     longer side unless EXIF says otherwise); ``single_camera``: one camera shared by all images
@@ -906,8 +939,8 @@ def run_sfm(
                 pycolmap.match_exhaustive(
                     str(db), matching_options=mopt, device=pycolmap.Device.cpu
                 )
-            elif kind == "loop":
-                listed = work / "loop_pairs.txt"
+            elif kind in ("loop", "unplaced"):
+                listed = work / f"{kind}_pairs.txt"
                 listed.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs or []))
                 pair = pycolmap.ImportedPairingOptions()
                 pair.match_list_path = str(listed)
@@ -935,10 +968,25 @@ def run_sfm(
         def registered(found: dict) -> int:
             return max((r.num_reg_images() for r in found.values()), default=0)
 
+        def placed(found: dict) -> set[str]:
+            best = max(found.values(), key=lambda r: r.num_reg_images(), default=None)
+            return set() if best is None else {best.image(i).name for i in best.reg_image_ids()}
+
+        def verified() -> set[tuple[str, str]]:
+            return _verified_pairs(db, popt.mapper.abs_pose_min_num_inliers)
+
+        def remap_if_new(before: set[tuple[str, str]], models: dict) -> dict:
+            # map again only where the pass verified a pair that reaches an image outside the
+            # largest model: frames no pass can place (a drone's take-off and landing shots)
+            # cost a whole mapping per pass, ~18 min at 500 photos (session 94's drone audit)
+            outside = set(names) - placed(models)
+            if any(a in outside or b in outside for a, b in verified() - before):
+                return mapping()
+            return models
+
         if mode == "auto":
             # ordered captures (a walk, a drone line) share features with their neighbours in
-            # name order: match those first; complete every other pair only if that registers
-            # too few images
+            # name order: match those first; complete only if that registers too few images
             match("sequential")
             models = mapping()
             mode = "sequential"
@@ -947,13 +995,27 @@ def run_sfm(
             spaced = any(ch.isspace() for n in names for ch in n)
             loop = [] if spaced else loop_pairs(len(names), int(sequential_overlap))
             if loop and registered(models) < complete_below * len(names):
+                before = verified()
                 match("loop", loop)
-                models = mapping()
+                models = remap_if_new(before, models)
                 mode += "+loop"
             if registered(models) < complete_below * len(names):
-                match("exhaustive")
-                models = mapping()
-                mode += "+exhaustive"
+                # the images outside the largest model against every other image: every pair
+                # of a 500-photo flight was 124,750 pairs, ~3 h here, for the 25 frames of its
+                # take-off and landing (session 94's drone audit); every pair where that is
+                # most of them, or where names with whitespace cannot be listed
+                rest = completion_pairs(len(names), [i for i, n in enumerate(names)
+                                                     if n not in placed(models)])  # fmt: skip
+                before = verified()
+                if rest == []:  # every image placed: a target above all of them
+                    pass
+                elif rest is None or spaced:
+                    match("exhaustive")
+                    mode += "+exhaustive"
+                else:
+                    match("unplaced", rest)
+                    mode += "+unplaced"
+                models = remap_if_new(before, models)
         else:
             match(mode)
             models = mapping()
