@@ -696,6 +696,23 @@ def report_stage(scene: str, what: str, done: int, total: int) -> None:
     deliver(Tick(scene, what, int(done), int(total), None, "stage"))
 
 
+def stage_progress(scene: str, stage: str) -> Callable[[str, float], None]:
+    """A core function's ``progress(step, fraction)`` for ``stage``: to the console's progress
+    (:func:`report_stage`, in per cent, as ``"{stage}: {step}"``) and to the run's log at every
+    25 %."""
+    log = stage_log()
+    logged: dict[str, int] = {}
+
+    def progress(step: str, fraction: float) -> None:
+        pct = int(round(100 * min(1.0, max(0.0, float(fraction)))))
+        report_stage(scene, f"{stage}: {step}", pct, 100)
+        if pct // 25 > logged.get(step, 0) // 25:  # each 25 % mark (a lone 100 % too)
+            log.info("%s: %s %d %%", stage, step, pct)
+        logged[step] = pct
+
+    return progress
+
+
 def photos_left_out(records: Mapping[str, Any]) -> dict[str, list[str]]:
     """The photos a run left out, by reason, from its stage records (a flow's records, or a
     stage's upstream): without a pose in the imported poses, not registered by SfM, not seeing

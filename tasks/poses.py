@@ -17,6 +17,7 @@ from tasks.common import (
     named_ply,
     open_store,
     stage_log,
+    stage_progress,
     stage_task,
     workdir,
 )
@@ -275,6 +276,7 @@ def poses(
                     sift_peak_threshold=float(peak if peak is not None else SIFT_PEAK_THRESHOLD),
                     guided_matching=bool(config.get("guided_matching", False)),
                     focal_priors=focal_priors(manifest) if config.get("exif_focal", True) else None,
+                    progress=stage_progress(scene, "poses"),
                 )
             summary = {"source": "sfm", **sfm.summary()}
             summary.pop("model_dir", None)

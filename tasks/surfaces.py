@@ -12,8 +12,8 @@ from tasks.common import (
     key_of,
     make_record,
     open_store,
-    report_stage,
     stage_log,
+    stage_progress,
     stage_task,
     workdir,
 )
@@ -31,24 +31,6 @@ def _surfaces_api():
             f"stage surfaces not available: cropcraft_core.surfaces cannot be imported ({exc})"
         ) from exc
     return SurfacesConfig, make_backend
-
-
-def _progress(scene: str):
-    """The backend's ``progress(step, fraction)``: to the console's progress
-    (:func:`tasks.common.report_stage`, in per cent) and to the run's log at every 25 %."""
-    from prefect import get_run_logger
-
-    log = get_run_logger()
-    logged: dict[str, int] = {}
-
-    def progress(step: str, fraction: float) -> None:
-        pct = int(round(100 * min(1.0, max(0.0, float(fraction)))))
-        report_stage(scene, f"surfaces: {step}", pct, 100)
-        if pct // 25 > logged.get(step, 0) // 25:  # each 25 % mark (a lone 100 % too)
-            log.info("surfaces: %s %d %%", step, pct)
-        logged[step] = pct
-
-    return progress
 
 
 def ground_hint(crop: str, frame: dict[str, Any] | None) -> str | None:
@@ -118,7 +100,7 @@ def surfaces(
                         len(away), len(cams), ", ".join(away),
                     )  # fmt: skip
                     images, cams = [images[i] for i in keep], [cams[i] for i in keep]
-            backend.fit(images, cams, bbox, progress=_progress(scene))
+            backend.fit(images, cams, bbox, progress=stage_progress(scene, "surfaces"))
         except (InputError, SurfacesError) as exc:
             hint = ground_hint(scene.split("/")[1], upstream["poses"]["summary"].get("frame"))
             if hint is None:
