@@ -175,6 +175,26 @@ def _is_date(name: str) -> bool:
     return True
 
 
+def disk_hint(exc: BaseException) -> str | None:
+    """What to do about a full disk or a read-only file system behind ``exc`` (or its causes),
+    else None: such errors ended with "check the store URI, endpoint, credentials", which sent
+    users the wrong way (session 94's disk audit)."""
+    import errno
+
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        code = getattr(exc, "errno", None)
+        if code in (errno.ENOSPC, errno.EDQUOT):
+            return "the disk (or the user's quota) is full: free space there, then run again"
+        if code == errno.EROFS:
+            return "the file system is mounted read-only: give a writable store"
+        if "database or disk is full" in str(exc):
+            return "the disk is full: free space there, then run again"
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def _check_key(key: object, *, allow_empty: bool = False, reserved: bool = False) -> str:
     """Validate a store key (relative POSIX path) and return it without a trailing slash;
     ``reserved``: a dot-named last segment allowed (the store's own objects: a scene's lease)."""
@@ -882,7 +902,7 @@ class SceneStore:
         except _backend_errors() as exc:
             raise StoreError(
                 f"cannot {action} {self.url(key)}: {type(exc).__name__}: {redact(str(exc))}; "
-                "check the store URI, endpoint, credentials and permissions"
+                + (disk_hint(exc) or "check the store URI, endpoint, credentials and permissions")
             ) from exc
 
     def _tmp_path(self, final: str) -> str:
@@ -1507,7 +1527,12 @@ class SceneStore:
             hint = (
                 "the bucket does not exist (create it, or fix the bucket name)"
                 if isinstance(exc, FileNotFoundError)
-                else "check the endpoint, network, credentials and write permission"
+                else disk_hint(exc)
+                or (
+                    "check the folder's write permission"
+                    if self._local
+                    else "check the endpoint, network, credentials and write permission"
+                )
             )
             raise StoreError(
                 f"scene store {self.root} is not reachable or not writable "

@@ -643,6 +643,7 @@ def prepare(
     store: str | None = None,
     *,
     timeout_s: float = 5.0,
+    writing: bool = True,
 ) -> SceneRequest:
     """Validate a scene run before any work starts.
 
@@ -651,12 +652,15 @@ def prepare(
     nothing at ``poses``, a bad :data:`KNOWN_FILE`). ``images`` defaults to the scene's inbox
     in the store, ``poses`` to ``images/transforms.json`` there if present; the parameters in
     the photos' :data:`KNOWN_FILE` are the fit's known ones, under ``overrides``.
+    ``writing=False``: the request of a reader (``cropcraft status``), whose store is not
+    probed by a write (on a full or read-only store its error read as moved photos, and status,
+    which writes nothing, wrote a probe each call: session 94's disk audit).
     """
     scene = SceneKey(site, crop, str(date))
     cfg = resolve_config(crop, overrides)
     unopened = SceneStore(store)  # a local root's folders that connecting creates: a refused
     made = unopened._folders_to_make()  # request leaves them as they were (none)
-    st = SceneStore.connect(store, timeout_s=timeout_s)
+    st = SceneStore.connect(store, timeout_s=timeout_s) if writing else unopened
     try:
         return _checked_request(st, scene, cfg, images, poses, overrides)
     except BaseException:

@@ -624,6 +624,7 @@ def scene_status(store_uri: str | None, scene_text: str, overrides=None) -> list
                 src.get("poses"),
                 recorded,
                 store_uri,
+                writing=False,
             )
             states, _ = cache_walk(req)
         except Exception:  # inputs moved: report the manifest only, the cache as unknown

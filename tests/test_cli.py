@@ -2,7 +2,9 @@
 exit 2, nothing written)."""
 
 import json
+import os
 import socket
+import time
 
 import pytest
 
@@ -982,6 +984,48 @@ def test_status_says_the_cache_is_unknown_when_the_last_runs_photos_have_moved(t
     out = capsys.readouterr().out
     assert "ingest       pending     ?" in out
     assert "cached ?: the photos or poses the last run read cannot be read now" in out
+
+
+def test_status_writes_nothing_to_the_store(tmp_path, capsys):
+    """``status`` probed the store with a write (connect's reachability check): on a full or
+    read-only store, the very case that made a night fail, it said the photos had moved, and
+    on any store it wrote and removed an object each call (session 94's disk audit)."""
+    from cropcraft_core.store import SceneKey, SceneStore
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("a.png", "b.png", "c.png"):
+        (photos / name).write_bytes(b"a photo")
+    store = SceneStore(str(tmp_path / "store"))
+    scene = SceneKey("plotA", "soybean", "2024-07-01")
+    store.init_manifest(scene, {}, {}, sources={"images": str(photos), "poses": None})
+    store.update_stage(scene, "ingest", status="running")
+    store.update_stage(scene, "ingest", status="done")
+    root = tmp_path / "store"
+    before = root.stat().st_mtime_ns
+    time.sleep(0.01)
+    assert main(["status", scene.prefix, "--store", str(root)]) == 0
+    assert "cannot be read now" not in capsys.readouterr().out
+    assert root.stat().st_mtime_ns == before  # no probe made and removed there
+
+
+def test_a_full_disk_or_read_only_store_is_named_as_such():
+    """A full disk's and a read-only file system's errors ended "check the store URI, endpoint,
+    credentials and permissions", which sent users the wrong way (session 94's disk audit)."""
+    import errno
+
+    from cropcraft_core.store import SceneStore, StoreError, disk_hint
+
+    store = SceneStore("memory://full")
+    for code, said in ((errno.ENOSPC, "is full: free space"), (errno.EROFS, "read-only")):
+        with pytest.raises(StoreError, match=said) as err:
+            with store._io("write", "plotA/x.bin", reading=False):
+                raise OSError(code, os.strerror(code))
+        assert "credentials" not in str(err.value)
+    wrapped = RuntimeError("flow failed")
+    wrapped.__cause__ = OSError(errno.ENOSPC, "No space left on device")
+    assert "is full" in disk_hint(wrapped)
+    assert disk_hint(OSError(errno.EACCES, "Permission denied")) is None
 
 
 def test_run_prints_a_named_errors_record_without_prefects_traceback():
