@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -486,6 +487,29 @@ def end_children(timeout_s: float = 5.0) -> None:
             pass
 
 
+def disk_full_line(exc: BaseException) -> str | None:
+    """One line for an error a full disk caused, else None: an ENOSPC in the error's causes,
+    or a server error of the temporary Prefect server whose database's disk is (nearly) full
+    (its own "database or disk is full" stays in the server; the run ended with pages of
+    tracebacks and "500 Internal Server Error": session 94's disk audit)."""
+    from cropcraft_core.store import disk_hint
+
+    hint = disk_hint(exc)
+    if hint is not None:
+        return f"{type(exc).__name__}: {exc}; {hint}"
+    if type(exc).__name__ == "PrefectHTTPStatusError" and re.search(r"\b500\b", str(exc)):
+        from flows.service_cli import PREFECT_HOME_MIN_FREE, prefect_home_free
+
+        home, free = prefect_home_free()
+        if free < PREFECT_HOME_MIN_FREE:
+            return (
+                f"Prefect's server failed ({str(exc).splitlines()[0]}): the disk holding its "
+                f"database ({home}, PREFECT_HOME) has {free / 2**20:.0f} MB free; free space "
+                "there, or point PREFECT_HOME at a disk with room"
+            )
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     # an offline batch service: no telemetry calls to the outside (they fail here anyway)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
@@ -502,6 +526,12 @@ def main(argv: list[str] | None = None) -> int:
             return args.func(args)
     except CropCraftError as e:
         print(f"cropcraft: error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # a full disk outside the store: Prefect's database, the scratch
+        said = disk_full_line(e)
+        if said is None:
+            raise
+        print(f"cropcraft: error: {said}", file=sys.stderr)
         return 2
     except Terminated:
         print("cropcraft: terminated", file=sys.stderr)

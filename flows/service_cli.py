@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import os
+import shutil
 import sys
 import threading
 import time
@@ -385,6 +386,35 @@ def _before_flow_run() -> None:
     keep_temporary_server_apart()
 
 
+#: Free space (bytes) a temporary Prefect server's database folder needs before a run: a run
+#: records a few hundred kB there (flow and task runs, logs, events).
+PREFECT_HOME_MIN_FREE = 64 << 20
+
+
+def prefect_home_free() -> tuple[str, int]:
+    """``(PREFECT_HOME, free bytes on its disk)``: where a temporary server keeps its database."""
+    from prefect.settings import PREFECT_HOME
+
+    home = str(PREFECT_HOME.value())
+    probe = home
+    while probe and not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    return home, shutil.disk_usage(probe or ".").free
+
+
+def check_prefect_home() -> None:
+    """A ConfigError where the disk holding the temporary Prefect server's database
+    (``PREFECT_HOME``) is (nearly) full: the run ended in pages of the server's tracebacks and
+    a "500 Internal Server Error", exit 1, the disk never named (session 94's disk audit)."""
+    home, free = prefect_home_free()
+    if free < PREFECT_HOME_MIN_FREE:
+        raise ConfigError(
+            f"the disk holding Prefect's database ({home}, PREFECT_HOME) has "
+            f"{free / 2**20:.0f} MB free: free space there, or point PREFECT_HOME at a disk "
+            "with room"
+        )
+
+
 def check_prefect_api() -> None:
     """Where ``PREFECT_API_URL`` is set, a ConfigError unless that server answers its health
     check: a stopped server or a mistyped URL gave three tracebacks (~115 lines) from inside
@@ -393,6 +423,7 @@ def check_prefect_api() -> None:
 
     url = PREFECT_API_URL.value()
     if not url:
+        check_prefect_home()
         return
     from prefect.client.orchestration import get_client
 

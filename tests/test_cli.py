@@ -1028,6 +1028,44 @@ def test_a_full_disk_or_read_only_store_is_named_as_such():
     assert disk_hint(OSError(errno.EACCES, "Permission denied")) is None
 
 
+def test_a_full_disk_under_prefects_database_is_one_line(tmp_path, monkeypatch, capsys):
+    """On a worker whose disk is full, the temporary Prefect server's database cannot be
+    written: the run ended in pages of the server's tracebacks and "500 Internal Server Error",
+    exit 1, the disk never named (session 94's disk audit). It is refused before the run, and
+    an error the full disk causes mid-run is one line. (Here the threshold is raised above the
+    disk's free space: a real disk filled to the brim is the audit's.)"""
+    import errno
+
+    import httpx
+    from prefect.exceptions import PrefectHTTPStatusError
+
+    from flows import service_cli
+    from flows.cli import disk_full_line
+
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    monkeypatch.setattr(service_cli, "PREFECT_HOME_MIN_FREE", 1 << 62)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("a.png", "b.png", "c.png"):
+        (photos / name).write_bytes(b"not decoded before the run")
+    code = main(["run", "plotA/soybean/2024-07-01", "--store", str(tmp_path / "s"),
+                 "--images", str(photos)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1
+    assert "the disk holding Prefect's database" in err and "PREFECT_HOME" in err
+    request = httpx.Request("POST", "http://127.0.0.1:8986/api/flow_runs/")
+    response = httpx.Response(500, request=request, json={"exception_message": "Internal"})
+    failed = PrefectHTTPStatusError.from_httpx_error(
+        httpx.HTTPStatusError("Server error '500 Internal Server Error'", request=request,
+                              response=response)
+    )  # fmt: skip
+    assert "PREFECT_HOME" in disk_full_line(failed)
+    wrapped = RuntimeError("a seed failed")
+    wrapped.__context__ = OSError(errno.ENOSPC, "No space left on device")
+    assert disk_full_line(wrapped).endswith("is full: free space there, then run again")
+    assert disk_full_line(RuntimeError("something else")) is None
+
+
 def test_run_prints_a_named_errors_record_without_prefects_traceback():
     """During a run the console prints a named error's record (a corrupt photo, a failed SfM)
     as its one line: Prefect's ~90 lines of its own frames came before the command's one-line
