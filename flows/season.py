@@ -228,10 +228,6 @@ def write_summary(
     }
 
 
-class _NothingToSummarise(Exception):
-    """The season found no scene of its site and crop, and no summary of theirs stands."""
-
-
 @flow(name="process-season", flow_run_name="{site}/{crop} season", persist_result=False)
 def process_season(
     site: str,
@@ -379,29 +375,27 @@ def process_season(
         "astray": astray,
         "warnings": warnings,
     }
-    try:
-        if empty and not st.exists(f"{site}/{crop}/{SEASON_FOLDER}"):
-            # nothing to summarise: a mistyped site's run wrote an empty summary, making a
-            # folder for a site that is not there (session 94's folders audit)
-            raise _NothingToSummarise
-        summary = write_summary(st, site, crop, refused)
-        out.update(csv=summary["csv"], png=summary["png"])
-        from flows.artifacts import publish_season
-
-        tonight = ", ".join(f"{d} {s.partition(':')[0]}" for d, s in scenes.items())
-        publish_season(
-            summary["rows"],
-            site,
-            crop,
-            f"{site}/{crop} season, {len(summary['rows'])} date(s); run tonight: "
-            f"{tonight or 'none'}",
-            log,
-        )
-    except _NothingToSummarise:
+    if empty and not st.exists(f"{site}/{crop}/{SEASON_FOLDER}"):
+        # nothing to summarise: a mistyped site's run wrote an empty summary, making a folder
+        # for a site that is not there (session 94's folders audit)
         out.update(csv=None, png=None, summary_note=f"no dated scene of {site}/{crop}")
-    except CropCraftError as exc:  # the dates' own results stand; the summary's cause is named
-        log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
-        out.update(csv=None, png=None, summary_error=str(exc))
+    else:
+        try:
+            summary = write_summary(st, site, crop, refused)
+            out.update(csv=summary["csv"], png=summary["png"])
+            from flows.artifacts import publish_season
+
+            ran = ", ".join(f"{d} {s.partition(':')[0]}" for d, s in scenes.items())
+            publish_season(
+                summary["rows"],
+                site,
+                crop,
+                f"{site}/{crop} season, {len(summary['rows'])} date(s); this run: {ran or 'none'}",
+                log,
+            )
+        except CropCraftError as exc:  # the dates' own results stand; the cause is named
+            log.error("%s/%s: the season summary was not written: %s", site, crop, exc)
+            out.update(csv=None, png=None, summary_error=str(exc))
     problems = []
     if failed:
         # each with its reason: the run's state message is what the UI's run list, `prefect
