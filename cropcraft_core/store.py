@@ -1200,16 +1200,23 @@ class SceneStore:
             keys.append(rel)
         return sorted(keys)
 
-    def _children(self, prefix: str) -> list[str]:
-        """Names of the immediate children (objects or folders) of a folder key."""
+    def _children(self, prefix: str, *, folders: bool = False) -> list[str]:
+        """Names of the immediate children (objects or folders) of a folder key; ``folders``:
+        the sub-folders only, the objects beside them left out (a ``notes.txt`` or
+        ``Thumbs.db`` beside a site's date folders is no date, and listing it as a folder
+        failed the whole season: session 94's folders audit)."""
         full = self._full(prefix)
         self._invalidate(full)
         with self._io("list", prefix, reading=True):
             try:
-                entries = self.fs.ls(full, detail=False)
+                entries = self.fs.ls(full, detail=True)
             except (FileNotFoundError, NotADirectoryError):  # an object stands there
                 return []
-        names = {e.rstrip("/").rsplit("/", 1)[-1] for e in entries}
+        names = {
+            str(e["name"]).rstrip("/").rsplit("/", 1)[-1]
+            for e in entries
+            if not folders or e.get("type") == "directory"
+        }
         return sorted(n for n in names if n and not n.startswith("."))
 
     def delete(self, key: str, *, recursive: bool = False) -> None:
@@ -1248,10 +1255,6 @@ class SceneStore:
 
     def _s3_key(self, key: str) -> tuple[str, str]:
         bucket, path, _ = self.fs.split_path(self._full(key))
-        return bucket, path
-
-    def _s3_key_root(self) -> tuple[str, str]:
-        bucket, path, _ = self.fs.split_path(self._root_path)
         return bucket, path
 
     def _read_tagged(self, key: str) -> tuple[bytes | None, str | None, float | None]:
@@ -1462,7 +1465,7 @@ class SceneStore:
     def _abort_uploads(self, prefix: str) -> list[str]:
         """Abort the unfinished multipart uploads of temporary objects under ``prefix`` (S3);
         the keys they were for."""
-        bucket, path = self._s3_key(prefix) if prefix else self._s3_key_root()
+        bucket, path = self._s3_key(prefix)  # "" is the root
         listed = self.fs.call_s3(
             "list_multipart_uploads", Bucket=bucket, Prefix=path.rstrip("/") + "/" if path else ""
         )
@@ -1894,7 +1897,7 @@ class SceneStore:
             raise ConfigError(f"unknown crop {crop!r}: choose one of {', '.join(sorted(CROPS))}")
         prefix = f"{site}/{crop}"
         dates = []
-        for name in self._folders(prefix):
+        for name in self._children(prefix, folders=True):
             if not _is_date(name):
                 continue
             if self._children(f"{prefix}/{name}/{IMAGES_STAGE}") or (
@@ -1903,29 +1906,11 @@ class SceneStore:
                 dates.append(name)
         return dates
 
-    def _folders(self, prefix: str) -> list[str]:
-        """Names of the immediate sub-folders of a folder key: the objects beside them left out
-        (a ``notes.txt`` or ``Thumbs.db`` beside a site's date folders is no date, and listing
-        it as a folder failed the whole season: session 94's folders audit)."""
-        full = self._full(prefix)
-        self._invalidate(full)
-        with self._io("list", prefix, reading=True):
-            try:
-                entries = self.fs.ls(full, detail=True)
-            except (FileNotFoundError, NotADirectoryError):
-                return []
-        names = {
-            str(e["name"]).rstrip("/").rsplit("/", 1)[-1]
-            for e in entries
-            if e.get("type") == "directory"
-        }
-        return sorted(n for n in names if n and not n.startswith("."))
-
     def _photos_below(self, prefix: str) -> str | None:
         """The folder (relative to ``prefix``, "" for itself) of the first photo at most
         :data:`PHOTO_SEARCH_DEPTH` levels below ``prefix``, hidden files and folders left out;
         None where there is none."""
-        from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
+        from cropcraft_core.sfm.ingest import is_visible_photo
 
         full = self._full(prefix)
         self._invalidate(full)
@@ -1940,9 +1925,7 @@ class SceneStore:
             if rel is None or not rel.startswith(prefix + "/"):
                 continue
             inner = rel[len(prefix) + 1 :]
-            if inner.lower().endswith(IMAGE_EXTENSIONS) and not any(
-                part.startswith(".") for part in inner.split("/")
-            ):
+            if is_visible_photo(inner):
                 found.append(inner.rpartition("/")[0])
         return min(found, key=lambda f: (f.count("/"), f)) if found else None
 
@@ -1954,7 +1937,7 @@ class SceneStore:
         prefix = f"{site}/{crop}"
         return [
             name
-            for name in self._folders(prefix)
+            for name in self._children(prefix, folders=True)
             if not _is_date(name)
             and name != SEASON_FOLDER
             and (
@@ -1971,7 +1954,7 @@ class SceneStore:
         The season cannot see them as a scene, and says so rather than skip them unseen."""
         prefix = f"{site}/{crop}"
         out = []
-        for name in self._folders(prefix):
+        for name in self._children(prefix, folders=True):
             if not _is_date(name) or self._children(f"{prefix}/{name}/{IMAGES_STAGE}"):
                 continue
             if self.isfile(f"{prefix}/{name}/{MANIFEST_NAME}"):
@@ -1984,7 +1967,9 @@ class SceneStore:
     def sites_like(self, site: str) -> list[str]:
         """Sites in the store spelled as ``site`` up to case (``PlotA`` for ``plota``), itself
         left out: a season of a mistyped site found nothing, said only "is it the store?"."""
-        return [n for n in self._folders("") if n.lower() == site.lower() and n != site]
+        return [
+            n for n in self._children("", folders=True) if n.lower() == site.lower() and n != site
+        ]
 
     def discover(self, site: str, crop: str, *, with_runs: bool = False) -> list[DiscoveredScene]:
         """Every dated scene of ``site``/``crop`` with images (and with ``with_runs`` every one

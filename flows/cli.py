@@ -498,15 +498,11 @@ def disk_full_line(exc: BaseException) -> str | None:
     if hint is not None:
         return f"{type(exc).__name__}: {exc}; {hint}"
     if type(exc).__name__ == "PrefectHTTPStatusError" and re.search(r"\b500\b", str(exc)):
-        from flows.service_cli import PREFECT_HOME_MIN_FREE, prefect_home_free
+        from flows.service_cli import prefect_home_full
 
-        home, free = prefect_home_free()
-        if free < PREFECT_HOME_MIN_FREE:
-            return (
-                f"Prefect's server failed ({str(exc).splitlines()[0]}): the disk holding its "
-                f"database ({home}, PREFECT_HOME) has {free / 2**20:.0f} MB free; free space "
-                "there, or point PREFECT_HOME at a disk with room"
-            )
+        said = prefect_home_full()
+        if said is not None:
+            return f"Prefect's server failed ({str(exc).splitlines()[0]}): {said}"
     return None
 
 

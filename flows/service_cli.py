@@ -402,17 +402,26 @@ def prefect_home_free() -> tuple[str, int]:
     return home, shutil.disk_usage(probe or ".").free
 
 
-def check_prefect_home() -> None:
-    """A ConfigError where the disk holding the temporary Prefect server's database
-    (``PREFECT_HOME``) is (nearly) full: the run ended in pages of the server's tracebacks and
-    a "500 Internal Server Error", exit 1, the disk never named (session 94's disk audit)."""
+def prefect_home_full() -> str | None:
+    """What to say where the disk holding the temporary Prefect server's database
+    (``PREFECT_HOME``) has under :data:`PREFECT_HOME_MIN_FREE` free, else None."""
     home, free = prefect_home_free()
-    if free < PREFECT_HOME_MIN_FREE:
-        raise ConfigError(
-            f"the disk holding Prefect's database ({home}, PREFECT_HOME) has "
-            f"{free / 2**20:.0f} MB free: free space there, or point PREFECT_HOME at a disk "
-            "with room"
-        )
+    if free >= PREFECT_HOME_MIN_FREE:
+        return None
+    return (
+        f"the disk holding Prefect's database ({home}, PREFECT_HOME) has {free / 2**20:.0f} MB "
+        "free: free space there, or point PREFECT_HOME at a disk with room"
+    )
+
+
+def check_prefect_home() -> None:
+    """A ConfigError where the disk holding the temporary Prefect server's database is
+    (nearly) full (:func:`prefect_home_full`): the run ended in pages of the server's
+    tracebacks and a "500 Internal Server Error", exit 1, the disk never named (session 94's
+    disk audit)."""
+    said = prefect_home_full()
+    if said is not None:
+        raise ConfigError(said)
 
 
 def check_prefect_api() -> None:

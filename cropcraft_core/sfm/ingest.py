@@ -221,11 +221,16 @@ def photos_in_subfolders(fs, root: str, folders: list[str], depth: int = 3) -> l
             continue
         for name in found:
             rel = str(name)[len(base) + 1 :]
-            if rel.lower().endswith(IMAGE_EXTENSIONS) and not any(
-                part.startswith(".") for part in rel.split("/")
-            ):
+            if is_visible_photo(rel):
                 out.append(rel)
     return sorted(out)
+
+
+def is_visible_photo(rel: str) -> bool:
+    """Whether a relative path names a JPEG/PNG photo, no part of it hidden."""
+    return rel.lower().endswith(IMAGE_EXTENSIONS) and not any(
+        part.startswith(".") for part in rel.split("/")
+    )
 
 
 def photos_below(source: str | os.PathLike, depth: int = 3) -> list[str]:

@@ -1029,8 +1029,9 @@ def run_sfm(
                 # of a 500-photo flight was 124,750 pairs, ~3 h here, for the 25 frames of its
                 # take-off and landing (session 94's drone audit); every pair where that is
                 # most of them, or where names with whitespace cannot be listed
+                inside = placed(models)
                 rest = completion_pairs(len(names), [i for i, n in enumerate(names)
-                                                     if n not in placed(models)])  # fmt: skip
+                                                     if n not in inside])  # fmt: skip
                 before = verified()
                 if rest == []:  # every image placed: a target above all of them
                     pass
