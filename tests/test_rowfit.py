@@ -417,6 +417,39 @@ def test_named_errors():
     assert issubclass(RowFitError, CropCraftError)
 
 
+@pytest.mark.parametrize("crop, params", [("soybean", BIG_SOY), ("maize", None)])
+def test_a_canopy_whose_leaves_are_not_green_is_refused_not_read_as_soil(crop, params):
+    """Senescent (yellow-brown) leaves are soil to the colour split: where most of what stands
+    above the ground is soil-coloured the run stops with a named error instead of fitting rows
+    on the few green points left (an LAI 0.24 answer for a 1.26 canopy, audit 95)."""
+    p = preset(crop, box_size=None)
+    kw = dict(half=2.5, density=1000, region=MAIZE_REGION) if crop == "maize" else {}
+    pts, col, _ = make_cloud(crop, params, seed=3, **kw)
+    rng = np.random.default_rng(0)
+    leaf = pts[:, 2] > 0.02
+    turned = leaf & (rng.random(len(pts)) < 0.95)  # 5 % of the leaf points stay green
+    brown = col.copy()
+    dry = np.array([0.55, 0.42, 0.22])  # L* 47, a* +5, b* +25: a dry leaf
+    brown[turned] = np.clip(dry + rng.normal(0, 0.03, (turned.sum(), 3)), 0, 1)
+    with pytest.raises(RowFitError, match=r"soil-coloured.*(senescent|not green)"):
+        fit_ground_and_rows(pts, brown, crop, p, rng=0)
+    # the same canopy green, or with a tenth of its leaves turned, is fitted as before
+    fit_ground_and_rows(pts, col, crop, p, rng=0)
+    some = leaf & (rng.random(len(pts)) < 0.1)
+    part = col.copy()
+    part[some] = brown[some]
+    fit = fit_ground_and_rows(pts, part, crop, p, rng=0)
+    assert 0.05 < fit.diagnostics["soil_coloured_canopy"] < 0.25
+    # the user may let it through
+    off = preset(crop, box_size=None, max_soil_coloured_canopy=None)
+    try:
+        fit_ground_and_rows(pts, brown, crop, off, rng=0)
+    except RowFitError as e:
+        assert "soil-coloured" not in str(e)
+    with pytest.raises(ConfigError, match="max_soil_coloured_canopy"):
+        preset(crop, max_soil_coloured_canopy=1.5)
+
+
 def rows_cloud(az_deg=0.0, n_rows=3, half=0.95, seed=0, density=20000, z0=0.0):
     """Leaf points in rows 0.76 m apart (0.5 m tall, 6 cm wide) over a soil plane at ``z0``,
     cut to a ``half``-wide square; colours as floats in [0, 1]. Returns (points, colours,

@@ -460,7 +460,8 @@ def fit_ground_and_rows(
         raise RowFitError(
             f"no ground found: only {n_ground} of {len(pts_m)} points are ground-coloured "
             f"(a* >= {p.plant_a_below:g}), need at least {p.min_ground_points}; is soil visible "
-            f"in the scene box, and are the colours sRGB?"
+            f"in the scene box (a closed canopy hides it from every photo), and are the "
+            f"colours sRGB?"
         )
     normal, offset, g_in = ransac_plane(
         pts_m[ground], p.ground_threshold, p.ground_iterations, rng, p.ransac_score_points
@@ -473,6 +474,18 @@ def fit_ground_and_rows(
             f"points (of {len(pts_m)}) within {p.ground_threshold:g} m, need at least "
             f"{p.min_ground_points}: the photos see too little soil (a closed canopy hides it) "
             f"or those points are not soil"
+        )
+    soil_canopy = soil_coloured_canopy(pts_m[~removed], ground[~removed], normal, offset, p)
+    diag["soil_coloured_canopy"] = soil_canopy
+    limit = p.max_soil_coloured_canopy
+    if soil_canopy is not None and limit is not None and soil_canopy > limit:
+        raise RowFitError(
+            f"the canopy's leaves are not green: {soil_canopy:.0%} of the points standing more "
+            f"than {2 * p.ground_threshold:g} m above the ground are soil-coloured "
+            f"(a* >= {p.plant_a_below:g}), over the {limit:.0%} allowed, so the colour split "
+            "would read the leaves as soil and the LAI far too low. A senescent (yellowing or "
+            "brown) canopy, or colours that are not sRGB? "
+            "(rowfit.preset.max_soil_coloured_canopy: null lets it through)"
         )
     if n_plant == 0:
         raise RowFitError(
@@ -562,6 +575,27 @@ def fit_ground_and_rows(
         plant_xy=plant_xy,
         diagnostics=diag,
     )
+
+
+#: The canopy's points must be at least this share of all points for
+#: :func:`soil_coloured_canopy` to judge their colour (on bare soil the few points above it
+#: are floaters).
+CANOPY_MIN_SHARE = 0.1
+
+
+def soil_coloured_canopy(
+    points: np.ndarray, ground: np.ndarray, normal: np.ndarray, offset: float, p: RowFitPreset
+) -> float | None:
+    """The share of the canopy's points that are soil-coloured (``ground``): the canopy is
+    the points more than ``2 * p.ground_threshold`` from the ground plane on the side that
+    holds more of them. None where those are under :data:`CANOPY_MIN_SHARE` of ``points``."""
+    h = points @ normal + offset
+    t = 2 * p.ground_threshold
+    up, down = h > t, h < -t
+    canopy = up if up.sum() >= down.sum() else down
+    if canopy.sum() < CANOPY_MIN_SHARE * max(1, len(points)):
+        return None
+    return float(ground[canopy].mean())
 
 
 def _frame_rotation(normal: np.ndarray) -> np.ndarray:
