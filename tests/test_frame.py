@@ -128,6 +128,70 @@ def test_metric_poses_of_a_walk_along_one_side_are_levelled_on_gravity(arc):
     assert _truth_error(out, cams)[0] < 1e-5
 
 
+def _portrait(cam, turn: float = 1.0):
+    """The camera held upright: a quarter turn about its optical axis (``turn`` ±1), its photo
+    turned with it (AR tracking writes the sensor's frame whichever way the phone is held)."""
+    from dataclasses import replace
+
+    m = cam.cam_to_world.copy()
+    x, y = m[:3, 0].copy(), m[:3, 1].copy()
+    m[:3, 0], m[:3, 1] = turn * y, -turn * x
+    return replace(
+        cam,
+        width=cam.height,
+        height=cam.width,
+        fx=cam.fy,
+        fy=cam.fx,
+        cx=cam.cy,
+        cy=cam.cx,
+        cam_to_world=m,
+    )
+
+
+@pytest.mark.parametrize("arc, turn", [(180.0, 1.0), (90.0, -1.0), (45.0, 1.0)])
+def test_a_one_sided_walk_with_the_phone_held_upright_is_levelled_on_gravity(arc, turn):
+    """Held upright, the phone's image columns stay level instead of its rows: the frame's up
+    is the axis either of them is level with (it was 40 deg off: LAI -33 %, audit 95)."""
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG
+
+    rng = np.random.default_rng(3)
+    cams = [
+        _portrait(c, turn)
+        for c in walk_trajectory(default_layout("soybean"), 30, rng, 0.6, arc_deg=arc)
+    ]
+    truth = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams)))
+    y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    arkit = truth.transformed(1.0, y_up, -(y_up @ cams[0].center))
+    kw = dict(metric=True, prior_camera_height_m=1.4, gravity_axis_deg=GRAVITY_AXIS_DEG)
+    out, _, frame = level_poses(arkit, None, **kw)
+    assert frame.up_source == "input_axis"
+    assert _truth_error(out, cams)[0] < 1e-5
+
+
+def test_metric_poses_of_a_walk_round_maize_put_the_ground_a_walkers_height_below():
+    """Maize's capture prior is a drone's 13 m; a phone walked round a maize plot stands ~1.5 m
+    up, which its metric poses show (they look at the plot from metres away): the ground then
+    lies a hand-held height below them, not 13 m (every such run had failed, audit 95). A
+    drone's flight keeps the prior."""
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG
+
+    rng = np.random.default_rng(3)
+    cams = walk_trajectory(default_layout("maize", plot_length=3.0, plot_width=3.0), 30, rng, 1.1)
+    truth = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams)))
+    y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    arkit = truth.transformed(1.0, y_up, -(y_up @ cams[0].center))
+    kw = dict(metric=True, prior_camera_height_m=13.0, gravity_axis_deg=GRAVITY_AXIS_DEG)
+    out, _, frame = level_poses(arkit, None, **kw)
+    assert frame.ground_source == "prior" and frame.camera_height_m == pytest.approx(1.4)
+    assert abs(np.median(out.centers()[:, 2]) - np.median(truth.centers()[:, 2])) < 0.3
+    out, _, frame = level_poses(truth, None, keep_levelled=True, **kw)  # cropcraft synth's
+    assert frame.ground_source == "input_frame"
+    np.testing.assert_array_equal(out.centers(), truth.centers())
+    drone = drone_trajectory(default_layout("maize"), 30, rng, 2.5)
+    out, _, frame = level_poses(Poses(tuple((f"d{i}", c) for i, c in enumerate(drone))), None, **kw)
+    assert frame.camera_height_m == pytest.approx(13.0)
+
+
 def test_cameras_only_walk_and_drone_with_points():
     rng = np.random.default_rng(3)
     cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)

@@ -43,6 +43,11 @@ from cropcraft_core.sfm.poses import Poses
 #: a phone held over a soybean plot; a drone over maize (the issue's captures).
 PRIOR_CAMERA_HEIGHT_M = {"soybean": 1.4, "maize": 13.0}
 
+#: A hand-held capture's camera height (m), whatever the crop: where metric poses show the
+#: cameras looking at the plot from closer than half the crop's prior (a walk round a maize
+#: plot, whose prior is a drone's), the ground lies this far below them instead.
+HAND_HELD_CAMERA_HEIGHT_M = 1.4
+
 FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_distance", "camera_height_prior")
 
 #: Imported metric poses (a phone's AR tracking) are gravity-aligned on one axis of their frame:
@@ -129,17 +134,21 @@ LEVEL_ROLL_DEG = 15.0
 
 
 def level_axis(poses: Poses, max_roll_deg: float = LEVEL_ROLL_DEG) -> np.ndarray | None:
-    """The axis of a gravity-aligned frame that is up, by the cameras' image rows: a hand-held
-    or drone capture keeps them level, so up is the axis they are most nearly perpendicular
-    to (nerfstudio's ``vertical`` orientation uses the same fact), signed so the cameras look
-    down on average. None where no axis is within ``max_roll_deg`` of every-row-level on
-    average, or the cameras look neither up nor down along it. Unlike minus the mean optical
-    axis (:func:`cameras_up`), which a walk along one side of the plot tilts by its pitch, it
-    does not need the walk to close a circle."""
-    rows = np.array([c.cam_to_world[:3, 0] for _, c in poses])
-    tilt = np.abs(rows).mean(axis=0)  # mean |sin| of each axis against the rows
-    axis = int(np.argmin(tilt))
-    if tilt[axis] > math.sin(math.radians(max_roll_deg)):
+    """The axis of a gravity-aligned frame that is up, by the cameras' image rows, or their
+    columns where the phone was held upright (AR tracking writes the sensor's frame however
+    the phone is held): a hand-held or drone capture keeps one of them level, so up is the
+    axis that one is most nearly perpendicular to (nerfstudio's ``vertical`` orientation uses
+    the same fact), signed so the cameras look down on average. None where no axis is within
+    ``max_roll_deg`` of every-row-level (or every-column-level) on average, or the cameras
+    look neither up nor down along it. Unlike minus the mean optical axis
+    (:func:`cameras_up`), which a walk along one side of the plot tilts by its pitch, it does
+    not need the walk to close a circle."""
+    # mean |sin| of each axis against the rows (first three) and the columns (last three)
+    tilt = np.concatenate(
+        [np.abs(np.array([c.cam_to_world[:3, k] for _, c in poses])).mean(axis=0) for k in (0, 1)]
+    )
+    axis = int(np.argmin(tilt)) % 3
+    if tilt.min() > math.sin(math.radians(max_roll_deg)):
         return None
     look = float(np.array([c.cam_to_world[:3, 2] for _, c in poses]).mean(axis=0)[axis])
     if abs(look) < 0.1:
@@ -214,6 +223,7 @@ def level_poses(
     camera_height_m: float | None = None,
     camera_distance: tuple[str, str, float] | None = None,
     prior_camera_height_m: float = 1.4,
+    hand_held_prior_m: float | None = HAND_HELD_CAMERA_HEIGHT_M,
     min_look_down_deg: float = 10.0,
     plane_threshold: float = 0.01,
     ransac_iterations: int = 1000,
@@ -234,7 +244,9 @@ def level_poses(
     (photo A, photo B, metres) the measured distance between two photos' camera centres (names
     as in ``poses``, or their stems; sets the scale exactly). prior_camera_height_m: the assumed
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
-    lies this far below the cameras' median height. gravity_axis_deg: replace the up found by
+    lies this far below the cameras' median height, or ``hand_held_prior_m`` (if less; None:
+    never) below them where the point their optical axes meet lies less than half the prior
+    below them (a walk round the plot, not a flight over it). gravity_axis_deg: replace the up found by
     the input frame's nearest axis (±x, ±y, ±z) within this angle (:data:`GRAVITY_AXIS_DEG`,
     for gravity-aligned captures). keep_levelled: for metric poses already z up, keep the
     input's origin where the one found lies within :data:`KEEP_ORIGIN_M` of it, and its
@@ -295,6 +307,7 @@ def level_poses(
     r = _rotation_to_z(up)
 
     ground_z: float | None
+    prior = prior_camera_height_m
     focus = _axes_focus(poses)
     f = None if focus is None else r @ focus
     if usable:
@@ -302,7 +315,10 @@ def level_poses(
         ground_z, ground = float(np.percentile(core_r[:, 2], ground_percentile)), "sparse_points"
         centre_xy = np.median(core_r[:, :2], axis=0) if f is None else f[:2]
     elif metric:  # metres already: the ground a typical capture height below the cameras
-        ground_z, ground = float(np.median((centres @ r.T)[:, 2])) - prior_camera_height_m, "prior"
+        cam_z = float(np.median((centres @ r.T)[:, 2]))
+        if hand_held_prior_m is not None and f is not None and 0 < cam_z - f[2] < 0.5 * prior:
+            prior = min(prior, hand_held_prior_m)  # they look at the plot from metres away
+        ground_z, ground = cam_z - prior, "prior"
         centre_xy = (centres @ r.T)[:, :2].mean(axis=0) if f is None else f[:2]
     elif f is not None:
         ground_z, centre_xy, ground = float(f[2]), f[:2], "cameras_focus"
@@ -334,7 +350,7 @@ def level_poses(
         if float(np.hypot(t[0], t[1])) <= KEEP_ORIGIN_M:
             t[:2] = 0.0
         h = float(np.median(centres[:, 2]))
-        if not usable and 0.5 <= h / prior_camera_height_m <= 2.0:
+        if not usable and 0.5 <= h / prior <= 2.0:
             t[2], med_h, ground = 0.0, h, "input_frame"
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = scale * r, t
