@@ -59,7 +59,7 @@ from cropcraft_core.config import ParamBox, default_layout, param_space
 from cropcraft_core.errors import ConfigError
 from cropcraft_core.export.atomic import atomic_write_text
 from cropcraft_core.fit import FitConfig, fit_seed, observe_canopy
-from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES, combine
+from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES, combine, initial_evals
 from cropcraft_core.fit.forward import ForwardModel
 from cropcraft_core.fit.select import select, unpolished
 from cropcraft_core.metrics import canopy_metrics, evaluate
@@ -100,6 +100,8 @@ def budget(
 ) -> Budget:
     """The quick or default budget, with optional FitConfig overrides (n_seeds, n_evals, ...)."""
     o = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if "n_evals" in o and "n_initial" not in o and isinstance(o["n_evals"], int):
+        o["n_initial"] = initial_evals(o["n_evals"])  # as `cropcraft fit --evals N` reads N
     if scenes is not None and (
         isinstance(scenes, bool) or not isinstance(scenes, int) or scenes < 1
     ):

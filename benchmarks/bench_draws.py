@@ -198,10 +198,20 @@ def main(argv: list[str] | None = None) -> int:
     from cropcraft_core.fit.fitting import COMBINE_RULES, OPT_IN_RULES
 
     ap = argparse.ArgumentParser(prog="cropcraft bench draws", description=__doc__.splitlines()[0])
-    ap.add_argument("scene", help="SITE/CROP/DATE of a stored run (fitted with 20+ seeds)")
-    ap.add_argument("--store", default=None, help="scene store root (default $CROPCRAFT_STORE)")
     ap.add_argument(
-        "--set-size", type=at_least(1), default=None, help="seeds per draw (default 10)"
+        "scene",
+        help="SITE/CROP/DATE of a stored run (fitted with more seeds than one set, e.g. 20+)",
+    )
+    ap.add_argument(
+        "--store",
+        default=None,
+        help="scene store root (env CROPCRAFT_STORE; default ./cropcraft-data)",
+    )
+    ap.add_argument(
+        "--set-size",
+        type=at_least(1),
+        default=None,
+        help="seeds per draw (default: the flow's 10, or every stored seed where fewer)",
     )
     ap.add_argument(
         "--rule",

@@ -275,3 +275,16 @@ def test_accuracy_table_judges_bo_against_the_papers_row(capsys):
     print_table(res(0.12))
     printed = capsys.readouterr().out
     assert "LAIE 0.120 < 0.13" in printed and "median LAIPE 0.030 <= 0.10: met" in printed
+
+
+def test_a_smaller_evaluation_budget_takes_the_fits_share_of_random_points():
+    """``bench accuracy --evals N`` reads N as ``fit --evals N`` does: 40 % random (the
+    paper's 200 of 500), not a fixed 200 (or --quick's 25) that refused every N below it."""
+    from benchmarks.bench_accuracy import budget
+
+    assert budget(False, 1, "bo", overrides={"n_evals": 100}).fit.n_initial == 40
+    assert budget(True, 1, "bo", overrides={"n_evals": 20}).fit.n_initial == 8
+    assert budget(True, 1, "bo").fit.n_initial == 25  # --quick's own budget as it was
+    assert budget(False, 1, "bo").fit.n_initial == 200
+    given = {"n_evals": 100, "n_initial": 10}
+    assert budget(False, 1, "bo", overrides=given).fit.n_initial == 10
