@@ -361,6 +361,30 @@ def test_a_camera_height_the_rows_contradict_is_named():
     assert "scale_warning" not in right.diagnostics
 
 
+def test_imported_poses_read_as_metres_that_the_rows_contradict_are_named():
+    """A transforms.json read as an AR capture's metres but 2.7 units a metre (an older
+    ns-process-data Metashape export) read LAI 0.48 against 1.06 with nothing said: its
+    cameras' height is put to the rows as a hint's is (audit 95)."""
+    pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
+    xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)
+    cams = np.column_stack([xy, np.full(len(xy), 1.4)])
+    p = preset("soybean", box_size=None)
+
+    def fitted(units_per_metre: float):
+        return fit_rows_with_scale(
+            pts * units_per_metre, col, "soybean", p, rng=8, metric_scale=1.0,
+            metric_source="metric_poses", known_row_spacing=lay.row_spacing,
+            cameras=cams * units_per_metre,
+        )  # fmt: skip
+
+    warning = fitted(2.7).diagnostics["scale_warning"]
+    assert warning.startswith("the imported poses, read as metres (they put the cameras 3.78 m up)")
+    assert "poses.imported_metric=false" in warning
+    up = float(warning.split("the rows put the cameras ")[1].split(" m up")[0])
+    assert up == pytest.approx(1.4, rel=0.05)
+    assert "scale_warning" not in fitted(1.0).diagnostics
+
+
 def _translate(t):
     m = np.eye(4)
     m[:3, 3] = t

@@ -1050,10 +1050,15 @@ def fit_rows_with_scale(
         if not above > 0:
             return fit
         metres = above * metric_scale
+        if metric_source == "metric_poses":
+            given = f"the imported poses, read as metres (they put the cameras {metres:.3g} m up)"
+            advice = "if the poses are not in metres, set poses.imported_metric=false"
+        else:
+            given = f"{given or 'the scale'} (it puts the cameras {metres:.3g} m up)"
+            advice = "check --camera-height"
         warning = _rows_disagree(
             points, colors, crop, preset, seed, above, metres, metric_scale,
-            known_row_spacing, max_passes, tolerance,
-            given=f"{given or 'the scale'} (it puts the cameras {metres:.3g} m up)",
+            known_row_spacing, max_passes, tolerance, given=given, advice=advice,
         )  # fmt: skip
         if not warning:
             return fit
@@ -1174,6 +1179,7 @@ def _rows_disagree(
     max_passes: int,
     tolerance: float,
     given: str | None = None,
+    advice: str = "check --camera-height",
 ) -> str | None:
     """A warning where the rows contradict a camera-height hint ``metres`` (the scene's scale
     ``scale`` m per unit): only where the hint is more than :data:`SCALE_CHECK_FACTOR` from
@@ -1181,7 +1187,7 @@ def _rows_disagree(
     sought from that usual height (the cameras ``above_units`` over the fitted ground) as the
     row-spacing route seeks it; confirmed and more than the factor from ``scale``, the rows
     disagree. None otherwise (no rows' period found: nothing to say). ``given``: what set the
-    scale, for the warning (default: the camera height)."""
+    scale, for the warning (default: the camera height); ``advice``: what to check."""
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
 
     usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
@@ -1209,8 +1215,8 @@ def _rows_disagree(
         f"{given} and the rows disagree: at its scale the "
         f"rows are {known_row_spacing * scale / rows:.3g} m apart, not the layout's "
         f"{known_row_spacing:g} m; the rows put the cameras {metres * rows / scale:.3g} m "
-        "up. Every length and the LAI are read at the given height: check --camera-height "
-        "(or the rows' spacing, --set layout.row_spacing)"
+        f"up. Every length and the LAI are read at the given scale: {advice} "
+        "(or check the rows' spacing, --set layout.row_spacing)"
     )
 
 
