@@ -383,6 +383,15 @@ def test_imported_poses_read_as_metres_that_the_rows_contradict_are_named():
     up = float(warning.split("the rows put the cameras ")[1].split(" m up")[0])
     assert up == pytest.approx(1.4, rel=0.05)
     assert "scale_warning" not in fitted(1.0).diagnostics
+    # a phone walked round maize stands a hand-held height up, not the drone's 13 m: not asked
+    maize, mcol, mlay = make_cloud(
+        "maize", None, 20.0, seed=8, half=2.5, density=1000, region=MAIZE_REGION
+    )
+    walk = fit_rows_with_scale(
+        maize, mcol, "maize", preset("maize", box_size=None), rng=8, metric_scale=1.0,
+        metric_source="metric_poses", known_row_spacing=mlay.row_spacing, cameras=cams,
+    )  # fmt: skip
+    assert "scale_warning" not in walk.diagnostics
 
 
 def _translate(t):

@@ -1051,6 +1051,10 @@ def fit_rows_with_scale(
             return fit
         metres = above * metric_scale
         if metric_source == "metric_poses":
+            from cropcraft_core.sfm.frame import HAND_HELD_CAMERA_HEIGHT_M
+
+            if 1 / SCALE_CHECK_FACTOR <= metres / HAND_HELD_CAMERA_HEIGHT_M <= SCALE_CHECK_FACTOR:
+                return fit  # a phone's height over any crop (a walk round maize)
             given = f"the imported poses, read as metres (they put the cameras {metres:.3g} m up)"
             advice = "if the poses are not in metres, set poses.imported_metric=false"
         else:

@@ -246,9 +246,9 @@ def level_poses(
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
     lies this far below the cameras' median height, or ``hand_held_prior_m`` (if less; None:
     never) below them where the point their optical axes meet lies less than half the prior
-    below them (a walk round the plot, not a flight over it). gravity_axis_deg: replace the up found by
-    the input frame's nearest axis (±x, ±y, ±z) within this angle (:data:`GRAVITY_AXIS_DEG`,
-    for gravity-aligned captures). keep_levelled: for metric poses already z up, keep the
+    below them (a walk round the plot, not a flight over it). gravity_axis_deg: replace the up
+    found by the input frame's nearest axis (±x, ±y, ±z) within this angle
+    (:data:`GRAVITY_AXIS_DEG`, for gravity-aligned captures). keep_levelled: for metric poses already z up, keep the
     input's origin where the one found lies within :data:`KEEP_ORIGIN_M` of it, and its
     ground where, without points, the cameras' median height above it is 0.5-2 times the
     prior (a frame levelled already, as ``cropcraft synth`` writes it). Raises ``InputError``
