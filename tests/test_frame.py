@@ -192,6 +192,32 @@ def test_metric_poses_of_a_walk_round_maize_put_the_ground_a_walkers_height_belo
     assert frame.camera_height_m == pytest.approx(13.0)
 
 
+def test_cameras_that_look_away_from_where_their_axes_meet_are_named():
+    """A transforms.json written in OpenCV's camera axes (y down, z forward) read as
+    nerfstudio's (y up, z back) turns every camera round: a walk's cameras then look away from
+    the plot their axes meet at. That is named, not blamed on the capture height (audit 95).
+    Drone flights, whose near-parallel axes meet nowhere near, and true walks pass."""
+    from dataclasses import replace
+
+    from cropcraft_core.sfm.frame import GRAVITY_AXIS_DEG
+
+    rng = np.random.default_rng(3)
+    cams = walk_trajectory(default_layout("soybean"), 30, rng, 0.6)
+    flipped = []
+    for c in cams:
+        m = c.cam_to_world.copy()
+        m[:3, 1:3] *= -1
+        flipped.append(replace(c, cam_to_world=m))
+    kw = dict(metric=True, prior_camera_height_m=1.4, gravity_axis_deg=GRAVITY_AXIS_DEG)
+    poses = Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(flipped)))
+    with pytest.raises(InputError, match=r"30 of 30 cameras look away.*OpenCV"):
+        level_poses(poses, None, **kw)
+    level_poses(Poses(tuple((f"v{i:03d}.png", c) for i, c in enumerate(cams))), None, **kw)
+    for seed in range(5):
+        drone = drone_trajectory(default_layout("maize"), 40, np.random.default_rng(seed), 2.5)
+        level_poses(Poses(tuple((f"d{i}", c) for i, c in enumerate(drone))), None, **kw)
+
+
 def test_cameras_only_walk_and_drone_with_points():
     rng = np.random.default_rng(3)
     cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)

@@ -177,6 +177,32 @@ def _axes_focus(poses: Poses) -> np.ndarray | None:
     return np.linalg.solve(a, b)
 
 
+def check_cameras_face_their_focus(poses: Poses, share: float = 0.8) -> None:
+    """InputError where the cameras' optical axes meet at a point (each passes within a
+    quarter of its camera's distance from it) that more than ``share`` of the cameras have
+    behind them: cameras turned round, as a ``transforms.json`` written in OpenCV's camera
+    axes and read as nerfstudio's (OpenGL's) makes them. Axes that meet nowhere (a drone's,
+    nearly parallel) say nothing."""
+    focus = _axes_focus(poses)
+    if focus is None:
+        return
+    to = np.array([focus - c.center for _, c in poses])
+    axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
+    dist = np.linalg.norm(to, axis=1)
+    along = np.einsum("ij,ij->i", to, axes)
+    miss = np.sqrt(np.maximum(dist**2 - along**2, 0.0))  # each axis's distance from the focus
+    if np.median(miss) > 0.25 * np.median(dist):
+        return
+    away = int(np.sum(along < 0))
+    if away > share * len(poses):
+        raise InputError(
+            f"{away} of {len(poses)} cameras look away from the point their optical axes meet "
+            "(the plot): the poses' camera axes are turned round. Is the transforms.json in "
+            "OpenCV's camera axes (x right, y down, z forward) rather than nerfstudio's "
+            "OpenGL ones (x right, y up, z back)? Convert it, or give the COLMAP model instead"
+        )
+
+
 def photo_stem(path: str) -> str:
     """A photo's name without folder (``/`` or ``\\``) or extension: how a camera-distance
     hint's photo is matched to a posed (ingested, maybe renamed) photo."""
@@ -254,8 +280,8 @@ def level_poses(
     height above it is 0.5-2 times the prior (a frame levelled already, as ``cropcraft
     synth`` writes it). Raises ``InputError``
     for fewer than 3 cameras, a non-positive height or distance, both hints at once, a photo
-    the poses do not have, two photos taken from one spot, or a camera-height hint without a
-    ground estimate.
+    the poses do not have, two photos taken from one spot, a camera-height hint without a
+    ground estimate, or cameras turned round (:func:`check_cameras_face_their_focus`).
     """
     if len(poses) < 3:
         raise InputError(f"levelling needs at least 3 posed cameras, got {len(poses)}")
@@ -265,6 +291,7 @@ def level_poses(
     if camera_height_m is not None and camera_distance is not None:
         raise InputError("give the camera height or a camera distance for the scale, not both")
     span = None if camera_distance is None else _camera_span(poses, camera_distance)
+    check_cameras_face_their_focus(poses)
     centres = poses.centers()
     up_cam = cameras_up(poses)
     pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
