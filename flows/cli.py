@@ -506,6 +506,16 @@ def disk_full_line(exc: BaseException) -> str | None:
     return None
 
 
+def _termination_signal() -> type[BaseException]:
+    """Prefect's ``TerminationSignal`` (its engine raises it once a cancelled run has ended,
+    :mod:`flows.watch`), where Prefect is loaded; else :class:`Terminated`."""
+    if "prefect" not in sys.modules:
+        return Terminated
+    from prefect.exceptions import TerminationSignal
+
+    return TerminationSignal
+
+
 def main(argv: list[str] | None = None) -> int:
     # an offline batch service: no telemetry calls to the outside (they fail here anyway)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
@@ -529,8 +539,10 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"cropcraft: error: {said}", file=sys.stderr)
         return 2
-    except Terminated:
-        print("cropcraft: terminated", file=sys.stderr)
+    except (Terminated, _termination_signal()):  # Prefect's own after a cancel (flows/watch)
+        from flows.watch import stop_reason
+
+        print(f"cropcraft: {stop_reason() or 'terminated'}", file=sys.stderr)
         return 143
     except KeyboardInterrupt:
         print("cropcraft: interrupted", file=sys.stderr)

@@ -37,6 +37,7 @@ from cropcraft_core.lease import SceneLease, hold_scene, refuse_if_busy
 from cropcraft_core.sfm.ingest import IMAGE_EXTENSIONS
 from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
+from flows.watch import watch_this_run
 from tasks.common import fingerprint, get_task, photos_left_out, stage_key
 
 # --------------------------------------------------------------------------- configuration
@@ -1526,7 +1527,9 @@ def reconstruct_scene(
                 ex.log.info("%s: removed %d stale temporary objects", req.scene.prefix, len(swept))
         except Exception as exc:  # housekeeping must not fail the run
             ex.log.warning("%s: could not sweep temporary objects: %s", req.scene.prefix, exc)
-        records = _wire(ex, req)
+        # a cancel asked of Prefect, or its API gone, ends the run (flows/watch.py)
+        with watch_this_run(ex.log) or contextlib.nullcontext():
+            records = _wire(ex, req)
         lease.check()
     out = summarize(req, records, ex.states)
     for warning in (

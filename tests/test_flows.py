@@ -16,7 +16,10 @@ import json
 import math
 import os
 import shutil
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -2340,3 +2343,66 @@ def test_a_season_leaves_a_date_another_run_holds_to_that_run(prefect_harness, s
     assert out["state"] == "Completed" and out["failed"] == [] and out["busy"] == [date]
     assert out["scenes"][date].startswith("busy: scene plotB/soybean/2024-07-08 is being run by")
     assert "flow run last-night" in out["scenes"][date]
+
+
+_WATCHED = """
+import logging, signal, sys, time
+import flows.watch
+from flows.watch import RunWatch, end_this_run
+logging.basicConfig(stream=sys.stderr)
+if sys.argv[2:] == ["held"]:  # a SIGTERM Prefect holds while it reports to an API gone
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    flows.watch.END_GRACE_S = 1.0
+with RunWatch([sys.argv[1]], end_this_run(logging.getLogger("run")), poll_s=0.2, api_lost_s=1.0):
+    print("watching", flush=True)
+    time.sleep(60)
+"""
+
+
+def _watched(run_id: str, api_url: str, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PREFECT_API_URL": api_url, "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WATCHED, run_id, *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    assert proc.stdout.readline().strip() == "watching"
+    return proc
+
+
+def test_a_cancel_asked_of_prefect_or_a_lost_api_ends_a_run_in_its_own_process(prefect_harness):
+    """A ``cropcraft run`` is the flow itself: a cancel from the UI or ``prefect flow-run
+    cancel`` was ignored (the run finished and stayed "Cancelling"), and a Prefect server gone
+    mid-run left it waiting for ever on a stage's future, holding the scene (session 95's
+    operations audit). The watch ends such a process as SIGTERM does, the cancelled run marked
+    Cancelled; a run going on undisturbed is left alone."""
+    from prefect import flow
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.objects import StateType
+    from prefect.settings import PREFECT_API_URL
+    from prefect.states import Cancelling, Running
+
+    @flow
+    def idle():
+        pass
+
+    with get_client(sync_client=True) as client:
+        run = client.create_flow_run(idle)
+        client.set_flow_run_state(run.id, Running())
+        proc = _watched(str(run.id), PREFECT_API_URL.value())
+        time.sleep(1.0)
+        assert proc.poll() is None  # running: left alone
+        client.set_flow_run_state(run.id, Cancelling())
+        assert proc.wait(timeout=30) == -signal.SIGTERM
+        assert f"flow run {run.id} was cancelled in Prefect" in proc.stderr.read()
+        assert client.read_flow_run(run.id).state.type == StateType.CANCELLED
+    with socket.socket() as s:  # a port nothing listens on: the server gone
+        s.bind(("127.0.0.1", 0))
+        gone = f"http://127.0.0.1:{s.getsockname()[1]}/api"
+    proc = _watched(str(run.id), gone)
+    assert proc.wait(timeout=30) == -signal.SIGTERM
+    assert f"the Prefect API at {gone} has not answered for" in proc.stderr.read()
+    # a SIGTERM that does not end the process (Prefect's engine waiting on the API gone: the
+    # run was seen hanging minutes after its crash) is followed by the process ending itself
+    proc = _watched(str(run.id), gone, "held")
+    assert proc.wait(timeout=30) == 143
+    assert "has not answered" in proc.stderr.read().splitlines()[-1]
