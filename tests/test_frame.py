@@ -218,6 +218,24 @@ def test_cameras_that_look_away_from_where_their_axes_meet_are_named():
         level_poses(Poses(tuple((f"d{i}", c) for i, c in enumerate(drone))), None, **kw)
 
 
+def test_sfm_poses_of_a_walk_round_maize_take_a_walkers_height_not_a_drones():
+    """SfM poses carry no scale: a provisional one comes from a typical camera height, maize's
+    a drone's 13 m. A walk round maize (its cameras looking down at 45-70 deg, a drone's
+    nadir ones at 75-85) scaled that way was 8.7x too large, and its row fit found no rows
+    (50 photos of `synth maize --trajectory walk`, audit 95): it takes a hand-held 1.4 m."""
+    rng = np.random.default_rng(4)
+    lay = default_layout("maize", plot_length=3.0, plot_width=3.0)
+    cams = walk_trajectory(lay, 40, rng, 1.1)
+    poses, pts = _scrambled(cams, _sparse_points(rng, 1.5, 1.1), 4, scale=0.3)
+    out, _, frame = level_poses(poses, pts, prior_camera_height_m=13.0)
+    assert frame.scale_source == "camera_height_prior"
+    assert frame.camera_height_m == pytest.approx(1.4)
+    drone = drone_trajectory(default_layout("maize"), 30, rng, 2.5)
+    poses, pts = _scrambled(drone, _sparse_points(rng, 2.5, 2.5), 5, scale=0.3)
+    out, _, frame = level_poses(poses, pts, prior_camera_height_m=13.0)
+    assert frame.camera_height_m == pytest.approx(13.0)
+
+
 def test_cameras_only_walk_and_drone_with_points():
     rng = np.random.default_rng(3)
     cams = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)

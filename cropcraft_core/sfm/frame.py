@@ -48,6 +48,11 @@ PRIOR_CAMERA_HEIGHT_M = {"soybean": 1.4, "maize": 13.0}
 #: plot, whose prior is a drone's), the ground lies this far below them instead.
 HAND_HELD_CAMERA_HEIGHT_M = 1.4
 
+#: ... and where SfM poses (no scale) look down at the plot at a median angle under this
+#: (degrees below the horizon: a walk round the plot, 45-70 deg in ``cropcraft synth``; a
+#: drone's nadir photos 75-90), their provisional scale takes that hand-held height too.
+HAND_HELD_MAX_LOOK_DOWN_DEG = 70.0
+
 FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_distance", "camera_height_prior")
 
 #: Imported metric poses (a phone's AR tracking) are gravity-aligned on one axis of their frame:
@@ -272,7 +277,9 @@ def level_poses(
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
     lies this far below the cameras' median height, or ``hand_held_prior_m`` (if less; None:
     never) below them where the point their optical axes meet lies less than half the prior
-    below them (a walk round the plot, not a flight over it). gravity_axis_deg: replace the up
+    below them (a walk round the plot, not a flight over it); for other poses the
+    provisional scale takes ``hand_held_prior_m`` (if less) where the cameras look down at
+    under :data:`HAND_HELD_MAX_LOOK_DOWN_DEG`. gravity_axis_deg: replace the up
     found by the input frame's nearest axis (±x, ±y, ±z) within this angle
     (:data:`GRAVITY_AXIS_DEG`, for gravity-aligned captures). keep_levelled: for metric poses
     already z up, keep the input's origin where the one found lies within
@@ -336,6 +343,11 @@ def level_poses(
 
     ground_z: float | None
     prior = prior_camera_height_m
+    if not metric and hand_held_prior_m is not None:
+        look = np.array([c.cam_to_world[:3, 2] for _, c in poses]) @ up
+        look_down = float(np.degrees(np.arcsin(np.clip(-np.median(look), -1.0, 1.0))))
+        if look_down < HAND_HELD_MAX_LOOK_DOWN_DEG:  # a walk round the plot, not a flight
+            prior = min(prior, hand_held_prior_m)
     focus = _axes_focus(poses)
     f = None if focus is None else r @ focus
     if usable:
@@ -368,7 +380,7 @@ def level_poses(
     elif camera_height_m is not None:
         scale, scale_source = camera_height_m / med_h, "camera_height"
     else:
-        scale, scale_source = prior_camera_height_m / med_h, "camera_height_prior"
+        scale, scale_source = prior / med_h, "camera_height_prior"
 
     t = -scale * np.array([centre_xy[0], centre_xy[1], ground_z or 0.0])
     if keep_levelled and scale == 1.0 and np.array_equal(r, np.eye(3)):
