@@ -279,16 +279,15 @@ def level_poses(
     never) below them where the point their optical axes meet lies less than half the prior
     below them (a walk round the plot, not a flight over it); for other poses the
     provisional scale takes ``hand_held_prior_m`` (if less) where the cameras look down at
-    under :data:`HAND_HELD_MAX_LOOK_DOWN_DEG`. gravity_axis_deg: replace the up
-    found by the input frame's nearest axis (±x, ±y, ±z) within this angle
-    (:data:`GRAVITY_AXIS_DEG`, for gravity-aligned captures). keep_levelled: for metric poses
-    already z up, keep the input's origin where the one found lies within
-    :data:`KEEP_ORIGIN_M` of it, and its ground where, without points, the cameras' median
-    height above it is 0.5-2 times the prior (a frame levelled already, as ``cropcraft
-    synth`` writes it). Raises ``InputError``
-    for fewer than 3 cameras, a non-positive height or distance, both hints at once, a photo
-    the poses do not have, two photos taken from one spot, a camera-height hint without a
-    ground estimate, or cameras turned round (:func:`check_cameras_face_their_focus`).
+    under :data:`HAND_HELD_MAX_LOOK_DOWN_DEG`. gravity_axis_deg: replace the up found by the
+    input frame's nearest axis (±x, ±y, ±z) within this angle (:data:`GRAVITY_AXIS_DEG`, for
+    gravity-aligned captures). keep_levelled: for metric poses already z up, keep the input's
+    origin where the one found lies within :data:`KEEP_ORIGIN_M` of it, and its ground where,
+    without points, the cameras' median height above it is 0.5-2 times the prior (a frame
+    levelled already, as ``cropcraft synth`` writes it). Raises ``InputError`` for fewer than
+    3 cameras, a non-positive height or distance, both hints at once, a photo the poses do
+    not have, two photos taken from one spot, a camera-height hint without a ground
+    estimate, or cameras turned round (:func:`check_cameras_face_their_focus`).
     """
     if len(poses) < 3:
         raise InputError(f"levelling needs at least 3 posed cameras, got {len(poses)}")
