@@ -187,6 +187,16 @@ def test_metric_poses_of_a_walk_round_maize_put_the_ground_a_walkers_height_belo
     out, _, frame = level_poses(truth, None, keep_levelled=True, **kw)  # cropcraft synth's
     assert frame.ground_source == "input_frame"
     np.testing.assert_array_equal(out.centers(), truth.centers())
+    # a drone orbiting 5 m up, looking at the plot's centre: the ground no higher than that
+    from cropcraft_core.synth import camera_from_angles
+
+    orbit = []
+    for a in np.linspace(0, 2 * np.pi, 24, endpoint=False):
+        pos = np.array([3 * np.cos(a), 3 * np.sin(a), 5.0])
+        orbit.append(camera_from_angles(pos, a + np.pi, np.arctan2(5, 3), 0.0, (400, 300), 50))
+    poses = Poses(tuple((f"o{i}", c) for i, c in enumerate(orbit)))
+    _, _, frame = level_poses(poses.transformed(1.0, y_up, np.zeros(3)), None, **kw)
+    assert frame.camera_height_m == pytest.approx(5.0)
     drone = drone_trajectory(default_layout("maize"), 30, rng, 2.5)
     out, _, frame = level_poses(Poses(tuple((f"d{i}", c) for i, c in enumerate(drone))), None, **kw)
     assert frame.camera_height_m == pytest.approx(13.0)

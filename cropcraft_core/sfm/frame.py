@@ -277,7 +277,8 @@ def level_poses(
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
     lies this far below the cameras' median height, or ``hand_held_prior_m`` (if less; None:
     never) below them where the point their optical axes meet lies less than half the prior
-    below them (a walk round the plot, not a flight over it); for other poses the
+    and at most three hand-held heights below them (a walk round the plot), or at that point
+    where it lies farther (a low flight); for other poses the
     provisional scale takes ``hand_held_prior_m`` (if less) where the cameras look down at
     under :data:`HAND_HELD_MAX_LOOK_DOWN_DEG`. gravity_axis_deg: replace the up found by the
     input frame's nearest axis (±x, ±y, ±z) within this angle (:data:`GRAVITY_AXIS_DEG`, for
@@ -355,9 +356,14 @@ def level_poses(
         centre_xy = np.median(core_r[:, :2], axis=0) if f is None else f[:2]
     elif metric:  # metres already: the ground a typical capture height below the cameras
         cam_z = float(np.median((centres @ r.T)[:, 2]))
-        if hand_held_prior_m is not None and f is not None and 0 < cam_z - f[2] < 0.5 * prior:
-            prior = min(prior, hand_held_prior_m)  # they look at the plot from metres away
         ground_z, ground = cam_z - prior, "prior"
+        above = cam_z - f[2] if f is not None else math.inf  # over where the cameras look
+        if hand_held_prior_m is not None and 0 < above < 0.5 * prior:
+            if above <= 3 * hand_held_prior_m:  # a walk round the plot
+                prior = min(prior, hand_held_prior_m)
+                ground_z = cam_z - prior
+            else:  # a low flight: the ground no higher than where the cameras look
+                ground_z = float(f[2])
         centre_xy = (centres @ r.T)[:, :2].mean(axis=0) if f is None else f[:2]
     elif f is not None:
         ground_z, centre_xy, ground = float(f[2]), f[:2], "cameras_focus"
