@@ -127,8 +127,8 @@ class RunWatch:
 
     def _stop(self, reason: str, cancelled: str | None) -> None:
         global _STOPPED
-        self.reason = _STOPPED = reason
-        if not self._halt.is_set():
+        if not self._halt.is_set():  # not once the run has finished
+            self.reason = _STOPPED = reason
             self.on_stop(reason, cancelled)
 
 
