@@ -69,7 +69,6 @@ class RunWatch:
         self.on_stop = on_stop
         self.poll_s = float(poll_s)
         self.api_lost_s = float(api_lost_s)
-        self.reason: str | None = None
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -128,7 +127,7 @@ class RunWatch:
     def _stop(self, reason: str, cancelled: str | None) -> None:
         global _STOPPED
         if not self._halt.is_set():  # not once the run has finished
-            self.reason = _STOPPED = reason
+            _STOPPED = reason
             self.on_stop(reason, cancelled)
 
 

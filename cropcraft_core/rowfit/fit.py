@@ -1053,7 +1053,7 @@ def fit_rows_with_scale(
         if metric_source == "metric_poses":
             from cropcraft_core.sfm.frame import HAND_HELD_CAMERA_HEIGHT_M
 
-            if 1 / SCALE_CHECK_FACTOR <= metres / HAND_HELD_CAMERA_HEIGHT_M <= SCALE_CHECK_FACTOR:
+            if _within_check_factor(metres / HAND_HELD_CAMERA_HEIGHT_M):
                 return fit  # a phone's height over any crop (a walk round maize)
             given = f"the imported poses, read as metres (they put the cameras {metres:.3g} m up)"
             advice = "if the poses are not in metres, set poses.imported_metric=false"
@@ -1170,6 +1170,12 @@ def _fit_with_camera_height(
 SCALE_CHECK_FACTOR = 2.5
 
 
+def _within_check_factor(ratio: float) -> bool:
+    """Whether two heights or scales of ratio ``ratio`` lie within :data:`SCALE_CHECK_FACTOR`
+    of each other, either way."""
+    return 1 / SCALE_CHECK_FACTOR <= ratio <= SCALE_CHECK_FACTOR
+
+
 def _rows_disagree(
     points: np.ndarray,
     colors: np.ndarray,
@@ -1195,7 +1201,7 @@ def _rows_disagree(
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
 
     usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
-    if usual is None or 1 / SCALE_CHECK_FACTOR <= metres / usual <= SCALE_CHECK_FACTOR:
+    if usual is None or _within_check_factor(metres / usual):
         return None
     rows = usual / above_units
     try:
@@ -1212,7 +1218,7 @@ def _rows_disagree(
                 break
     except RowFitError:  # no ground or rows at that scale: the rows cannot say
         return None
-    if 1 / SCALE_CHECK_FACTOR <= rows / scale <= SCALE_CHECK_FACTOR:
+    if _within_check_factor(rows / scale):
         return None
     given = given or f"the camera height given ({metres:g} m)"
     return (

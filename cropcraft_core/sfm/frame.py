@@ -120,10 +120,15 @@ def _rotation_to_z(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))
 
 
+def _optical_axes(poses: Poses) -> np.ndarray:
+    """(n, 3) unit optical axes (the cameras' +z, looking into the scene) in the poses' frame."""
+    return np.array([c.cam_to_world[:3, 2] for _, c in poses])
+
+
 def cameras_up(poses: Poses) -> np.ndarray:
     """Unit up direction from the cameras: minus their mean optical axis (captures look down on
     average), or the mean of their image-up axes when the optical axes cancel out."""
-    axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
+    axes = _optical_axes(poses)
     m = axes.mean(axis=0)
     if np.linalg.norm(m) > 0.3:
         return -m / np.linalg.norm(m)
@@ -155,7 +160,7 @@ def level_axis(poses: Poses, max_roll_deg: float = LEVEL_ROLL_DEG) -> np.ndarray
     axis = int(np.argmin(tilt)) % 3
     if tilt.min() > math.sin(math.radians(max_roll_deg)):
         return None
-    look = float(np.array([c.cam_to_world[:3, 2] for _, c in poses]).mean(axis=0)[axis])
+    look = float(_optical_axes(poses).mean(axis=0)[axis])
     if abs(look) < 0.1:
         return None
     return np.eye(3)[axis] * (-1.0 if look > 0 else 1.0)
@@ -182,17 +187,18 @@ def _axes_focus(poses: Poses) -> np.ndarray | None:
     return np.linalg.solve(a, b)
 
 
-def check_cameras_face_their_focus(poses: Poses, share: float = 0.8) -> None:
-    """InputError where the cameras' optical axes meet at a point (each passes within a
-    quarter of its camera's distance from it) that more than ``share`` of the cameras have
-    behind them: cameras turned round, as a ``transforms.json`` written in OpenCV's camera
-    axes and read as nerfstudio's (OpenGL's) makes them. Axes that meet nowhere (a drone's,
-    nearly parallel) say nothing."""
-    focus = _axes_focus(poses)
+def check_cameras_face_their_focus(
+    poses: Poses, focus: np.ndarray | None, share: float = 0.8
+) -> None:
+    """InputError where the cameras' optical axes meet at ``focus`` (:func:`_axes_focus`; each
+    passes within a quarter of its camera's distance from it) and more than ``share`` of the
+    cameras have it behind them: cameras turned round, as a ``transforms.json`` written in
+    OpenCV's camera axes and read as nerfstudio's (OpenGL's) makes them. Axes that meet
+    nowhere (None: a drone's, nearly parallel) say nothing."""
     if focus is None:
         return
     to = np.array([focus - c.center for _, c in poses])
-    axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
+    axes = _optical_axes(poses)
     dist = np.linalg.norm(to, axis=1)
     along = np.einsum("ij,ij->i", to, axes)
     miss = np.sqrt(np.maximum(dist**2 - along**2, 0.0))  # each axis's distance from the focus
@@ -298,15 +304,15 @@ def level_poses(
     if camera_height_m is not None and camera_distance is not None:
         raise InputError("give the camera height or a camera distance for the scale, not both")
     span = None if camera_distance is None else _camera_span(poses, camera_distance)
-    check_cameras_face_their_focus(poses)
-    centres = poses.centers()
+    focus = _axes_focus(poses)  # where the optical axes meet, in the input frame
+    check_cameras_face_their_focus(poses, focus)
+    centres, axes = poses.centers(), _optical_axes(poses)
     up_cam = cameras_up(poses)
     pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
     usable = pts is not None and len(pts) >= min_points
     up, source, disagree = up_cam, "cameras", float("nan")
     if usable:
         core = _trimmed(pts)
-        axes = np.array([c.cam_to_world[:3, 2] for _, c in poses])
         sin_min = math.sin(math.radians(min_look_down_deg))
 
         def seen_from_above(normals: np.ndarray) -> np.ndarray:
@@ -344,11 +350,10 @@ def level_poses(
     ground_z: float | None
     prior = prior_camera_height_m
     if not metric and hand_held_prior_m is not None:
-        look = np.array([c.cam_to_world[:3, 2] for _, c in poses]) @ up
+        look = axes @ up
         look_down = float(np.degrees(np.arcsin(np.clip(-np.median(look), -1.0, 1.0))))
         if look_down < HAND_HELD_MAX_LOOK_DOWN_DEG:  # a walk round the plot, not a flight
             prior = min(prior, hand_held_prior_m)
-    focus = _axes_focus(poses)
     f = None if focus is None else r @ focus
     if usable:
         core_r = core @ r.T
