@@ -39,6 +39,7 @@ from cropcraft_core.store import SceneKey, SceneStore, config_hash, sha256_bytes
 from flows.runners import DEFAULT_RUNNER, make_task_runner
 from flows.watch import watch_this_run
 from tasks.common import fingerprint, get_task, photos_left_out, stage_key
+from tasks.fit_seed import row_spacing_used
 
 # --------------------------------------------------------------------------- configuration
 
@@ -1384,6 +1385,10 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         # the rows against a camera-height hint far from the crop's usual (None: agree, or
         # not asked)
         "scale_warning": records["rowfit"]["summary"].get("scale_warning"),
+        # the planting row spacing the rows and the fitted canopy used, and whether the config
+        # gave it: a crop's default taken for 0.38 m rows put a metric walk's row camera 63°
+        # across them, silently (session 96's field audit)
+        "row_spacing": row_spacing_used(req.scene.crop, req.config),
         # fewer photos than a plot's reconstruction can rest on (None: enough)
         "photos_warning": few_photos_warning(records["ingest"]["summary"].get("n_images")),
         # the surfaces against the photos at the photos' cameras (older stores: None)

@@ -64,6 +64,13 @@ def _add_common(p: argparse.ArgumentParser, runner: bool = True) -> None:
             "SfM poses (else it is measured from the row spacing); = --set poses.camera_height=M",
         )
         p.add_argument(
+            "--row-spacing",
+            type=float,
+            metavar="M",
+            help="planting row spacing (m), where it is not the crop's default (0.76): the row "
+            "fit and the fitted canopy's rows use it; = --set layout.row_spacing=M",
+        )
+        p.add_argument(
             "--camera-distance",
             nargs=3,
             metavar=("PHOTO_A", "PHOTO_B", "M"),
@@ -124,6 +131,8 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
         out["poses.camera_height"] = float(args.camera_height)
     if getattr(args, "neighbour_rows", None) is not None:
         out["rows.neighbours"] = int(args.neighbour_rows)
+    if getattr(args, "row_spacing", None) is not None:
+        out["layout.row_spacing"] = float(args.row_spacing)
     if getattr(args, "camera_distance", None) is not None:
         a, b, metres = args.camera_distance
         try:
@@ -461,12 +470,26 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     for k, v in out.get("metrics", {}).items():
         unit = f"  {HEADLINE_UNITS[k]}" if k in HEADLINE_UNITS else ""
         print(f"  {k:<22} {v:.4g}{unit}" if isinstance(v, float) else f"  {k:<22} {v}{unit}")
+    _print_row_spacing(out)
     _print_fit_warnings(out)
     _print_coverage(out)
     _print_left_out(out)
     _print_rows(out)
     print(f"report   {out['report']}")
     print(f"bundle   {out['bundle']}")
+
+
+def _print_row_spacing(out: Mapping[str, Any]) -> None:
+    """The planting row spacing the run fitted with, and where it came from."""
+    used = out.get("row_spacing")
+    if not used:
+        return
+    where = (
+        "given"
+        if used.get("given")
+        else "the crop's default: give --row-spacing M where the rows are otherwise"
+    )
+    print(f"rows     {used['m']:g} m apart ({where})")
 
 
 def _print_fit_warnings(out: Mapping[str, Any]) -> None:

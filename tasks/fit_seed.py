@@ -42,6 +42,14 @@ def layout_of(crop: str, config: dict[str, Any]):
     return default_layout(crop, **dict(config.get("layout") or {}))
 
 
+def row_spacing_used(crop: str, config: dict[str, Any]) -> dict[str, Any]:
+    """``{"m": ..., "given": ...}``: the planting row spacing a run of ``crop`` fits its rows
+    and builds its canopies with (:func:`layout_of`), and whether ``config["layout"]`` gave it
+    (else the crop's default)."""
+    given = (config.get("layout") or {}).get("row_spacing") is not None
+    return {"m": float(layout_of(crop, config).row_spacing), "given": given}
+
+
 def _best_so_far(checkpoint: Path) -> float:
     """The lowest loss a seed's checkpoint holds (it resumes from there), else +inf."""
     if not checkpoint.exists():

@@ -18,7 +18,7 @@ from tasks.common import (
     photos_left_out,
     stage_task,
 )
-from tasks.fit_seed import layout_of
+from tasks.fit_seed import layout_of, row_spacing_used
 
 
 def _timings(upstream: dict[str, Any]) -> dict[str, float]:
@@ -120,6 +120,7 @@ def report(
             "row view without surface": _percent(
                 upstream["observe"]["summary"].get("no_surface_fraction")
             ),
+            "row spacing (m)": _row_spacing(crop, config),
             "row camera height (m)": rf.get("render_height_m"),
             "scale (m per unit)": rf.get("scale"),
             "scale source": (
@@ -180,6 +181,12 @@ def report(
         {"bytes": len(page)},
         t.seconds,
     )
+
+
+def _row_spacing(crop: str, config: dict[str, Any]) -> str:
+    """The planting row spacing the run fitted with, and whether it was given."""
+    used = row_spacing_used(crop, {"layout": config.get("layout")})
+    return f"{used['m']:g}" + ("" if used["given"] else f" (the {crop} default)")
 
 
 def run_warnings(crop: str, upstream: dict[str, Any], fit: dict[str, Any]) -> list[str]:

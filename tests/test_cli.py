@@ -238,6 +238,40 @@ def test_camera_distance_is_a_scale_shortcut():
         overrides_of(bad)
 
 
+def test_row_spacing_is_a_layout_shortcut_and_the_summary_names_the_spacing_used(capsys):
+    """0.38 m soybean rows run as the default 0.76 m ones (metric poses) put the row camera 63°
+    across them with nothing said, and ``run`` had no ``--row-spacing`` as ``fit`` has (session
+    96's field audit): it is the layout's shortcut, keys the rows and the canopy's stages as
+    ``--set layout.row_spacing`` does, and the run's summary says which spacing it used."""
+    from flows.cli import build_parser
+    from flows.scene import resolve_config, stage_configs
+    from flows.service_cli import _print_summary, overrides_of
+    from tasks.fit_seed import row_spacing_used
+
+    for command in (["run", "s/soybean/2024-07-01"], ["season", "s/soybean"]):
+        args = build_parser().parse_args([*command, "--row-spacing", "0.38"])
+        assert overrides_of(args) == {"layout.row_spacing": 0.38}
+    cfg = resolve_config("soybean", {"layout.row_spacing": 0.38})
+    same = resolve_config("soybean", overrides_of(build_parser().parse_args(
+        ["run", "s/soybean/2024-07-01", "--set", "layout.row_spacing=0.38"])))  # fmt: skip
+    assert stage_configs(cfg, "soybean") == stage_configs(same, "soybean")
+    assert stage_configs(cfg, "soybean")["rowfit"]["layout"] == {"row_spacing": 0.38}
+    assert row_spacing_used("soybean", stage_configs(cfg, "soybean")["rowfit"]) == {
+        "m": 0.38,
+        "given": True,
+    }
+    rowfit = stage_configs(resolve_config("soybean"), "soybean")["rowfit"]
+    default = row_spacing_used("soybean", rowfit)
+    assert default == {"m": 0.76, "given": False}
+    base = {"scene": "s/soybean/2024-07-01", "store": "/x", "states": {}, "metrics": {},
+            "report": "r", "bundle": "b"}  # fmt: skip
+    _print_summary({**base, "row_spacing": default})
+    said = capsys.readouterr().out
+    assert "rows     0.76 m apart (the crop's default: give --row-spacing M where" in said
+    _print_summary({**base, "row_spacing": {"m": 0.38, "given": True}})
+    assert "rows     0.38 m apart (given)" in capsys.readouterr().out
+
+
 def test_param_is_a_parameter_box_shortcut_checked_against_the_crop():
     from cropcraft_core.errors import ConfigError
     from flows.cli import build_parser

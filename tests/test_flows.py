@@ -171,6 +171,9 @@ def test_scene_flow_produces_everything(base_run):
     html = store.get_bytes(f"{scene}/report/report.html").decode()
     for needle in ("data:image/png;base64,", "observed", "predicted", "Stage timings", "m2"):
         assert needle in html
+    # the row spacing fitted with, and that it was the crop's default (session 96)
+    assert out["row_spacing"] == {"m": 0.76, "given": False}
+    assert f"0.76 (the {CROP} default)" in html
     # the share of the row view without a fully supported surface, kept with the observation;
     # a fill (tsdf's one-view surface) can only have closed some of it in the rendered depth
     obs = Observation.load(io.BytesIO(store.get_bytes(f"{scene}/observe/observation.npz")))

@@ -674,6 +674,7 @@ def edge_warning(
         return None
     return (
         f"the answer lies on the edge of the {crop} parameter box for {', '.join(at)}: the "
-        "model could not go as far as the photos asked; is the crop right, and the scale "
-        "(rows, camera height)?"
+        "model could not go as far as the photos asked; is the crop right, the scale "
+        "(rows, camera height) and the row spacing (--row-spacing)? Weeds, straw or stakes in "
+        "the rows pull the answer too"
     )
