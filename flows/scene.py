@@ -400,25 +400,28 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
     return cfg
 
 
-#: How far (a factor either way) a camera height may lie from the crop's usual capture height
-#: before it is refused as a slip of units: 140 (cm) given for soybean photos passed and the
-#: run failed in the stereo naming the poses and the box, never the height.
-CAMERA_HEIGHT_FACTOR = 20.0
+#: The camera heights (m) a capture can have, whatever the crop: a phone held low to a drone at
+#: the 120 m most countries allow. Outside, the height is refused as a slip of units: 140 (cm)
+#: given for soybean photos passed and the run failed in the stereo naming the poses and the
+#: box, never the height. (A factor of 20 from the crop's usual height refused a 30 m soybean
+#: drone flight as centimetres and a phone at 0.6 m over maize: session 96's capture audit.)
+CAMERA_HEIGHT_RANGE_M = (0.3, 120.0)
 
 
 def _check_camera_height(crop: str, height: float | None) -> None:
     from cropcraft_core.sfm.frame import PRIOR_CAMERA_HEIGHT_M
 
-    usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
-    if height is None or usual is None:
+    low, high = CAMERA_HEIGHT_RANGE_M
+    if height is None or low <= height <= high:
         return
-    if not 1 / CAMERA_HEIGHT_FACTOR <= height / usual <= CAMERA_HEIGHT_FACTOR:
-        unit = "centimetres" if height > usual else "another unit"
-        raise ConfigError(
-            f"poses.camera_height {height:g} m is {height / usual:.3g}x {crop}'s usual capture "
-            f"height ({usual:g} m): is it in {unit}? (give the cameras' median height above "
-            "the ground in metres)"
-        )
+    usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
+    unit = "centimetres" if height > high else "another unit"
+    raise ConfigError(
+        f"poses.camera_height {height:g} m is outside the {low:g}-{high:g} m photos are taken "
+        f"from"
+        + (f" ({crop}'s usual capture height is {usual:g} m)" if usual else "")
+        + f": is it in {unit}? (give the cameras' median height above the ground in metres)"
+    )
 
 
 def _layout_given(layout: Mapping[str, Any], crop: str | None) -> dict[str, Any]:

@@ -50,9 +50,11 @@ def rowfit(
         if frame_source == "camera_height" and not scale:
             poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
             camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
-        elif (frame_source == "camera_distance" or metric) and not scale:
+        elif not scale:
             # the heights the scale implies put to the rows: a distance in feet, or poses read
-            # as an AR capture's metres that are not (an older Metashape export)
+            # as an AR capture's metres that are not (an older Metashape export); SfM's: the
+            # canopy against the cameras' height at the rows' scale (a drone flight scaled by
+            # a hand-held prior)
             cameras = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses"))).centers()
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}

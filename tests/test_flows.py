@@ -2167,13 +2167,19 @@ def test_a_smaller_fit_budget_keeps_the_papers_share_of_random_points():
 
 def test_a_camera_height_in_other_units_is_refused_before_any_work():
     """`--camera-height 140` (centimetres) for a soybean walk passed, and the run failed in
-    the stereo naming the poses and the box; a height 20x from the crop's usual capture
-    height is refused with the likely slip. Drone heights for maize (13-120 m) pass."""
+    the stereo naming the poses and the box; a height no capture has (over the 120 m drones
+    may fly, under 0.3 m) is refused with the likely slip. Drone heights for either crop pass:
+    a 30 m soybean flight and a phone 0.6 m over maize were refused as other units when the
+    limit was 20x the crop's usual capture height (session 96's capture audit)."""
     from flows.scene import resolve_config
 
-    with pytest.raises(ConfigError, match=r"camera_height 140 m is 100x soybean's usual .* centim"):
+    with pytest.raises(ConfigError, match=r"camera_height 140 m is outside .*usual capture height "
+                       r"is 1.4 m\): is it in centim"):  # fmt: skip
         resolve_config("soybean", {"poses.camera_height": 140})
-    for crop, height in (("soybean", 1.2), ("soybean", 4.0), ("maize", 13.0), ("maize", 120.0)):
+    with pytest.raises(ConfigError, match=r"camera_height 0.05 m .* in another unit"):
+        resolve_config("maize", {"poses.camera_height": 0.05})
+    for crop, height in (("soybean", 1.2), ("soybean", 4.0), ("soybean", 30.0), ("maize", 0.6),
+                         ("maize", 13.0), ("maize", 120.0)):  # fmt: skip
         assert resolve_config(crop, {"poses.camera_height": height})["poses"]["camera_height"]
 
 

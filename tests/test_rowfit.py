@@ -394,6 +394,36 @@ def test_imported_poses_read_as_metres_that_the_rows_contradict_are_named():
     assert "scale_warning" not in walk.diagnostics
 
 
+def test_a_canopy_far_below_cameras_scaled_by_the_rows_is_named():
+    """A soybean drone flight (13 m) through SfM took the hand-held 1.4 m prior, and the rows
+    "confirmed" a scale 14x off: LAI 0.09 for 1.26 with nothing said of the scale (session
+    96's capture audit). Where the rows set the scale (or it is assumed), a canopy standing
+    under 6 % of the cameras' height above its ground is named with both heights at that
+    scale, for the user to judge; a walk's cameras are not."""
+    pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
+    xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)
+    p = preset("soybean", box_size=None)
+
+    def fitted(height_m: float, units_per_metre: float = 1.0):
+        cams = np.column_stack([xy * height_m / 1.4, np.full(len(xy), height_m)])
+        return fit_rows_with_scale(
+            pts * units_per_metre, col, "soybean", p, rng=8,
+            known_row_spacing=lay.row_spacing, cameras=cams * units_per_metre,
+        )  # fmt: skip
+
+    walk = fitted(1.4, 0.8)
+    assert walk.scale_source == "row_spacing" and "scale_warning" not in walk.diagnostics
+    drone = fitted(13.0, 0.8)
+    assert drone.scale_source == "row_spacing"
+    assert drone.scale == pytest.approx(walk.scale)  # the rows' answer itself stands
+    warning = drone.diagnostics["scale_warning"]
+    assert warning.startswith("the cameras stand ")
+    assert "(a drone's view?) and the scale is the rows' alone" in warning
+    assert "--camera-height" in warning
+    up = float(warning.split("the cameras are ")[1].split(" m up")[0])
+    assert up == pytest.approx(13.0, rel=0.05)
+
+
 def _translate(t):
     m = np.eye(4)
     m[:3, 3] = t
