@@ -107,6 +107,7 @@ def observe(
     left out of the pool (the summary's ``views_pooled`` and ``views_left_out``).
     """
     from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.observe import check_coverage
 
     _surfaces_api()
     from cropcraft_core.surfaces import load_surfaces
@@ -125,6 +126,7 @@ def observe(
                 PinholeCamera.from_dict(rf["camera"]),
                 PinholeCamera.from_dict(rf["camera_in_scene"]),
             )
+        check_coverage(unseen)  # a view the surfaces hardly cover: no fit from its gaps
         key = artefact(scene, "observe", "observation.npz")
         digest = store.put_bytes(key, _npz(obs))
     return make_record(

@@ -760,3 +760,19 @@ def test_no_surface_fraction_and_its_warning():
     assert msg is not None and "23.5 % of the row camera's view" in msg and "LAI" in msg
     assert coverage_warning(0.18004).startswith("18.0 % of the row camera's view")  # not "18 %"
     assert "synthetic soybean" in msg and "soybean" not in coverage_warning(0.235, "maize")
+
+
+def test_a_row_view_the_surfaces_hardly_cover_is_refused():
+    """A maize walk round a 1.8 m canopy (tsdf backend) left 97.9 % of the row camera's view
+    without a surface, read LAI 0.069 for 1.79 and finished "done" with only the coverage
+    warning (session 96's capture audit): over 90 % the observe stage refuses, naming the
+    share and the capture."""
+    from cropcraft_core.observe import NO_SURFACE_REFUSE, check_coverage
+    from cropcraft_core.surfaces.base import SurfacesError
+
+    check_coverage(0.5)
+    check_coverage(NO_SURFACE_REFUSE)  # the threshold itself passes
+    with pytest.raises(SurfacesError, match=r"covers only 2.1 % of the row camera's view \(97.9 %"):
+        check_coverage(0.979)
+    with pytest.raises(SurfacesError, match="from a drone"):
+        check_coverage(0.95)

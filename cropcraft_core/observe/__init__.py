@@ -16,8 +16,10 @@ from cropcraft_core.observe.histograms import (
 )
 from cropcraft_core.observe.loss import LossBreakdown, loss
 from cropcraft_core.observe.observation import (
+    NO_SURFACE_REFUSE,
     NO_SURFACE_WARN,
     Observation,
+    check_coverage,
     check_row_camera,
     coverage_warning,
     no_surface_fraction,
@@ -40,6 +42,7 @@ from cropcraft_core.observe.presets import (
 
 __all__ = [
     "CROPS",
+    "NO_SURFACE_REFUSE",
     "NO_SURFACE_WARN",
     "HistogramStats",
     "LossBreakdown",
@@ -48,6 +51,7 @@ __all__ = [
     "ObservePreset",
     "bin_edges",
     "blur_depth",
+    "check_coverage",
     "check_prediction_blur",
     "check_row_camera",
     "compute_stats",
