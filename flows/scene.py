@@ -310,6 +310,13 @@ def resolve_config(crop: str, overrides: Mapping[str, Any] | None = None) -> dic
             fit.bo_config(crop).validate()
     except ConfigError as exc:  # named as the user sets them
         raise ConfigError(f"fit settings (fit.*): {exc}") from None
+    # a layout keys its stages as numbers: --row-spacing 1's 1.0 is --set layout.row_spacing=1
+    # (whole numbers as ints, as --set and known.json have always written them: their stores'
+    # stages stay keyed as they were)
+    cfg["layout"] = {
+        k: int(v) if isinstance(v, float) and v.is_integer() else v
+        for k, v in cfg["layout"].items()
+    }
     # a known parameter keys its fit as a number: known.json's 9 (or --set's) is --param's 9.0
     cfg["fit"]["box"] = {
         k: [float(x) for x in v] if isinstance(v, list | tuple) else float(v)
@@ -417,7 +424,7 @@ def _check_camera_height(crop: str, height: float | None) -> None:
     usual = PRIOR_CAMERA_HEIGHT_M.get(crop)
     unit = "centimetres" if height > high else "another unit"
     raise ConfigError(
-        f"poses.camera_height {height:g} m is outside the {low:g}-{high:g} m photos are taken "
+        f"poses.camera_height {height:.10g} m is outside the {low:g}-{high:g} m photos are taken "
         f"from"
         + (f" ({crop}'s usual capture height is {usual:g} m)" if usual else "")
         + f": is it in {unit}? (give the cameras' median height above the ground in metres)"

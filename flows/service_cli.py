@@ -885,6 +885,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     states = out.get("states", {})
     n_cached = sum(1 for v in states.values() if v == "Cached")
     print()
+    _print_row_spacing(out)
     _print_fit_warnings(out)
     _print_coverage(out)
     print(f"stages cached: {n_cached} of {len(states)}")

@@ -44,10 +44,13 @@ def layout_of(crop: str, config: dict[str, Any]):
 
 def row_spacing_used(crop: str, config: dict[str, Any]) -> dict[str, Any]:
     """``{"m": ..., "given": ...}``: the planting row spacing a run of ``crop`` fits its rows
-    and builds its canopies with (:func:`layout_of`), and whether ``config["layout"]`` gave it
-    (else the crop's default)."""
-    given = (config.get("layout") or {}).get("row_spacing") is not None
-    return {"m": float(layout_of(crop, config).row_spacing), "given": given}
+    and builds its canopies with (:func:`layout_of`), and whether ``config["layout"]`` gave
+    one other than the crop's default (a stage's config leaves the default out:
+    ``flows.scene.stage_configs``)."""
+    from cropcraft_core.config import default_layout
+
+    m = float(layout_of(crop, config).row_spacing)
+    return {"m": m, "given": m != default_layout(crop).row_spacing}
 
 
 def _best_so_far(checkpoint: Path) -> float:

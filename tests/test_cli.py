@@ -248,9 +248,21 @@ def test_row_spacing_is_a_layout_shortcut_and_the_summary_names_the_spacing_used
     from flows.service_cli import _print_summary, overrides_of
     from tasks.fit_seed import row_spacing_used
 
-    for command in (["run", "s/soybean/2024-07-01"], ["season", "s/soybean"]):
+    for command in (["run", "s/soybean/2024-07-01"], ["season", "s/soybean"], ["demo"]):
         args = build_parser().parse_args([*command, "--row-spacing", "0.38"])
         assert overrides_of(args) == {"layout.row_spacing": 0.38}
+    # a whole number keys the stages as the flag's float does (--set's JSON 1 refitted all)
+    whole = [
+        resolve_config(
+            "soybean",
+            overrides_of(build_parser().parse_args(["run", "s/soybean/2024-07-01", *flag])),
+        )
+        for flag in (["--row-spacing", "1"], ["--set", "layout.row_spacing=1"])  # fmt: skip
+    ]
+    assert stage_configs(whole[0], "soybean") == stage_configs(whole[1], "soybean")
+    # the default written out is the default, in the summary as in the report (session 96)
+    written = stage_configs(resolve_config("soybean", {"layout.row_spacing": 0.76}), "soybean")
+    assert row_spacing_used("soybean", written["rowfit"])["given"] is False
     cfg = resolve_config("soybean", {"layout.row_spacing": 0.38})
     same = resolve_config("soybean", overrides_of(build_parser().parse_args(
         ["run", "s/soybean/2024-07-01", "--set", "layout.row_spacing=0.38"])))  # fmt: skip

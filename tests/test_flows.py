@@ -2176,6 +2176,8 @@ def test_a_camera_height_in_other_units_is_refused_before_any_work():
     with pytest.raises(ConfigError, match=r"camera_height 140 m is outside .*usual capture height "
                        r"is 1.4 m\): is it in centim"):  # fmt: skip
         resolve_config("soybean", {"poses.camera_height": 140})
+    with pytest.raises(ConfigError, match=r"camera_height 120.0001 m is outside"):
+        resolve_config("soybean", {"poses.camera_height": 120.0001})
     with pytest.raises(ConfigError, match=r"camera_height 0.05 m .* in another unit"):
         resolve_config("maize", {"poses.camera_height": 0.05})
     for crop, height in (("soybean", 1.2), ("soybean", 4.0), ("soybean", 30.0), ("maize", 0.6),
