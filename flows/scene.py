@@ -1399,6 +1399,8 @@ def summarize(req: SceneRequest, records: dict[str, Any], states: dict[str, str]
         # gave it: a crop's default taken for 0.38 m rows put a metric walk's row camera 63°
         # across them, silently (session 96's field audit)
         "row_spacing": row_spacing_used(req.scene.crop, req.config),
+        # where the metric scale came from (the row fit's; assumed_metric: measured by nothing)
+        "scale_source": records["rowfit"]["summary"].get("scale_source"),
         # fewer photos than a plot's reconstruction can rest on (None: enough)
         "photos_warning": few_photos_warning(records["ingest"]["summary"].get("n_images")),
         # the surfaces against the photos at the photos' cameras (older stores: None)

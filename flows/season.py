@@ -99,6 +99,12 @@ def _net_cover(store: SceneStore, prefix: str) -> float | None:
     return store.get_json(key).get("net") if store.isfile(key) else None
 
 
+def _scale_source(store: SceneStore, prefix: str) -> str | None:
+    """Where the date's metric scale came from (``rowfit/rowfit.json``'s ``scale_source``)."""
+    key = f"{prefix}/rowfit/rowfit.json"
+    return store.get_json(key).get("scale_source") if store.isfile(key) else None
+
+
 def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
     """The date's LAI over the rows it was fitted on (``rows/rows.json``): ``n_rows_fitted``,
     ``lai_rows_min``, ``lai_rows_max``; {} when it has none, or when the answer it records is
@@ -202,6 +208,7 @@ def write_summary(
                 parameters_given=given_text((fit.get("config") or {}).get("box")),
                 no_surface_fraction=_no_surface(store, f"{d.scene.prefix}/observe/"),
                 photo_net_cover=_net_cover(store, d.scene.prefix),
+                scale_source=_scale_source(store, d.scene.prefix),
                 **_rows(store, d.scene),
             )
         if d.scene.date in refused:  # refused tonight before any work (its field notes...)

@@ -480,16 +480,30 @@ def _print_summary(out: Mapping[str, Any]) -> None:
 
 
 def _print_row_spacing(out: Mapping[str, Any]) -> None:
-    """The planting row spacing the run fitted with, and where it came from."""
+    """The planting row spacing the run fitted with, and where its metric scale came from."""
     used = out.get("row_spacing")
-    if not used:
-        return
-    where = (
-        "given"
-        if used.get("given")
-        else "the crop's default: give --row-spacing M where the rows are otherwise"
-    )
-    print(f"rows     {used['m']:g} m apart ({where})")
+    if used:
+        where = (
+            "given"
+            if used.get("given")
+            else "the crop's default: give --row-spacing M where the rows are otherwise"
+        )
+        print(f"rows     {used['m']:g} m apart ({where})")
+    source = out.get("scale_source")
+    if source:
+        print(f"scale    {SCALE_SOURCES.get(source, source)}")
+
+
+#: What each row-fit scale source means, for the run's summary.
+SCALE_SOURCES = {
+    "metric_poses": "from the imported poses, in metres",
+    "camera_height": "from the camera height given",
+    "camera_distance": "from the camera distance given",
+    "row_spacing": "from the rows' spacing against the layout's",
+    "user_hint": "from rowfit.scale, given",
+    "assumed_metric": "assumed from the crop's usual capture height, measured by nothing "
+    "(give --camera-height M)",
+}
 
 
 def _print_fit_warnings(out: Mapping[str, Any]) -> None:

@@ -282,6 +282,11 @@ def test_row_spacing_is_a_layout_shortcut_and_the_summary_names_the_spacing_used
     assert "rows     0.76 m apart (the crop's default: give --row-spacing M where" in said
     _print_summary({**base, "row_spacing": {"m": 0.38, "given": True}})
     assert "rows     0.38 m apart (given)" in capsys.readouterr().out
+    # where the scale came from, said in words: assumed_metric was in the report only
+    _print_summary({**base, "scale_source": "assumed_metric"})
+    assert "scale    assumed from the crop's usual capture height, measured by nothing" in (
+        capsys.readouterr().out
+    )
 
 
 def test_param_is_a_parameter_box_shortcut_checked_against_the_crop():

@@ -315,6 +315,7 @@ def test_season_summary_carries_each_dates_row_view_coverage(base_run):
     )
     assert row["lai_m2_m2"] == pytest.approx(out["metrics"]["lai"])
     assert row["parameters_given"] == ""  # the whole box was searched
+    assert row["scale_source"] == out["scale_source"] == "metric_poses"  # session 96
     import csv
 
     text = store.get_bytes(f"plotA/{CROP}/season/summary.csv").decode()
