@@ -470,7 +470,7 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     for k, v in out.get("metrics", {}).items():
         unit = f"  {HEADLINE_UNITS[k]}" if k in HEADLINE_UNITS else ""
         print(f"  {k:<22} {v:.4g}{unit}" if isinstance(v, float) else f"  {k:<22} {v}{unit}")
-    _print_row_spacing(out)
+    _print_frame(out)
     _print_fit_warnings(out)
     _print_coverage(out)
     _print_left_out(out)
@@ -479,7 +479,7 @@ def _print_summary(out: Mapping[str, Any]) -> None:
     print(f"bundle   {out['bundle']}")
 
 
-def _print_row_spacing(out: Mapping[str, Any]) -> None:
+def _print_frame(out: Mapping[str, Any]) -> None:
     """The planting row spacing the run fitted with, and where its metric scale came from."""
     used = out.get("row_spacing")
     if used:
@@ -899,7 +899,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     states = out.get("states", {})
     n_cached = sum(1 for v in states.values() if v == "Cached")
     print()
-    _print_row_spacing(out)
+    _print_frame(out)
     _print_fit_warnings(out)
     _print_coverage(out)
     print(f"stages cached: {n_cached} of {len(states)}")

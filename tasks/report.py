@@ -185,7 +185,7 @@ def report(
 
 def _row_spacing(crop: str, config: dict[str, Any]) -> str:
     """The planting row spacing the run fitted with, marked where it is the crop's default."""
-    used = row_spacing_used(crop, {"layout": config.get("layout")})
+    used = row_spacing_used(crop, config)
     return f"{used['m']:g}" + ("" if used["given"] else f" (the {crop} default)")
 
 

@@ -158,6 +158,12 @@ class RowFit:
         cos_max = math.cos(math.radians(max_angle_deg))
         return sum(abs(float(r.direction @ self.best_row.direction)) >= cos_max for r in self.rows)
 
+    def median_height(self, points: np.ndarray) -> float:
+        """The median signed height of (n, 3) scene points above the ground plane, in scene
+        units (the cameras' height over the fitted ground, for the scale's checks)."""
+        c = np.asarray(points, dtype=np.float64)
+        return float(np.median(c @ self.ground_normal + self.ground_offset))
+
     @property
     def render_height(self) -> float:
         return self.preset.render_height
@@ -1047,8 +1053,7 @@ def fit_rows_with_scale(
             return fit
         seed = int(_as_rng(rng).integers(2**63 - 1))  # after the fit: its draws are as before
         # the cameras' height the given scale implies, put to the rows like a camera height's
-        c = np.asarray(cameras, dtype=np.float64)
-        above = float(np.median(c @ fit.ground_normal + fit.ground_offset))
+        above = fit.median_height(cameras)
         if not above > 0:
             return fit
         metres = above * metric_scale
@@ -1104,11 +1109,10 @@ def _far_above_warning(fit: RowFit, cameras: np.ndarray) -> str | None:
     ``cameras``' ((n, 3), scene frame) median height above its ground, else None. The ratio
     does not depend on the scale, so it cannot tell a right scale from a wrong one: the warning
     gives the cameras' height and the canopy's at the scale for the user to judge."""
-    c = np.asarray(cameras, dtype=np.float64)
     # either side: at a scale far off the ground plane can lie in the canopy with the plants
     # below it and the cameras then on its far side (a soybean drone flight read LAI 0.32 for
     # 1.26 with nothing said: session 96's last audit)
-    above = abs(float(np.median(c @ fit.ground_normal + fit.ground_offset))) * fit.scale
+    above = abs(fit.median_height(cameras)) * fit.scale
     top = fit.diagnostics.get("canopy_top")
     if not (above > 0 and top is not None and top < FAR_ABOVE_RATIO * above):
         return None
@@ -1198,7 +1202,7 @@ def _fit_with_camera_height(
     scale, history = 1.0, []
     for _ in range(max_passes):
         fit = _seeded_fit(points, colors, crop, preset, seed, scale, "camera_height")
-        above = float(np.median(c @ fit.ground_normal + fit.ground_offset))
+        above = fit.median_height(c)
         if not above > 0:
             raise RowFitError(
                 "the cameras are not above the fitted ground plane (median height "
