@@ -20,6 +20,7 @@ from cropcraft_core.rowfit import (
     preset,
     srgb_to_lab,
 )
+from cropcraft_core.rowfit.fit import MIN_ROW_SPANS, row_spans
 from cropcraft_core.rowfit.truth import register_to_truth, row_fit_errors
 
 GREEN = np.array([0.20, 0.42, 0.12])  # L* 41, a* -30: leaf
@@ -425,6 +426,41 @@ def test_a_canopy_far_below_cameras_scaled_by_the_rows_is_named():
     # cameras on the far side of the fitted ground (at a scale far off it can lie in the
     # canopy, the plants below it): a drone flight read LAI 0.32 for 1.26 unwarned
     assert "a drone's view?" in fitted(-13.0, 0.8).diagnostics["scale_warning"]
+
+
+def test_a_drone_flight_scaled_by_a_hand_held_height_is_found_from_a_drone_height():
+    """Nadir SfM photos of soybean take the crop's hand-held prior (1.4 m); from a 13 m drone
+    the rows then "confirmed" a scale 14x off (their whole cloud under a metre across, the
+    period spanning 1.6 rows) or none, and the run read LAI 0.09 for 1.26 (session 96). Where
+    the canopy stands far below the cameras and the rows found no sound period, they are
+    sought again from a drone's 13 m, and the fit says so; a sound period stands."""
+    pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
+    xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)
+    p = preset("soybean", box_size=None)
+
+    def fitted(height_m: float, prior_m: float, pts=pts, col=col, xy=xy):
+        cams = np.column_stack([xy * height_m / 1.4, np.full(len(xy), height_m)])
+        k = prior_m / height_m  # the frame the poses stage scaled by its prior
+        return fit_rows_with_scale(
+            pts * k, col, "soybean", p, rng=8, known_row_spacing=lay.row_spacing,
+            cameras=cams * k,
+        )  # fmt: skip
+
+    drone = fitted(13.0, 1.4)
+    assert drone.scale_source == "row_spacing"
+    assert drone.scale == pytest.approx(13.0 / 1.4, rel=0.03)  # metres again
+    assert drone.diagnostics["scale_retry"]["from_m"] == 13.0
+    warning = drone.diagnostics["scale_warning"]
+    assert "sought from a drone's 13 m" in warning and "--camera-height" in warning
+    up = float(warning.split("put the cameras ")[1].split(" m up")[0])
+    assert up == pytest.approx(13.0, rel=0.05)
+    assert row_spans(drone, lay.row_spacing) >= MIN_ROW_SPANS
+    # a young canopy 5 m below the cameras whose rows spanned enough: its scale stands
+    young, ycol, _ = make_cloud("soybean", YOUNG_SOY, 0.0, seed=8)
+    stands = fitted(5.0, 5.0, young, ycol)
+    assert "scale_retry" not in stands.diagnostics
+    assert stands.scale == pytest.approx(1.0, rel=0.03)
+    assert "(a drone's view?)" in stands.diagnostics["scale_warning"]
 
 
 def _translate(t):
