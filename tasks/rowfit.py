@@ -33,6 +33,7 @@ def rowfit(
     """
     from cropcraft_core.rowfit import fit_rows_with_scale
     from cropcraft_core.rowfit import preset as rowfit_preset
+    from cropcraft_core.sfm.frame import looks_down
     from cropcraft_core.sfm.poses import Poses
     from tasks.fit_seed import layout_of
 
@@ -47,6 +48,7 @@ def rowfit(
         metric_source = frame_source if frame_source in hinted else "metric_poses"
         scale = config.get("scale")
         camera_height = cameras = None
+        nadir = False
         if frame_source == "camera_height" and not scale:
             poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
             camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
@@ -55,7 +57,8 @@ def rowfit(
             # as an AR capture's metres that are not (an older Metashape export); SfM's: the
             # canopy against the cameras' height at the rows' scale (a drone flight scaled by
             # a hand-held prior)
-            cameras = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses"))).centers()
+            poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
+            cameras, nadir = poses.centers(), looks_down(poses)
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
         fit = fit_rows_with_scale(
@@ -70,6 +73,7 @@ def rowfit(
             scale_hint=float(scale) if scale else None,
             known_row_spacing=spacing,
             cameras=cameras,
+            nadir=nadir,
         )
         record = {**fit.to_dict(), "camera_in_scene": fit.camera_in_scene().to_dict()}
         key = artefact(scene, "rowfit", "rowfit.json")

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from cropcraft_core.config import default_layout
 from cropcraft_core.errors import InputError
 from cropcraft_core.sfm import Poses, level_poses
+from cropcraft_core.sfm.frame import looks_down
 from cropcraft_core.synth import drone_trajectory, walk_trajectory
 
 
@@ -229,6 +230,18 @@ def test_sfm_poses_of_a_walk_round_maize_take_a_walkers_height_not_a_drones():
     poses, pts = _scrambled(drone, _sparse_points(rng, 2.5, 2.5), 5, scale=0.3)
     out, _, frame = level_poses(poses, pts, prior_camera_height_m=13.0)
     assert frame.camera_height_m == pytest.approx(13.0)
+
+
+def test_levelled_poses_say_whether_they_look_straight_down():
+    """The row fit refuses a hand-held scale for photos that look straight down (a drone's or
+    a phone held over the plot), not for a walk's: ``looks_down`` of the levelled poses."""
+    rng = np.random.default_rng(6)
+    walk = walk_trajectory(default_layout("soybean"), 40, rng, canopy_top=0.6)
+    drone = drone_trajectory(default_layout("soybean"), 30, rng, canopy_top=0.6)
+    for cams, nadir in ((walk, False), (drone, True)):
+        poses, pts = _scrambled(cams, _sparse_points(rng, 1.5, 0.6), 7, scale=0.4)
+        out, _, _ = level_poses(poses, pts)
+        assert looks_down(out) is nadir
 
 
 def test_cameras_only_walk_and_drone_with_points():

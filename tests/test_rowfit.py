@@ -2,6 +2,7 @@
 green) plus noisy brown soil on z = 0, moved into a random similarity frame like an SfM scene."""
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -20,7 +21,6 @@ from cropcraft_core.rowfit import (
     preset,
     srgb_to_lab,
 )
-from cropcraft_core.rowfit.fit import MIN_ROW_SPANS, row_spans
 from cropcraft_core.rowfit.truth import register_to_truth, row_fit_errors
 
 GREEN = np.array([0.20, 0.42, 0.12])  # L* 41, a* -30: leaf
@@ -428,39 +428,44 @@ def test_a_canopy_far_below_cameras_scaled_by_the_rows_is_named():
     assert "a drone's view?" in fitted(-13.0, 0.8).diagnostics["scale_warning"]
 
 
-def test_a_drone_flight_scaled_by_a_hand_held_height_is_found_from_a_drone_height():
-    """Nadir SfM photos of soybean take the crop's hand-held prior (1.4 m); from a 13 m drone
-    the rows then "confirmed" a scale 14x off (their whole cloud under a metre across, the
-    period spanning 1.6 rows) or none, and the run read LAI 0.09 for 1.26 (session 96). Where
-    the canopy stands far below the cameras and the rows found no sound period, they are
-    sought again from a drone's 13 m, and the fit says so; a sound period stands."""
+def test_nadir_photos_at_a_hand_held_scale_that_a_drone_could_have_taken_are_refused():
+    """Nadir SfM photos of soybean take the hand-held prior (1.4 m) whether a phone held over
+    the plot or a drone took them: soybean flights at 8, 13 and 20 m then read LAI 0.09 for
+    1.26, their rows "confirming" scales 7-14x off, or stopped later on an empty mask
+    (sessions 96-97). Where the photos look straight down, the scale is the rows' or assumed
+    at a hand-held height and the canopy stands under a quarter of the cameras' height (a
+    drone could show it so), the row fit stops and asks for the height; a walk's photos, a
+    canopy too tall for a drone's view and a drone's own prior pass."""
     pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
     xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)
     p = preset("soybean", box_size=None)
 
-    def fitted(height_m: float, prior_m: float, pts=pts, col=col, xy=xy):
+    def fitted(height_m: float, prior_m: float, nadir: bool = True):
         cams = np.column_stack([xy * height_m / 1.4, np.full(len(xy), height_m)])
         k = prior_m / height_m  # the frame the poses stage scaled by its prior
         return fit_rows_with_scale(
             pts * k, col, "soybean", p, rng=8, known_row_spacing=lay.row_spacing,
-            cameras=cams * k,
+            cameras=cams * k, nadir=nadir,
         )  # fmt: skip
 
-    drone = fitted(13.0, 1.4)
-    assert drone.scale_source == "row_spacing"
-    assert drone.scale == pytest.approx(13.0 / 1.4, rel=0.03)  # metres again
-    assert drone.diagnostics["scale_retry"]["from_m"] == 13.0
-    warning = drone.diagnostics["scale_warning"]
-    assert "sought from a drone's 13 m" in warning and "--camera-height" in warning
-    up = float(warning.split("put the cameras ")[1].split(" m up")[0])
-    assert up == pytest.approx(13.0, rel=0.05)
-    assert row_spans(drone, lay.row_spacing) >= MIN_ROW_SPANS
-    # a young canopy 5 m below the cameras whose rows spanned enough: its scale stands
-    young, ycol, _ = make_cloud("soybean", YOUNG_SOY, 0.0, seed=8)
-    stands = fitted(5.0, 5.0, young, ycol)
-    assert "scale_retry" not in stands.diagnostics
-    assert stands.scale == pytest.approx(1.0, rel=0.03)
-    assert "(a drone's view?)" in stands.diagnostics["scale_warning"]
+    with pytest.raises(RowFitError, match="the scale cannot be measured") as err:
+        fitted(13.0, 1.4)
+    assert "--camera-height M" in str(err.value) and "look straight down" in str(err.value)
+    # the canopy's height at 1.4 m and at 13 m, for the user to judge
+    assert re.search(
+        r"1\.4 m up the canopy would be [\d.]+ cm tall, 13 m up [\d.]+ cm", str(err.value)
+    )
+    with pytest.raises(RowFitError, match="the scale cannot be measured"):
+        fitted(8.0, 1.4)
+    # ... which the far-above warning (6 %) does not reach: a walk's photos say nothing there
+    assert "scale_warning" not in fitted(8.0, 1.4, nadir=False).diagnostics
+    # the same cloud from a walk (45-70 degrees down): the far-above warning, as before
+    assert "a drone's view?" in fitted(13.0, 1.4, nadir=False).diagnostics["scale_warning"]
+    # a phone held over a grown canopy: no drone 8 m up could show it so tall
+    held = fitted(1.4, 1.4)
+    assert held.scale == pytest.approx(1.0, rel=0.03) and "scale_warning" not in held.diagnostics
+    # a drone's prior (maize's 13 m, here given to soybean): the rows' answer stands, warned
+    assert "a drone's view?" in fitted(13.0, 13.0).diagnostics["scale_warning"]
 
 
 def _translate(t):

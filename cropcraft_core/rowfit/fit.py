@@ -998,6 +998,7 @@ def fit_rows_with_scale(
     max_passes: int = 3,
     tolerance: float = 0.01,
     cameras: np.ndarray | None = None,
+    nadir: bool = False,
 ) -> RowFit:
     """:func:`fit_ground_and_rows` with the metric scale chosen by priority:
 
@@ -1024,7 +1025,9 @@ def fit_rows_with_scale(
     ``known_row_spacing``: the cameras' height the scale implies is put to the rows as a
     camera height's is (a camera distance in feet taken as metres); with the row-spacing
     route, a canopy standing far below the cameras (:data:`FAR_ABOVE_RATIO`) is warned of
-    (``diagnostics["scale_warning"]``).
+    (``diagnostics["scale_warning"]``); ``nadir`` (the photos look straight down,
+    ``sfm.frame.looks_down``): a hand-held scale that a drone's height could explain as well
+    is refused (:data:`NADIR_AMBIGUOUS_RATIO`).
 
     The row-spacing route needs the first pass to find several rows: the metric thresholds
     (20 cm lines, 0.76 m rows) tolerate a scene scale off by roughly ±30 %.
@@ -1081,17 +1084,15 @@ def fit_rows_with_scale(
             )
     if known_row_spacing is None:
         return fit_ground_and_rows(points, colors, crop, preset, rng)
-    rng = _as_rng(rng)
     fit = _fit_by_row_spacing(
         points, colors, crop, preset, rng, known_row_spacing, max_passes, tolerance
     )
+    if cameras is not None and nadir:
+        _check_nadir_scale(fit, cameras)
     warning = None if cameras is None else _far_above_warning(fit, cameras)
     if not warning:
         return fit
-    drone = _rows_from_a_drone(
-        points, colors, crop, preset, rng, fit, cameras, known_row_spacing, max_passes, tolerance
-    )
-    return drone or replace(fit, diagnostics={**fit.diagnostics, "scale_warning": warning})
+    return replace(fit, diagnostics={**fit.diagnostics, "scale_warning": warning})
 
 
 #: Where the scale is the rows' (or assumed), a canopy whose top stands under this share of
@@ -1138,16 +1139,12 @@ def _fit_by_row_spacing(
     known_row_spacing: float,
     max_passes: int,
     tolerance: float,
-    start: float = 1.0,
 ) -> RowFit:
-    """The ``known_row_spacing`` route of :func:`fit_rows_with_scale` (its item 3), the rows
-    sought first at ``start`` metres per scene unit."""
+    """The ``known_row_spacing`` route of :func:`fit_rows_with_scale` (its item 3)."""
     rng = _as_rng(rng)
     seed = int(rng.integers(2**63 - 1))
-    scale = start
-    fit = fit_ground_and_rows(
-        points, colors, crop, preset, np.random.default_rng(seed), scale=start
-    )
+    scale = 1.0
+    fit = fit_ground_and_rows(points, colors, crop, preset, np.random.default_rng(seed), scale=1.0)
     first = fit
     history = []
     for i in range(max_passes):
@@ -1173,101 +1170,39 @@ def _fit_by_row_spacing(
     return replace(fit, diagnostics=diag)
 
 
-#: A drone's height over a plot (m), the issue's maize flights' and ``cropcraft synth``'s: where
-#: photos from far above the canopy were scaled by a hand-held prior and the rows found no
-#: sound period at that scale, they are sought again with the cameras put this high. The rows'
-#: first search spans 0.6-1.6x, so flights at about 8-21 m are found.
-DRONE_CAMERA_HEIGHT_M = 13.0
-
-#: The fewest row spacings the plant points must span across the best row for a period the
-#: rows' route confirmed to be trusted against another scale. Measured (session 97) on 41
-#: stored clouds at their scale: the 14 periods the rows confirmed at a right scale spanned
-#: 2.99-7.18 (the clouds scaled otherwise 2.55-7.08, but for one metric-pose strip, 1.60);
-#: the soybean drone flight whose hand-held scale the rows "confirmed" 14x off spanned 1.5-1.6
-#: (at that scale its whole cloud is about a metre across: the lag held little of it).
-MIN_ROW_SPANS = 2.5
-
-#: The tallest canopy top (m) a scale found from a drone's height may give: the parameter
-#: boxes' tallest canopies stand 1.85 m (soybean) and 3.16 m (maize). A soybean walk's cloud
-#: put at a drone's height "confirmed" rows there and read its canopy 6.9 m tall.
-CANOPY_TOP_MAX_M = {"soybean": 2.0, "maize": 3.5}
+#: Nadir photos (a drone's, or a phone held over the plot) scaled by the hand-held prior whose
+#: canopy top stands under this share of the cameras' height above the ground are refused
+#: without a scale: a drone 8 m or more up over a canopy up to 2 m (the soybean box's
+#: tallest, 1.85 m) reads under it, so the photos could be either's and the hand-held height
+#: a guess up to 10x off. Measured (session 97), soybean by drone through SfM at that prior:
+#: 8 m 0.062, 13 m 0.031-0.039, a 14 cm canopy from 13 m 0.0028, 20 m 0.013; its rows
+#: "confirmed" a scale 7-14x off on three of the five (the drone's sampling ripples the plant
+#: points' profile at the rows' period there: the rows cannot tell either).
+NADIR_AMBIGUOUS_RATIO = 0.25
 
 
-def row_spans(fit: RowFit, known_row_spacing: float) -> float:
-    """How many ``known_row_spacing`` the plant points span across ``fit``'s best row (their
-    2nd to 98th percentile of offset along its normal), at ``fit``'s scale."""
-    xy = fit.plant_xy if len(fit.plant_xy) else fit.row_points
-    if len(xy) < 2:
-        return 0.0
-    lo, hi = np.percentile(xy @ fit.best_row.normal, [2, 98])
-    return float(hi - lo) / known_row_spacing
+def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
+    """Stop where ``fit`` (nadir photos, the rows' or assumed scale) has its cameras at a
+    hand-held height (within :data:`SCALE_CHECK_FACTOR` of ``HAND_HELD_CAMERA_HEIGHT_M``) and
+    its canopy top under :data:`NADIR_AMBIGUOUS_RATIO` of it: a drone could have taken them."""
+    from cropcraft_core.sfm.frame import HAND_HELD_CAMERA_HEIGHT_M
 
-
-def _rows_sound(fit: RowFit, known_row_spacing: float) -> bool:
-    """Whether the rows confirmed ``fit``'s scale over :data:`MIN_ROW_SPANS` row spacings."""
-    return fit.scale_source == "row_spacing" and row_spans(fit, known_row_spacing) >= MIN_ROW_SPANS
-
-
-def _rows_from_a_drone(
-    points: np.ndarray,
-    colors: np.ndarray,
-    crop: str,
-    preset: RowFitPreset | None,
-    rng: np.random.Generator,
-    first: RowFit,
-    cameras: np.ndarray,
-    known_row_spacing: float,
-    max_passes: int,
-    tolerance: float,
-) -> RowFit | None:
-    """The rows' route again from :data:`DRONE_CAMERA_HEIGHT_M`, for ``first`` (the rows' or
-    assumed scale, its canopy far below the ``cameras``): taken where ``first``'s cameras stand
-    under the drone's window (8 m), its rows found no sound period (:func:`_rows_sound`), and
-    from the drone's height they find one with a canopy no taller than
-    :data:`CANOPY_TOP_MAX_M`; the fit it gives carries a ``scale_warning`` saying so. None
-    otherwise (``first`` and its far-above warning stand).
-
-    Nadir SfM photos over soybean take the crop's hand-held prior, 1.4 m (a phone held over
-    the plot looks down as a drone does): a 13 m flight then read LAI 0.09 for 1.26."""
-    above = abs(first.median_height(cameras))  # scene units, either side (the far-above rule)
-    if not above > 0 or above * first.scale >= 0.6 * DRONE_CAMERA_HEIGHT_M:
-        return None  # already a drone's height: the rows' window held it
-    if _rows_sound(first, known_row_spacing):
-        return None
-    try:
-        fit = _fit_by_row_spacing(
-            points, colors, crop, preset, rng, known_row_spacing, max_passes, tolerance,
-            start=DRONE_CAMERA_HEIGHT_M / above,
-        )  # fmt: skip
-    except RowFitError:
-        return None
+    above = abs(fit.median_height(cameras)) * fit.scale
     top = fit.diagnostics.get("canopy_top")
-    tallest = CANOPY_TOP_MAX_M.get(crop, max(CANOPY_TOP_MAX_M.values()))
-    if not (_rows_sound(fit, known_row_spacing) and top is not None and 0 < top <= tallest):
-        return None
-    up = abs(fit.median_height(cameras)) * fit.scale
-    before = (
-        f"the rows confirmed no spacing at {above * first.scale:.3g} m"
-        if first.scale_source != "row_spacing"
-        else f"the rows' spacing at {above * first.scale:.3g} m spanned "
-        f"{row_spans(first, known_row_spacing):.2g} rows"
-    )
-    warning = (
-        f"the cameras stand {up / top:.0f}x the canopy's height above the ground and, scaled "
-        f"by a hand-held height, {before}; sought from a drone's {DRONE_CAMERA_HEIGHT_M:g} m, "
-        f"the rows {known_row_spacing:g} m apart put the cameras {up:.3g} m up and the canopy "
-        f"{100 * top:.3g} cm tall. If they are not, give --camera-height M (the cameras' "
-        "height above the ground)"
-    )
-    retry = {
-        "from_m": DRONE_CAMERA_HEIGHT_M,
-        "first_scale": first.scale,
-        "first_scale_source": first.scale_source,
-        "first_canopy_top": first.diagnostics.get("canopy_top"),
-        "first_row_spans": row_spans(first, known_row_spacing),
-    }
-    return replace(
-        fit, diagnostics={**fit.diagnostics, "scale_warning": warning, "scale_retry": retry}
+    if not (
+        above > 0 and top is not None and _within_check_factor(above / HAND_HELD_CAMERA_HEIGHT_M)
+    ):
+        return
+    if top >= NADIR_AMBIGUOUS_RATIO * above:
+        return  # a canopy no drone 8 m up could show so tall: a phone held over it
+    raise RowFitError(
+        "the scale cannot be measured: the photos look straight down, as a drone's or a phone "
+        f"held over the plot do, and the cameras stand {above / max(top, 1e-9):.0f}x the "
+        f"canopy's height above the ground: {HAND_HELD_CAMERA_HEIGHT_M:g} m up the canopy "
+        f"would be {100 * top * HAND_HELD_CAMERA_HEIGHT_M / above:.2g} cm tall, 13 m up "
+        f"{100 * top * 13.0 / above:.2g} cm, and the rows cannot tell which (a 13 m soybean "
+        "flight's rows confirmed the hand-held scale 14x off). Give --camera-height M (the "
+        "cameras' median height above the ground) or --camera-distance PHOTO_A PHOTO_B M"
     )
 
 

@@ -125,6 +125,20 @@ def _optical_axes(poses: Poses) -> np.ndarray:
     return np.array([c.cam_to_world[:3, 2] for _, c in poses])
 
 
+def look_down_deg(axes: np.ndarray, up: np.ndarray) -> float:
+    """The cameras' median angle below the horizon (degrees) of (n, 3) unit optical ``axes``,
+    ``up`` the frame's unit up: a walk round the plot 45-70, a drone's nadir photos 75-90."""
+    look = axes @ up
+    return float(np.degrees(np.arcsin(np.clip(-np.median(look), -1.0, 1.0))))
+
+
+def looks_down(poses: Poses) -> bool:
+    """Whether ``poses`` (a z-up frame) look down at the plot as a drone's or a phone held over
+    it do (:data:`HAND_HELD_MAX_LOOK_DOWN_DEG` or more), not as a walk round it."""
+    up = np.array([0.0, 0.0, 1.0])
+    return look_down_deg(_optical_axes(poses), up) >= HAND_HELD_MAX_LOOK_DOWN_DEG
+
+
 def cameras_up(poses: Poses) -> np.ndarray:
     """Unit up direction from the cameras: minus their mean optical axis (captures look down on
     average), or the mean of their image-up axes when the optical axes cancel out."""
@@ -350,9 +364,7 @@ def level_poses(
     ground_z: float | None
     prior = prior_camera_height_m
     if not metric and hand_held_prior_m is not None:
-        look = axes @ up
-        look_down = float(np.degrees(np.arcsin(np.clip(-np.median(look), -1.0, 1.0))))
-        if look_down < HAND_HELD_MAX_LOOK_DOWN_DEG:  # a walk round the plot, not a flight
+        if look_down_deg(axes, up) < HAND_HELD_MAX_LOOK_DOWN_DEG:  # a walk, not a flight
             prior = min(prior, hand_held_prior_m)
     f = None if focus is None else r @ focus
     if usable:
