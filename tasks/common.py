@@ -104,8 +104,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # 5: a row-spacing scale that the refit does not confirm is not applied (the scale-1 fit,
     # ``assumed_metric``; it was applied as ``row_spacing``, 19 % off on one scene); a scene
     # whose scale was confirmed writes the same bytes, so its observation and fit stay cached
-    # 6: nadir photos at a hand-held scale whose canopy a drone could show (under a quarter
-    # of the cameras' height) stop with a named error (soybean drone flights read LAI 0.09 for
+    # 6: nadir photos at a hand-held scale whose canopy a drone could show (under 15 % of
+    # the cameras' height) stop with a named error (soybean drone flights read LAI 0.09 for
     # 1.26); every other scene writes the same bytes and stays cached downstream
     "rowfit": 6,
     # 2: maize's depth bins start just above the observed canopy (depth_top_margin 0.25);

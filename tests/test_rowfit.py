@@ -433,8 +433,8 @@ def test_nadir_photos_at_a_hand_held_scale_that_a_drone_could_have_taken_are_ref
     the plot or a drone took them: soybean flights at 8, 13 and 20 m then read LAI 0.09 for
     1.26, their rows "confirming" scales 7-14x off, or stopped later on an empty mask
     (sessions 96-97). Where the photos look straight down, the scale is the rows' or assumed
-    at a hand-held height and the canopy stands under a quarter of the cameras' height (a
-    drone could show it so), the row fit stops and asks for the height; a walk's photos, a
+    at a hand-held height and the canopy stands under 15 % of the cameras' height (a drone
+    could show it so), the row fit stops and asks for the height; a walk's photos, a
     canopy too tall for a drone's view and a drone's own prior pass."""
     pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
     xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)

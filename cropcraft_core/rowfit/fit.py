@@ -1172,13 +1172,19 @@ def _fit_by_row_spacing(
 
 #: Nadir photos (a drone's, or a phone held over the plot) scaled by the hand-held prior whose
 #: canopy top stands under this share of the cameras' height above the ground are refused
-#: without a scale: a drone 8 m or more up over a canopy up to 2 m (the soybean box's
-#: tallest, 1.85 m) reads under it, so the photos could be either's and the hand-held height
-#: a guess up to 10x off. Measured (session 97), soybean by drone through SfM at that prior:
-#: 8 m 0.062, 13 m 0.031-0.039, a 14 cm canopy from 13 m 0.0028, 20 m 0.013; its rows
-#: "confirmed" a scale 7-14x off on three of the five (the drone's sampling ripples the plant
-#: points' profile at the rows' period there: the rows cannot tell either).
-NADIR_AMBIGUOUS_RATIO = 0.25
+#: without a scale: the photos could be either's and the hand-held height a guess up to 10x
+#: off. Measured (session 97), soybean by drone through SfM at that prior: 8 m 0.062, 13 m
+#: 0.031-0.039, a 14 cm canopy from 13 m 0.0028, 20 m 0.013; its rows "confirmed" a scale
+#: 7-14x off on three of the five (the drone's sampling ripples the plant points' profile at
+#: the rows' period there: the rows cannot tell either). Nadir SfM clouds read the canopy's
+#: top at 0.76-0.81 of the truth (those flights), so a drone 8 m or more up over a canopy up
+#: to 1.5 m reads under 0.15, and a phone held 1.8 m over a 0.55 m canopy about 0.23.
+NADIR_AMBIGUOUS_RATIO = 0.15
+
+
+def _length(metres: float) -> str:
+    """A height for a message: centimetres under a metre (2 figures), else metres."""
+    return f"{100 * metres:.2g} cm" if metres < 1 else f"{metres:.2g} m"
 
 
 def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
@@ -1194,13 +1200,13 @@ def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
     ):
         return
     if top >= NADIR_AMBIGUOUS_RATIO * above:
-        return  # a canopy no drone 8 m up could show so tall: a phone held over it
+        return  # a canopy too tall for a drone 8 m up to show so: a phone held over it
     raise RowFitError(
         "the scale cannot be measured: the photos look straight down, as a drone's or a phone "
         f"held over the plot do, and the cameras stand {above / max(top, 1e-9):.0f}x the "
         f"canopy's height above the ground: {HAND_HELD_CAMERA_HEIGHT_M:g} m up the canopy "
-        f"would be {100 * top * HAND_HELD_CAMERA_HEIGHT_M / above:.2g} cm tall, 13 m up "
-        f"{100 * top * 13.0 / above:.2g} cm, and the rows cannot tell which (a 13 m soybean "
+        f"would be {_length(top * HAND_HELD_CAMERA_HEIGHT_M / above)} tall, 13 m up "
+        f"{_length(top * 13.0 / above)}, and the rows cannot tell which (a 13 m soybean "
         "flight's rows confirmed the hand-held scale 14x off). Give --camera-height M (the "
         "cameras' median height above the ground) or --camera-distance PHOTO_A PHOTO_B M"
     )
