@@ -569,6 +569,17 @@ def default_poses_uri(store: SceneStore, scene: SceneKey) -> str | None:
 #: the run (``--param``, ``--set fit.box...``) go over them.
 KNOWN_FILE = "known.json"
 
+#: Capture facts a :data:`KNOWN_FILE` may hold beside the parameters, each the setting it is
+#: (the run's own flag goes over it): a season's one drone date among walks gives its height
+#: there, where ``season --camera-height`` would give every date the same.
+CAPTURE_NOTES = {"camera_height": "poses.camera_height", "row_spacing": "layout.row_spacing"}
+
+
+def known_settings(known: Mapping[str, Any]) -> dict[str, Any]:
+    """The field notes as config overrides: parameters as ``fit.box.NAME``, capture facts as
+    their settings (:data:`CAPTURE_NOTES`)."""
+    return {CAPTURE_NOTES.get(k, f"fit.box.{k}"): v for k, v in known.items()}
+
 
 def read_known(images_uri: str, crop: str) -> dict[str, Any]:
     """The :data:`KNOWN_FILE` in the photos' folder (local or fsspec URL), checked against
@@ -594,11 +605,17 @@ def read_known(images_uri: str, crop: str) -> dict[str, Any]:
         raise InputError(f"{uri}: not valid JSON ({exc})") from None
     if not isinstance(known, dict):
         raise InputError(
-            f"{uri}: must be a JSON object of {crop} parameters (a value or [low, high] each), "
-            f"got {type(known).__name__}"
+            f"{uri}: must be a JSON object of {crop} parameters (a value or [low, high] each) "
+            f"and capture facts ({', '.join(CAPTURE_NOTES)}), got {type(known).__name__}"
         )
+    for name in CAPTURE_NOTES:
+        v = known.get(name)
+        if name in known and not (
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        ):
+            raise InputError(f"{uri}: {name} must be a positive number of metres, got {v!r}")
     try:
-        ParamBox.of(crop, known)
+        ParamBox.of(crop, {k: v for k, v in known.items() if k not in CAPTURE_NOTES})
     except ConfigError as exc:
         raise InputError(f"{uri}: {exc}") from None
     return known
@@ -609,6 +626,13 @@ def notes_overridden(known: Mapping[str, Any], overrides: Mapping[str, Any] | No
     "--param leaf_length=1 goes over known.json's 0.9": said, not replaced quietly."""
     out = []
     for name, noted in known.items():
+        if name in CAPTURE_NOTES:
+            setting = CAPTURE_NOTES[name]
+            given = (overrides or {}).get(setting)
+            if given is not None and given != noted:
+                flag = f"--{name.replace('_', '-')} {float(given):g}"
+                out.append(f"{flag} goes over {KNOWN_FILE}'s {json.dumps(noted)}")
+            continue
         given = (overrides or {}).get(f"fit.box.{name}")
         if given is None:
             given = (((overrides or {}).get("fit") or {}).get("box") or {}).get(name)
@@ -720,7 +744,7 @@ def _checked_request(
                 f"different photos of {uri} (e.g. {', '.join(photos[:2])})"
             )
     if known:
-        notes = {f"fit.box.{k}": v for k, v in known.items()}
+        notes = known_settings(known)
         try:
             cfg = resolve_config(scene.crop, {**notes, **dict(overrides or {})})
         except ConfigError as exc:  # the notes and the run's settings together (all fixed)

@@ -1495,6 +1495,37 @@ def _dead_port() -> int:
         return s.getsockname()[1]
 
 
+def test_field_notes_give_a_dates_camera_height_and_row_spacing(scene_dir, tmp_path):
+    """Nadir soybean photos at a hand-held scale now stop and ask for the cameras' height
+    (session 97), and ``season --camera-height`` gives every date the same one: a season's one
+    drone date among walks gives its own in its ``known.json`` (``camera_height``, and
+    ``row_spacing`` likewise), under the run's own flags, which are said to go over it."""
+    from flows.scene import notes_overridden, prepare
+
+    photos = tmp_path / "images"
+    shutil.copytree(scene_dir / "images", photos)
+    notes = {"camera_height": 13, "row_spacing": 0.38, "num_nodes": 6}
+    (photos / "known.json").write_text(json.dumps(notes))
+    store = str(tmp_path / "store")
+    req = prepare("plotA", CROP, DATE, str(photos), None, None, store)
+    assert req.config["poses"]["camera_height"] == 13
+    assert req.config["layout"]["row_spacing"] == 0.38
+    assert req.config["fit"]["box"] == {"num_nodes": 6}
+    mine = prepare("plotA", CROP, DATE, str(photos), None, {"poses.camera_height": 12.5}, store)
+    assert mine.config["poses"]["camera_height"] == 12.5
+    assert notes_overridden(notes, {"poses.camera_height": 12.5, "layout.row_spacing": 0.38}) == [
+        "--camera-height 12.5 goes over known.json's 13"
+    ]
+    for text, error, message in (
+        ('{"camera_height": -1}', InputError, "known.json: camera_height must be a positive"),
+        ('{"row_spacing": "30in"}', InputError, "known.json: row_spacing must be a positive"),
+        ('{"camera_height": 140}', ConfigError, r"centimetres.*with the field notes in .*known"),
+    ):
+        (photos / "known.json").write_text(text)
+        with pytest.raises(error, match=message):
+            prepare("plotA", CROP, DATE, str(photos), None, None, store)
+
+
 def test_bad_input_fails_before_any_work(scene_dir, tmp_path, monkeypatch):
     from flows.scene import prepare, run_scene
 

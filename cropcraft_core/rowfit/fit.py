@@ -1208,7 +1208,8 @@ def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
         f"would be {_length(top * HAND_HELD_CAMERA_HEIGHT_M / above)} tall, 13 m up "
         f"{_length(top * 13.0 / above)}, and the rows cannot tell which (a 13 m soybean "
         "flight's rows confirmed the hand-held scale 14x off). Give --camera-height M (the "
-        "cameras' median height above the ground) or --camera-distance PHOTO_A PHOTO_B M"
+        "cameras' median height above the ground; in a season, camera_height in that date's "
+        "known.json) or --camera-distance PHOTO_A PHOTO_B M"
     )
 
 
