@@ -201,6 +201,28 @@ def test_shiftable_windows_find_more_true_depths_beside_depth_edges():
     assert kept[True] > kept[False], kept
 
 
+def test_a_photo_that_sees_the_box_but_not_the_canopys_slab_keeps_its_whole_box_depths():
+    """The sweep cuts the box to the heights the scene occupies; a photo at the edge of a low
+    nadir capture saw the whole box's soil but not that slab, and its depth limits stopped the
+    run ("the camera at ... does not see the bounding box": a phone held 1.7 m over soybean,
+    200 photos through SfM, session 97). It keeps its limits in the whole box; the others
+    take the slab's."""
+    from cropcraft_core.geometry.camera import PinholeCamera
+    from cropcraft_core.surfaces.tsdf import cut_box_limits, depth_limits
+
+    box = np.array([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
+    slab = box.copy()
+    slab[:, 2] = (-0.28, 0.9)
+    edge = PinholeCamera.look_down((-3.0, 0.0), 1.7, size=(64, 48), vfov_deg=50.0)
+    inside = PinholeCamera.look_down((0.0, 0.0), 1.7, size=(64, 48), vfov_deg=50.0)
+    before = [depth_limits(c, box, None) for c in (edge, inside)]
+    with pytest.raises(InputError, match="does not see the bounding box"):
+        depth_limits(edge, slab, None)
+    limits = cut_box_limits([edge, inside], slab, None, before)
+    assert limits[0] == before[0]
+    assert limits[1] == depth_limits(inside, slab, None) != before[1]
+
+
 def test_sweep_spans_the_heights_the_scene_occupies_not_the_box(scene, monkeypatch):
     """A box reaching 1.2 m below the ground (as soybean's does, for SfM that saw no soil): the
     coarse pass finds the soil and the canopy top, and the main pass's planes span about that,

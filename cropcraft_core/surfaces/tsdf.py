@@ -842,6 +842,26 @@ def soil_height(z: np.ndarray, lo: float, hi: float) -> float | None:
     return float(0.5 * (edges[k] + edges[k + 1]))
 
 
+def cut_box_limits(
+    cams: list[PinholeCamera],
+    box: np.ndarray,
+    depth_range: tuple[float, float] | None,
+    before: list[tuple[float, float]],
+) -> list[tuple[float, float]]:
+    """Each camera's :func:`depth_limits` in ``box`` cut to the canopy's heights, or its
+    limits ``before`` (in the whole box) where it does not see the cut box: a photo at the
+    edge of a low nadir capture sees the whole box's soil but not the canopy's slab, and it
+    stopped the run (a phone held 1.7 m over the plot, 200 photos; session 97). Its depths then
+    lie outside the slab, where the box filter drops them."""
+    out = []
+    for c, old in zip(cams, before, strict=True):
+        try:
+            out.append(depth_limits(c, box, depth_range))
+        except InputError:
+            out.append(old)
+    return out
+
+
 def stereo_depth_maps(
     imgs: list[np.ndarray],
     cams: list[PinholeCamera],
@@ -871,7 +891,7 @@ def stereo_depth_maps(
             box = box.copy()
             box[:, 2] = heights
             nbrs = select_neighbours(cams, int(cfg.neighbours), box)
-            limits = [depth_limits(c, box, cfg.depth_range) for c in cams]
+            limits = cut_box_limits(cams, box, cfg.depth_range, limits)
     photos = list(zip(imgs, cams, scales, strict=True))
     # RGB copies only where the match or the colour check reads them (memory: 500 drone photos)
     need_rgb = cfg.colour or cfg.consistency_a_tol is not None
