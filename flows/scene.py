@@ -575,10 +575,26 @@ KNOWN_FILE = "known.json"
 CAPTURE_NOTES = {"camera_height": "poses.camera_height", "row_spacing": "layout.row_spacing"}
 
 
-def known_settings(known: Mapping[str, Any]) -> dict[str, Any]:
+def known_settings(
+    known: Mapping[str, Any], overrides: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """The field notes as config overrides: parameters as ``fit.box.NAME``, capture facts as
-    their settings (:data:`CAPTURE_NOTES`)."""
-    return {CAPTURE_NOTES.get(k, f"fit.box.{k}"): v for k, v in known.items()}
+    their settings (:data:`CAPTURE_NOTES`). A run given another scale (``overrides``' camera
+    distance) leaves the notes' camera height out: the run's scale goes over it."""
+    out = {CAPTURE_NOTES.get(k, f"fit.box.{k}"): v for k, v in known.items()}
+    if _other_scale(overrides):
+        out.pop(CAPTURE_NOTES["camera_height"], None)
+    return out
+
+
+def _other_scale(overrides: Mapping[str, Any] | None) -> str | None:
+    """The flag of a scale the run was given other than a camera height, else None."""
+    o = overrides or {}
+    if o.get("poses.camera_distance") is not None:
+        return "--camera-distance"
+    if o.get("rowfit.scale") is not None:
+        return "--set rowfit.scale"
+    return None
 
 
 def read_known(images_uri: str, crop: str) -> dict[str, Any]:
@@ -629,9 +645,12 @@ def notes_overridden(known: Mapping[str, Any], overrides: Mapping[str, Any] | No
         if name in CAPTURE_NOTES:
             setting = CAPTURE_NOTES[name]
             given = (overrides or {}).get(setting)
+            other = _other_scale(overrides) if name == "camera_height" else None
             if given is not None and given != noted:
                 flag = f"--{name.replace('_', '-')} {float(given):g}"
                 out.append(f"{flag} goes over {KNOWN_FILE}'s {json.dumps(noted)}")
+            elif given is None and other:
+                out.append(f"{other} goes over {KNOWN_FILE}'s {name} {json.dumps(noted)}")
             continue
         given = (overrides or {}).get(f"fit.box.{name}")
         if given is None:
@@ -744,7 +763,7 @@ def _checked_request(
                 f"different photos of {uri} (e.g. {', '.join(photos[:2])})"
             )
     if known:
-        notes = known_settings(known)
+        notes = known_settings(known, overrides)
         try:
             cfg = resolve_config(scene.crop, {**notes, **dict(overrides or {})})
         except ConfigError as exc:  # the notes and the run's settings together (all fixed)

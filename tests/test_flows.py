@@ -1516,6 +1516,16 @@ def test_field_notes_give_a_dates_camera_height_and_row_spacing(scene_dir, tmp_p
     assert notes_overridden(notes, {"poses.camera_height": 12.5, "layout.row_spacing": 0.38}) == [
         "--camera-height 12.5 goes over known.json's 13"
     ]
+    # a run given a distance between two photos: its scale goes over the notes' height (the
+    # two together were refused as "not both")
+    two = sorted(p.name for p in photos.glob("*.jpg"))[:2]
+    measured = {"poses.camera_distance": [*two, 1.5]}
+    req = prepare("plotA", CROP, DATE, str(photos), None, measured, store)
+    assert req.config["poses"]["camera_height"] is None
+    assert req.config["poses"]["camera_distance"] == [*two, 1.5]
+    assert notes_overridden(notes, measured) == [
+        "--camera-distance goes over known.json's camera_height 13"
+    ]
     for text, error, message in (
         ('{"camera_height": -1}', InputError, "known.json: camera_height must be a positive"),
         ('{"row_spacing": "30in"}', InputError, "known.json: row_spacing must be a positive"),
