@@ -92,17 +92,9 @@ def _no_surface(store: SceneStore, folder: str) -> float | None:
     return float(seen) if seen is not None else no_surface_fraction(obs.depth)
 
 
-def _net_cover(store: SceneStore, prefix: str) -> float | None:
-    """The date's net cover of its surfaces against its photos (the consistency stage's
-    ``extra − unreconstructed``; None where it was not computed)."""
-    key = f"{prefix}/consistency/consistency.json"
-    return store.get_json(key).get("net") if store.isfile(key) else None
-
-
-def _scale_source(store: SceneStore, prefix: str) -> str | None:
-    """Where the date's metric scale came from (``rowfit/rowfit.json``'s ``scale_source``)."""
-    key = f"{prefix}/rowfit/rowfit.json"
-    return store.get_json(key).get("scale_source") if store.isfile(key) else None
+def _stored_json(store: SceneStore, key: str) -> dict[str, Any]:
+    """The JSON a stage stored at ``key``; {} where it stored none (not run, an older store)."""
+    return store.get_json(key) if store.isfile(key) else {}
 
 
 def _rows(store: SceneStore, scene: SceneKey) -> dict[str, Any]:
@@ -201,14 +193,18 @@ def write_summary(
         bad = failed or d.scene.date in refused
         entry: dict[str, Any] = {"status": "failed" if bad else "done"}
         if store.isfile(key):  # a failed rerun keeps the last answer, flagged
-            fit_key = f"{d.scene.prefix}/fit/fit.json"
-            fit = store.get_json(fit_key) if store.isfile(fit_key) else {}
+            prefix = d.scene.prefix
+            fit = _stored_json(store, f"{prefix}/fit/fit.json")
+            consistency = _stored_json(store, f"{prefix}/consistency/consistency.json")
+            rowfit = _stored_json(store, f"{prefix}/rowfit/rowfit.json")
             entry.update(
                 store.get_json(key),
                 parameters_given=given_text((fit.get("config") or {}).get("box")),
-                no_surface_fraction=_no_surface(store, f"{d.scene.prefix}/observe/"),
-                photo_net_cover=_net_cover(store, d.scene.prefix),
-                scale_source=_scale_source(store, d.scene.prefix),
+                no_surface_fraction=_no_surface(store, f"{prefix}/observe/"),
+                # the surfaces' net cover against the photos (extra − unreconstructed)
+                photo_net_cover=consistency.get("net"),
+                # where the date's metric scale came from (the row fit's)
+                scale_source=rowfit.get("scale_source"),
                 **_rows(store, d.scene),
             )
         if d.scene.date in refused:  # refused tonight before any work (its field notes...)

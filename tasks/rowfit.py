@@ -49,16 +49,16 @@ def rowfit(
         scale = config.get("scale")
         camera_height = cameras = None
         nadir = False
-        if frame_source == "camera_height" and not scale:
+        if not scale:
             poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
-            camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
-        elif not scale:
-            # the heights the scale implies put to the rows: a distance in feet, or poses read
-            # as an AR capture's metres that are not (an older Metashape export); SfM's: the
-            # canopy against the cameras' height at the rows' scale (a drone flight scaled by
-            # a hand-held prior)
-            poses = Poses.from_dict(store.get_json(key_of(upstream["poses"], "poses")))
-            cameras, nadir = poses.centers(), looks_down(poses)
+            if frame_source == "camera_height":
+                camera_height = (poses.centers(), float(poses_summary["frame"]["camera_height_m"]))
+            else:
+                # the heights the scale implies put to the rows: a distance in feet, or poses
+                # read as an AR capture's metres that are not (an older Metashape export);
+                # SfM's: the canopy against the cameras' height at the rows' scale (a drone
+                # flight scaled by a hand-held prior)
+                cameras, nadir = poses.centers(), looks_down(poses)
         spacing = layout_of(crop, config).row_spacing
         overrides = {"row_spacing": spacing, **dict(config.get("preset") or {})}
         fit = fit_rows_with_scale(

@@ -1109,16 +1109,21 @@ _SCALE_FROM = {
 }
 
 
+def _heights_at_scale(fit: RowFit, cameras: np.ndarray) -> tuple[float, float | None]:
+    """``(the cameras' median height above fit's ground, its canopy top)`` in metres at fit's
+    scale, the cameras ((n, 3), scene frame) taken on either side of the ground: at a scale
+    far off the ground plane can lie in the canopy with the plants below it and the cameras
+    then on its far side (a soybean drone flight read LAI 0.32 for 1.26 with nothing said:
+    session 96's last audit)."""
+    return abs(fit.median_height(cameras)) * fit.scale, fit.diagnostics.get("canopy_top")
+
+
 def _far_above_warning(fit: RowFit, cameras: np.ndarray) -> str | None:
     """The warning where ``fit``'s canopy top is under :data:`FAR_ABOVE_RATIO` of the
     ``cameras``' ((n, 3), scene frame) median height above its ground, else None. The ratio
     does not depend on the scale, so it cannot tell a right scale from a wrong one: the warning
     gives the cameras' height and the canopy's at the scale for the user to judge."""
-    # either side: at a scale far off the ground plane can lie in the canopy with the plants
-    # below it and the cameras then on its far side (a soybean drone flight read LAI 0.32 for
-    # 1.26 with nothing said: session 96's last audit)
-    above = abs(fit.median_height(cameras)) * fit.scale
-    top = fit.diagnostics.get("canopy_top")
+    above, top = _heights_at_scale(fit, cameras)
     if not (above > 0 and top is not None and top < FAR_ABOVE_RATIO * above):
         return None
     return (
@@ -1194,8 +1199,7 @@ def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
     its canopy top under :data:`NADIR_AMBIGUOUS_RATIO` of it: a drone could have taken them."""
     from cropcraft_core.sfm.frame import HAND_HELD_CAMERA_HEIGHT_M
 
-    above = abs(fit.median_height(cameras)) * fit.scale
-    top = fit.diagnostics.get("canopy_top")
+    above, top = _heights_at_scale(fit, cameras)
     if not (
         above > 0 and top is not None and _within_check_factor(above / HAND_HELD_CAMERA_HEIGHT_M)
     ):
