@@ -49,8 +49,9 @@ SEASON_COLUMNS = (
     # ``num_nodes=9``; empty when it searched the whole box
     ("parameters_given", "parameters_given"),
     # not a trait: where the date's metric scale came from (the row fit's ``scale_source``:
-    # metric_poses, camera_height, camera_distance, row_spacing, user_hint or assumed_metric,
-    # the last measured by nothing; session 96's capture audit found it in the report only)
+    # metric_poses, camera_height, camera_distance, gps, row_spacing, user_hint or
+    # assumed_metric, the last measured by nothing; session 96's capture audit found it in
+    # the report only)
     ("scale_source", "scale_source"),
     # not a trait: the share of the row camera's view the reconstruction left empty (a flag on
     # the date's LAI; ``observe.coverage_warning``)

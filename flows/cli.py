@@ -115,6 +115,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
                 trajectory=trajectory,
                 layout=layout,
                 image_format=args.format,
+                drone_height_m=args.drone_height,
+                gps_noise_m=args.gps_noise,
             )
             publish(tmp, out, SYNTH_ENTRIES)  # every entry replaced whole, all or none
         finally:
@@ -290,6 +292,16 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: walk for soybean, drone for maize)",
     )
     y.add_argument("--format", choices=["jpg", "png"], default="jpg", help="image format")
+    y.add_argument(
+        "--drone-height", type=float, default=13.0, metavar="M", help="the drone's height (13 m)"
+    )
+    y.add_argument(
+        "--gps-noise",
+        type=float,
+        metavar="M",
+        help="tag every photo with its camera's GPS position, off by this many metres (0.02: "
+        "a drone with RTK; 0.5-2: consumer GPS; 3-5: a phone); default: no GPS tags",
+    )
     y.add_argument("--plot", metavar="W,L", help="plot width (across rows) and length (m)")
     y.add_argument("--row-spacing", type=float, metavar="M")
     y.add_argument("--density", type=float, metavar="PLANTS_PER_M2")

@@ -65,6 +65,9 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "camera_height": None,  # measured median camera height (m): exact scale
         "camera_distance": None,  # [photo A, photo B, metres between their cameras]: exact scale
         "prior_camera_height": None,  # assumed one (None: the crop's typical capture)
+        # ... or, where neither is given, by the photos' own EXIF GPS positions where they
+        # spread far enough against their error to set it (cropcraft_core.sfm.gps)
+        "gps": True,
     },
     # bbox "auto": the crop's scene box around the levelled frame's origin; the crop's own
     # settings (cropcraft_core.surfaces.CROP_SURFACES: maize splats points) go over these
@@ -488,6 +491,8 @@ def stage_configs(cfg: Mapping[str, Any], crop: str | None = None) -> dict[str, 
     poses = dict(cfg["poses"])
     if poses.get("exif_focal") is True:  # photos without EXIF focal run SfM as before it
         poses.pop("exif_focal")
+    if poses.get("gps") is True:  # photos without GPS are levelled as before it
+        poses.pop("gps")
     surfaces = dict(cfg["surfaces"])
     if crop is not None and surfaces.get("bbox") == "auto":
         try:

@@ -499,6 +499,7 @@ SCALE_SOURCES = {
     "metric_poses": "from the imported poses, in metres",
     "camera_height": "from the camera height given",
     "camera_distance": "from the camera distance given",
+    "gps": "from the photos' GPS positions",
     "row_spacing": "from the rows' spacing against the layout's",
     "user_hint": "from rowfit.scale, given",
     "assumed_metric": "assumed from the crop's usual capture height, measured by nothing "

@@ -82,7 +82,9 @@ STAGE_VERSIONS: dict[str, int] = {
     **{stage: 1 for stage in STAGES},
     # 2: ingest reads each photo's focal length from its EXIF (``focal_px``): photos with one
     # are read again and get a new identity (SfM starts from it); photos without one keep theirs
-    "ingest": 2,
+    # 3: ... and its GPS position (``gps``), which can set SfM poses' scale: photos with one get
+    # a new identity, photos without keep theirs (and everything after ingest stays cached)
+    "ingest": 3,
     # 2: imported poses are levelled too (metric ones on their gravity axis, unscaled), read
     # as metric only where their source is an AR capture ("auto"), their intrinsics scaled to
     # the ingested photos; every lens is recorded with its model

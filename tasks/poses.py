@@ -7,6 +7,8 @@ import json
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+import numpy as np
+
 from cropcraft_core.errors import InputError
 from tasks.common import (
     Timer,
@@ -157,6 +159,12 @@ def _copy(fs, src: str, dst: Path) -> None:
         shutil.copyfileobj(fin, fout, 1 << 20)
 
 
+def gps_positions(manifest: dict) -> dict[str, list[float]]:
+    """``{written name: [latitude, longitude, altitude]}`` of the ingested photos whose EXIF
+    gave a GPS position (ingest's ``gps``; a manifest written before ingest read them has none)."""
+    return {im["name"]: list(im["gps"]) for im in manifest["images"] if im.get("gps")}
+
+
 def focal_priors(manifest: dict) -> dict[str, float]:
     """``{written name: focal length (px)}`` of the ingested photos whose EXIF gave one
     (ingest's ``focal_px``; a manifest written before ingest read them has none)."""
@@ -187,9 +195,11 @@ def poses(
     metric imported ones without scaling, up along their frame's gravity axis, a frame
     levelled already kept as it is; the others in metres from ``config["camera_height"]``
     or ``config["camera_distance"]`` ([photo A, photo B, metres] between their cameras;
-    source names or stems) if given, else provisional from ``prior_camera_height`` or the
-    crop's typical capture height. The summary's ``frame`` records how, and ``metric`` is
-    true when the scale is known (metric poses or a hint).
+    source names or stems) if given, else from the photos' GPS positions where they set it
+    (:func:`~cropcraft_core.sfm.gps.gps_scale`; ``config["gps"]`` false: never; the summary's
+    ``gps`` says what they gave, and why not where they were not used), else provisional from
+    ``prior_camera_height`` or the crop's typical capture height. The summary's ``frame``
+    records how, and ``metric`` is true when the scale is known (metric poses, a hint, GPS).
     """
     import_poses, run_sfm, level_poses = core(
         "poses", "cropcraft_core.sfm", "import_poses", "run_sfm", "level_poses"
@@ -205,13 +215,28 @@ def poses(
 
     def level(found, points, summary: dict, metric: bool = False):
         """Level the poses; record how in ``summary`` (``frame``, and ``metric`` when the scale
-        is known rather than provisional)."""
+        is known rather than provisional; ``gps`` where the photos carry positions)."""
+        scale = None
+        positions = gps_positions(manifest) if config.get("gps", True) else {}
+        named = [n for n in found.names if n in positions]
+        if positions and not metric and hint is None and distance is None:
+            from cropcraft_core.sfm.gps import gps_scale
+
+            g = gps_scale(
+                np.array([found.camera(n).center for n in named]).reshape(-1, 3),
+                np.array([positions[n] for n in named]).reshape(-1, 3),
+            )
+            summary["gps"] = g.summary()
+            scale = g.scale
+            if g.reason:
+                stage_log().warning("poses: the photos' GPS does not set the scale: %s", g.reason)
         out_poses, out_points, frame = level_poses(
             found,
             points,
             metric=metric,
             camera_height_m=None if metric else hint,
             camera_distance=tuple(distance) if distance and not metric else None,
+            gps_scale=scale,
             prior_camera_height_m=float(prior),
             gravity_axis_deg=GRAVITY_AXIS_DEG if metric else None,
             keep_levelled=metric,

@@ -23,11 +23,11 @@ def rowfit(
     ``layout`` (planting; its row spacing is the known one). The scale source is
     ``metric_poses`` when the poses stage imported metric poses, ``camera_height`` or
     ``camera_distance`` when it levelled SfM poses with the user's camera height or measured
-    distance between two photos (with a camera height, the scale is measured again as the
-    hint over the cameras' median height above the fitted ground plane: the poses stage's
-    ground, the sparse points' lowest, lies on the leaves when SfM saw no soil), ``user_hint``
-    when ``scale``
-    is given, else ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
+    distance between two photos, ``gps`` with the photos' GPS positions (with a camera
+    height, the scale is measured again as the hint over the cameras' median height above
+    the fitted ground plane: the poses stage's ground, the sparse points' lowest, lies on the
+    leaves when SfM saw no soil), ``user_hint`` when ``scale`` is given, else
+    ``row_spacing`` (the fitted rows' spacing against the planting row spacing,
     ``assumed_metric`` when it cannot be measured). The known row spacing also snaps the best
     row onto the periodic row pattern (``RowFitPreset.row_spacing``).
     """
@@ -44,7 +44,7 @@ def rowfit(
         poses_summary = upstream["poses"].get("summary", {})
         metric = bool(poses_summary.get("metric"))
         frame_source = poses_summary.get("frame", {}).get("scale_source")
-        hinted = ("camera_height", "camera_distance")
+        hinted = ("camera_height", "camera_distance", "gps")
         metric_source = frame_source if frame_source in hinted else "metric_poses"
         scale = config.get("scale")
         camera_height = cameras = None
@@ -74,6 +74,7 @@ def rowfit(
             known_row_spacing=spacing,
             cameras=cameras,
             nadir=nadir,
+            gps_reason=poses_summary.get("gps", {}).get("reason"),
         )
         record = {**fit.to_dict(), "camera_in_scene": fit.camera_in_scene().to_dict()}
         key = artefact(scene, "rowfit", "rowfit.json")

@@ -440,12 +440,12 @@ def test_nadir_photos_at_a_hand_held_scale_that_a_drone_could_have_taken_are_ref
     xy = np.stack(np.meshgrid(np.linspace(-2, 2, 5), np.linspace(-2, 2, 4)), -1).reshape(-1, 2)
     p = preset("soybean", box_size=None)
 
-    def fitted(height_m: float, prior_m: float, nadir: bool = True):
+    def fitted(height_m: float, prior_m: float, nadir: bool = True, **kw):
         cams = np.column_stack([xy * height_m / 1.4, np.full(len(xy), height_m)])
         k = prior_m / height_m  # the frame the poses stage scaled by its prior
         return fit_rows_with_scale(
             pts * k, col, "soybean", p, rng=8, known_row_spacing=lay.row_spacing,
-            cameras=cams * k, nadir=nadir,
+            cameras=cams * k, nadir=nadir, **kw,
         )  # fmt: skip
 
     with pytest.raises(RowFitError, match="the scale cannot be measured") as err:
@@ -457,6 +457,10 @@ def test_nadir_photos_at_a_hand_held_scale_that_a_drone_could_have_taken_are_ref
     )
     with pytest.raises(RowFitError, match="the scale cannot be measured"):
         fitted(8.0, 1.4)
+    # photos whose GPS positions could not set the scale: why, said with the refusal
+    why = "the photos' GPS positions spread 3.3 m and lie 0.6 m (RMS) from their cameras"
+    with pytest.raises(RowFitError, match=r"GPS positions could not set it: the photos' GPS"):
+        fitted(13.0, 1.4, gps_reason=why)
     # ... which the far-above warning (6 %) does not reach: a walk's photos say nothing there
     assert "scale_warning" not in fitted(8.0, 1.4, nadir=False).diagnostics
     # the same cloud from a walk (45-70 degrees down): the far-above warning, as before
@@ -466,6 +470,22 @@ def test_nadir_photos_at_a_hand_held_scale_that_a_drone_could_have_taken_are_ref
     assert held.scale == pytest.approx(1.0, rel=0.03) and "scale_warning" not in held.diagnostics
     # a drone's prior (maize's 13 m, here given to soybean): the rows' answer stands, warned
     assert "a drone's view?" in fitted(13.0, 13.0).diagnostics["scale_warning"]
+
+
+def test_a_scale_from_the_photos_gps_is_kept_and_the_rows_period_at_it_recorded():
+    """Nadir soybean photos 13 m up whose GPS set the poses' scale (the poses stage's
+    ``gps``): not refused, no rows' check from the hand-held prior (whose rows "confirm" a
+    scale 7-14x off on such flights), and the rows' period at the GPS scale recorded."""
+    pts, col, lay = make_cloud("soybean", None, 0.0, seed=8)
+    xy = np.stack(np.meshgrid(np.linspace(-4, 4, 5), np.linspace(-4, 4, 4)), -1).reshape(-1, 2)
+    cams = np.column_stack([xy, np.full(len(xy), 13.0)])
+    fit = fit_rows_with_scale(
+        pts, col, "soybean", preset("soybean", box_size=None), rng=8, metric_scale=1.0,
+        metric_source="gps", known_row_spacing=lay.row_spacing, cameras=cams, nadir=True,
+    )  # fmt: skip
+    assert fit.scale_source == "gps" and fit.scale == 1.0
+    assert fit.diagnostics["rows_factor"] == pytest.approx(1.0, abs=0.03)
+    assert "scale_warning" not in fit.diagnostics
 
 
 def _translate(t):

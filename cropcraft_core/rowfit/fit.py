@@ -52,6 +52,7 @@ SCALE_SOURCES = (
     "metric_poses",
     "camera_height",
     "camera_distance",
+    "gps",
     "user_hint",
     "row_spacing",
     "assumed_metric",
@@ -999,6 +1000,7 @@ def fit_rows_with_scale(
     tolerance: float = 0.01,
     cameras: np.ndarray | None = None,
     nadir: bool = False,
+    gps_reason: str | None = None,
 ) -> RowFit:
     """:func:`fit_ground_and_rows` with the metric scale chosen by priority:
 
@@ -1027,7 +1029,8 @@ def fit_rows_with_scale(
     route, a canopy standing far below the cameras (:data:`FAR_ABOVE_RATIO`) is warned of
     (``diagnostics["scale_warning"]``); ``nadir`` (the photos look straight down,
     ``sfm.frame.looks_down``): a hand-held scale that a drone's height could explain as well
-    is refused (:data:`NADIR_AMBIGUOUS_RATIO`).
+    is refused (:data:`NADIR_AMBIGUOUS_RATIO`), saying ``gps_reason`` (why the photos' GPS
+    positions did not set the scale) where given.
 
     The row-spacing route needs the first pass to find several rows: the metric thresholds
     (20 cm lines, 0.76 m rows) tolerate a scene scale off by roughly ±30 %.
@@ -1054,6 +1057,13 @@ def fit_rows_with_scale(
             )
         if cameras is None or known_row_spacing is None:
             return fit
+        if metric_source == "gps":
+            # a scale the photos' positions measured (their spread against their error): the
+            # rows only say how their period reads at it (a drone's rows can read a double
+            # period, a soybean flight's the stereo's sampling: they cannot overrule it)
+            est = estimate_scale_from_rows(fit, known_row_spacing, search=(0.85, 1.15))
+            found = est.factor if est.method == "profile_autocorrelation" else None
+            return replace(fit, diagnostics={**fit.diagnostics, "rows_factor": found})
         seed = int(_as_rng(rng).integers(2**63 - 1))  # after the fit: its draws are as before
         # the cameras' height the given scale implies, put to the rows like a camera height's
         above = fit.median_height(cameras)
@@ -1088,7 +1098,7 @@ def fit_rows_with_scale(
         points, colors, crop, preset, rng, known_row_spacing, max_passes, tolerance
     )
     if cameras is not None and nadir:
-        _check_nadir_scale(fit, cameras)
+        _check_nadir_scale(fit, cameras, gps_reason)
     warning = None if cameras is None else _far_above_warning(fit, cameras)
     if not warning:
         return fit
@@ -1193,10 +1203,11 @@ def _length(metres: float) -> str:
     return f"{100 * metres:.2g} cm" if metres < 1 else f"{metres:.2g} m"
 
 
-def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
+def _check_nadir_scale(fit: RowFit, cameras: np.ndarray, gps_reason: str | None = None) -> None:
     """Stop where ``fit`` (nadir photos, the rows' or assumed scale) has its cameras at a
     hand-held height (within :data:`SCALE_CHECK_FACTOR` of ``HAND_HELD_CAMERA_HEIGHT_M``) and
-    its canopy top under :data:`NADIR_AMBIGUOUS_RATIO` of it: a drone could have taken them."""
+    its canopy top under :data:`NADIR_AMBIGUOUS_RATIO` of it: a drone could have taken them.
+    ``gps_reason``: why the photos' own GPS positions could not set the scale, said too."""
     from cropcraft_core.sfm.frame import HAND_HELD_CAMERA_HEIGHT_M
 
     above, top = _heights_at_scale(fit, cameras)
@@ -1215,6 +1226,7 @@ def _check_nadir_scale(fit: RowFit, cameras: np.ndarray) -> None:
         "flight's rows confirmed the hand-held scale 14x off). Give --camera-height M (the "
         "cameras' median height above the ground; in a season, camera_height in that date's "
         "known.json) or --camera-distance PHOTO_A PHOTO_B M"
+        + (f". The photos' GPS positions could not set it: {gps_reason}" if gps_reason else "")
     )
 
 

@@ -23,7 +23,9 @@ that frame (nerfstudio's data parsers do the same with their ``orientation_metho
 * **scale**: 1 for metric poses; from a user's camera height above the ground
   (``camera_height_m``, a precise hint: ``scale_source="camera_height"``) or a measured
   distance between two photos' camera positions (``camera_distance``, e.g. two tripod spots or
-  the ends of a tape laid along the walk: ``"camera_distance"``); else provisional from
+  the ends of a tape laid along the walk: ``"camera_distance"``); or from the photos' own
+  GPS positions where they set it well enough (``gps_scale``, :mod:`cropcraft_core.sfm.gps`:
+  ``"gps"``); else provisional from
   a typical capture height for the crop (``prior_camera_height_m``, ``"camera_height_prior"``),
   which row fitting replaces by the scale measured from the row spacing.
 """
@@ -53,7 +55,9 @@ HAND_HELD_CAMERA_HEIGHT_M = 1.4
 #: drone's nadir photos 75-90), their provisional scale takes that hand-held height too.
 HAND_HELD_MAX_LOOK_DOWN_DEG = 70.0
 
-FRAME_SCALE_SOURCES = ("metric_poses", "camera_height", "camera_distance", "camera_height_prior")
+FRAME_SCALE_SOURCES = (
+    "metric_poses", "camera_height", "camera_distance", "gps", "camera_height_prior",
+)  # fmt: skip
 
 #: Imported metric poses (a phone's AR tracking) are gravity-aligned on one axis of their frame:
 #: z as nerfstudio writes Polycam's, y as it writes Record3D's (ARKit's own). The up found from
@@ -273,6 +277,7 @@ def level_poses(
     metric: bool = False,
     camera_height_m: float | None = None,
     camera_distance: tuple[str, str, float] | None = None,
+    gps_scale: float | None = None,
     prior_camera_height_m: float = 1.4,
     hand_held_prior_m: float | None = HAND_HELD_CAMERA_HEIGHT_M,
     min_look_down_deg: float = 10.0,
@@ -293,7 +298,9 @@ def level_poses(
     :func:`cropcraft_core.rowfit.fit_rows_with_scale` measures it again above the dense points'
     fitted ground plane). camera_distance:
     (photo A, photo B, metres) the measured distance between two photos' camera centres (names
-    as in ``poses``, or their stems; sets the scale exactly). prior_camera_height_m: the assumed
+    as in ``poses``, or their stems; sets the scale exactly). gps_scale: metres per input unit
+    from the photos' GPS positions (:func:`cropcraft_core.sfm.gps.gps_scale`), taken where
+    neither a height nor a distance is given. prior_camera_height_m: the assumed
     height otherwise (``PRIOR_CAMERA_HEIGHT_M``); for metric poses without points, the ground
     lies this far below the cameras' median height, or ``hand_held_prior_m`` (if less; None:
     never) below them where the point their optical axes meet lies less than half the prior
@@ -392,6 +399,10 @@ def level_poses(
         scale, scale_source = 1.0, "metric_poses"
     elif span is not None:
         scale, scale_source = span, "camera_distance"
+    elif camera_height_m is None and gps_scale is not None:
+        if not (math.isfinite(gps_scale) and gps_scale > 0):
+            raise InputError(f"gps_scale must be a positive number, got {gps_scale!r}")
+        scale, scale_source = float(gps_scale), "gps"
     elif ground_z is None or med_h <= 0:
         if camera_height_m is not None:
             raise InputError(

@@ -5,7 +5,9 @@ here, named, rather than deep inside SfM. EXIF orientation is applied to the pix
 images carry no orientation tag), images are optionally downscaled so that their longer side is at
 most ``max_size`` pixels, and exact duplicates are dropped. The camera's focal length, where
 EXIF gives it, is kept as ``focal_px`` at the written size (:func:`exif_focal_px`): structure
-from motion starts from it rather than from a guess.
+from motion starts from it rather than from a guess. So is the camera's GPS position, as
+``gps`` (latitude, longitude, altitude: :func:`exif_gps`), which can set the poses' metric scale
+(:mod:`cropcraft_core.sfm.gps`).
 
 Two hashes per image, both SHA-256:
 
@@ -69,6 +71,9 @@ class IngestedImage:
     focal_px: float | None = None
     """The focal length in pixels of the written image, from the photo's EXIF
     (:func:`exif_focal_px`); None where EXIF does not give it."""
+    gps: list[float] | None = None
+    """[latitude, longitude (degrees, WGS84), altitude (m)] of the camera from the photo's EXIF
+    (:func:`exif_gps`); None where EXIF does not give all three."""
 
 
 @dataclass(frozen=True)
@@ -99,6 +104,9 @@ class IngestManifest:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["n_images"] = len(self.images)
+        for im in d["images"]:  # photos without a GPS position: the bytes as before
+            if im["gps"] is None:
+                del im["gps"]
         if not d["in_subfolders"]:  # a folder without subfolders: the bytes as before
             del d["in_subfolders"]
         return d
@@ -115,9 +123,10 @@ class IngestManifest:
         modification times, give the same identity, so nothing keyed on it is recomputed.
         """
         images = [{k: v for k, v in asdict(im).items() if k != "sha256_file"} for im in self.images]
-        for im in images:  # photos without one key as before focal lengths were read
-            if im["focal_px"] is None:
-                del im["focal_px"]
+        for im in images:  # photos without one key as before focal lengths (GPS) were read
+            for k in ("focal_px", "gps"):
+                if im[k] is None:
+                    del im[k]
         return config_hash({"max_size": self.max_size, "images": images})
 
     @classmethod
@@ -331,10 +340,47 @@ def exif_focal_px(img: Image.Image) -> float | None:
     return float(f) if math.isfinite(f) and lo <= f / max(w, h) <= hi else None
 
 
-def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int, float | None]:
+def _gps_degrees(dms, ref, negative: str) -> float:
+    """Degrees from EXIF's (degrees, minutes, seconds) rationals and their N/S or E/W ref."""
+    d, m, sec = (float(v) for v in dms)
+    value = d + m / 60.0 + sec / 3600.0
+    if isinstance(ref, bytes):
+        ref = ref.decode("ascii", "replace")
+    return -value if str(ref).strip().upper().startswith(negative) else value
+
+
+def exif_gps(img: Image.Image) -> list[float] | None:
+    """[latitude, longitude, altitude] of the camera from the photo's EXIF GPS tags (degrees
+    north and east, WGS84; metres above sea level), or None where any of the three is missing,
+    unreadable or out of range, or the position is the (0, 0) placeholder some cameras write
+    before their GPS has a fix. A drone writes all three into every photo; most phones too."""
+    try:
+        g = img.getexif().get_ifd(0x8825)
+        if not all(k in g for k in (2, 4, 6)):
+            return None
+        lat = _gps_degrees(g[2], g.get(1, "N"), "S")
+        lon = _gps_degrees(g[4], g.get(3, "E"), "W")
+        alt = float(g[6])
+        below = g.get(5, 0)
+        if isinstance(below, bytes):
+            below = below[:1] == b"\x01"
+        if below:
+            alt = -alt
+    except Exception:  # PIL raises struct.error, TypeError, ZeroDivisionError... on bad EXIF
+        return None
+    if not all(math.isfinite(v) for v in (lat, lon, alt)):
+        return None
+    if abs(lat) > 90 or abs(lon) > 180 or (lat == 0 and lon == 0) or abs(alt) > 20000:
+        return None
+    return [lat, lon, alt]
+
+
+def _decode(
+    data: bytes, label: str
+) -> tuple[Image.Image, str, int, float | None, list[float] | None]:
     """Fully decode ``data``; return (RGB image with EXIF orientation applied, format, the EXIF
-    orientation tag (1 if none), the focal length in pixels from EXIF or None). Raises
-    ``InputError`` naming ``label``."""
+    orientation tag (1 if none), the focal length in pixels from EXIF or None, the GPS position
+    from EXIF or None). Raises ``InputError`` naming ``label``."""
     if not data:
         raise InputError(f"image {label} is empty (0 bytes)")
     if ImageFile.LOAD_TRUNCATED_IMAGES:
@@ -350,6 +396,7 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int, float | Non
         img.load()
         orientation = _orientation(img, label)
         focal = exif_focal_px(img)
+        gps = exif_gps(img)
         if orientation in _UPRIGHT:
             img = img.transpose(_UPRIGHT[orientation])
         if img.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit greyscale PNG
@@ -367,7 +414,7 @@ def _decode(data: bytes, label: str) -> tuple[Image.Image, str, int, float | Non
         raise InputError(f"image {label} is not a readable JPEG or PNG (corrupt?)") from None
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise InputError(f"image {label} cannot be decoded (corrupt or truncated): {e}") from None
-    return img, fmt, orientation, focal
+    return img, fmt, orientation, focal, gps
 
 
 def ingest_images(
@@ -439,7 +486,7 @@ def ingest_images(
         except OSError as e:
             raise InputError(f"cannot read image {base} from {source}: {e}") from None
         try:
-            img, fmt, orientation, focal = _decode(data, base)
+            img, fmt, orientation, focal, gps = _decode(data, base)
         except InputError as e:
             unreadable.append(str(e))
             continue
@@ -491,6 +538,7 @@ def ingest_images(
                 scale=float(scale),
                 format=fmt,
                 focal_px=None if focal is None else focal * float(scale),
+                gps=gps,
             )
         )
     if unreadable:

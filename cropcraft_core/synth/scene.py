@@ -45,6 +45,9 @@ from cropcraft_core.render.result import RenderResult
 from cropcraft_core.sfm.poses import Poses, export_colmap_text, export_transforms_json
 
 TRAJECTORIES = ("walk", "drone")
+#: Where a synthetic scene's world origin lies on Earth when its photos carry GPS positions
+#: (latitude, longitude in degrees, altitude in metres): a field in central Illinois.
+GPS_ORIGIN = (40.0646, -88.1963, 222.0)
 #: Vertical field of view of the synthetic camera (degrees); 640 × 480 gives ~64° horizontally,
 #: a phone's main camera.
 DEFAULT_VFOV_DEG = 50.0
@@ -603,6 +606,42 @@ def _write_ply(path: Path, mesh: CanopyMesh) -> None:
     write_ply(path, mesh)
 
 
+def _gps_fixes(cams: list[PinholeCamera], noise_m: float, seed: int) -> np.ndarray:
+    """(n, 3) latitude, longitude, altitude of each camera as a GPS receiver reports it
+    (``make_scene``'s ``gps_noise_m``)."""
+    import pycolmap
+
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x6F5])
+    true = np.array([c.center for c in cams], dtype=np.float64)
+    sd = noise_m * np.array([1.0, 1.0, 1.5])
+    offset = rng.normal(0.0, 3.0, 3) * np.array([1.0, 1.0, 1.5])
+    drift = np.cumsum(rng.normal(0.0, 0.1, true.shape) * sd, axis=0)
+    enu = true + offset + drift + rng.normal(0.0, 1.0, true.shape) * sd
+    t = pycolmap.GPSTransform(pycolmap.GPSTransformEllipsoid.WGS84)
+    return np.asarray(t.enu_to_ellipsoid(enu, *GPS_ORIGIN), dtype=np.float64)
+
+
+def _gps_exif(lat_lon_alt: np.ndarray) -> bytes:
+    """EXIF bytes holding a GPS position (as a camera writes it: degrees, minutes, seconds)."""
+    from PIL.TiffImagePlugin import IFDRational
+
+    def dms(v: float) -> tuple:
+        v = abs(v)
+        d = int(v)
+        m = int((v - d) * 60)
+        sec = IFDRational(round((v - d - m / 60) * 3600e6), 10**6)
+        return (IFDRational(d, 1), IFDRational(m, 1), sec)
+
+    lat, lon, alt = (float(v) for v in lat_lon_alt)
+    exif = Image.Exif()
+    g = exif.get_ifd(0x8825)
+    g.update({
+        1: "N" if lat >= 0 else "S", 2: dms(lat), 3: "E" if lon >= 0 else "W", 4: dms(lon),
+        5: b"\x00" if alt >= 0 else b"\x01", 6: IFDRational(round(abs(alt) * 1000), 1000),
+    })  # fmt: skip
+    return exif.tobytes()
+
+
 def _write_json(path: Path, obj: object) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(obj, indent=2), encoding="utf-8")
@@ -652,6 +691,8 @@ def make_scene(
     shadows: bool = True,
     metrics: bool = True,
     walk_arc_deg: float = 360.0,
+    drone_height_m: float = 13.0,
+    gps_noise_m: float | None = None,
 ) -> dict:
     """Render a synthetic photo scene of a ``crop`` canopy into ``out_dir``; return its summary.
 
@@ -664,6 +705,13 @@ def make_scene(
     shadows: cast sun shadows.  metrics: compute ``truth/metrics.json`` (gap-fraction LAI
     included, a few seconds).  walk_arc_deg: how far around the plot the walk goes (360: once
     around; less gives small test scenes dense enough for SfM with few views).
+    drone_height_m: the drone's flying height above the ground (13 m, the issue's).
+    gps_noise_m: where given, every photo's EXIF carries the camera's GPS position
+    (:data:`GPS_ORIGIN` at the world's origin, east along x, north along y), each fix off by
+    this standard deviation (m) horizontally and 1.5 times it vertically, plus a slow drift (a
+    random walk of a tenth of it a photo) and an offset of the whole capture (a few metres, as
+    any receiver's absolute error): 0.02 for a drone with RTK, 0.5-2 for consumer GPS, 3-5
+    for a phone. None (the default): no GPS tags.
 
     Writes, under ``out_dir``:
       images/view_NNN.<ext>        the photos, in capture order
@@ -701,6 +749,12 @@ def make_scene(
         isinstance(walk_arc_deg, int | float) and 0 < walk_arc_deg <= 360
     ):
         raise ConfigError(f"walk arc must be in (0, 360] degrees, got {walk_arc_deg!r}")
+    if not (isinstance(drone_height_m, int | float) and 1.0 <= drone_height_m <= 120.0):
+        raise ConfigError(f"drone height must be 1-120 m, got {drone_height_m!r}")
+    if gps_noise_m is not None and not (
+        isinstance(gps_noise_m, int | float) and 0 <= gps_noise_m <= 50
+    ):
+        raise ConfigError(f"GPS noise must be 0-50 m, got {gps_noise_m!r}")
     if layout is not None and not isinstance(layout, CanopyLayout):
         raise ConfigError(f"layout must be a CanopyLayout, got {type(layout).__name__}")
     params = resolve_params(crop, params)
@@ -720,7 +774,9 @@ def make_scene(
     if trajectory == "walk":
         cams = walk_trajectory(layout, int(views), rng_traj, top, (w, h), vfov_deg, walk_arc_deg)
     else:
-        cams = drone_trajectory(layout, int(views), rng_traj, top, (w, h), vfov_deg)
+        cams = drone_trajectory(
+            layout, int(views), rng_traj, top, (w, h), vfov_deg, float(drone_height_m)
+        )
     try:
         region = views_region(cams, layout, max_reach(crop, params))
     except ConfigError as e:  # a view with sky in a corner: the scene renders the ground only
@@ -753,6 +809,8 @@ def make_scene(
         xr = np.vstack([xr, [[region[0], region[3]], [region[1], region[3]]]])
         shadow = _ShadowMap(mesh, sun, xr @ rot.T, res=3072)
 
+    # drawn from their own stream, after every other draw: a scene without GPS is the same bytes
+    gps = None if gps_noise_m is None else _gps_fixes(cams, float(gps_noise_m), seed)
     t0 = time.perf_counter()
     names = []
     for i, cam in enumerate(cams):
@@ -762,10 +820,11 @@ def make_scene(
         )
         path = out / "images" / name
         try:
+            tags = {} if gps is None else {"exif": _gps_exif(gps[i])}
             if image_format == "jpg":
-                Image.fromarray(img).save(path, quality=95, subsampling=0)
+                Image.fromarray(img).save(path, quality=95, subsampling=0, **tags)
             else:
-                Image.fromarray(img).save(path)
+                Image.fromarray(img).save(path, **tags)
             np.save(out / "depth" / f"view_{i:03d}.npy", depth)
         except OSError as e:
             raise OutputError(f"cannot write {path}: {e}") from None
@@ -796,6 +855,8 @@ def make_scene(
         "layout": layout.to_dict(),
         "trajectory": trajectory,
         "walk_arc_deg": float(walk_arc_deg) if trajectory == "walk" else None,
+        **({"drone_height_m": float(drone_height_m)} if trajectory == "drone" else {}),
+        **({} if gps is None else {"gps_noise_m": float(gps_noise_m), "gps_origin": GPS_ORIGIN}),
         "views": len(names),
         "resolution": [w, h],
         "vfov_deg": float(vfov_deg),
