@@ -293,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     y.add_argument("--format", choices=["jpg", "png"], default="jpg", help="image format")
     y.add_argument(
-        "--drone-height", type=float, default=13.0, metavar="M", help="the drone's height (13 m)"
+        "--drone-height", type=float, metavar="M", help="a drone trajectory's height (13 m)"
     )
     y.add_argument(
         "--gps-noise",

@@ -109,7 +109,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # 6: nadir photos at a hand-held scale whose canopy a drone could show (under 15 % of
     # the cameras' height) stop with a named error (soybean drone flights read LAI 0.09 for
     # 1.26); every other scene writes the same bytes and stays cached downstream
-    "rowfit": 6,
+    # 7: maize's ground plane moves down to a parallel plane under it holding half its soil
+    # points (``lower_ground_share``: a 25 m flight's plane lay on the canopy's top); a scene
+    # whose ground has none writes the same bytes; a GPS scale records the rows' period at it
+    "rowfit": 7,
     # 2: maize's depth bins start just above the observed canopy (depth_top_margin 0.25);
     # soybean's observations come out the same bytes, so their fits stay cached
     # 3: a pooled row camera outside the reconstruction is left out of the pool (session 50);

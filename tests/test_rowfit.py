@@ -494,6 +494,38 @@ def _translate(t):
     return m
 
 
+def test_a_ground_plane_on_the_canopys_soil_coloured_top_moves_down_to_the_soil():
+    """From a drone 25 m up the fused surface of a maize canopy holds more soil-coloured leaf
+    points in a layer at its top than it holds soil seen between the plants: the RANSAC plane
+    lay on the top (a 25 m flight's 0.78 m up its 1.13 m canopy, which then read 0.31 m tall).
+    Maize's ``lower_ground_share`` (0.5) takes the parallel plane below holding at least half
+    as many soil points: the soil. A cloud without such a layer fits as before, to the bit."""
+    pts, col, _ = make_cloud("maize", None, 0.0, seed=3, half=2.5, density=1000,
+                             region=MAIZE_REGION, soil=False)  # fmt: skip
+    rng = np.random.default_rng(3)
+    soil = np.column_stack([rng.uniform(-2.5, 2.5, (3000, 2)), rng.normal(0, 0.01, 3000)])
+    top = float(np.percentile(pts[:, 2], 99.5))
+    layer = np.column_stack([rng.uniform(-2.5, 2.5, (5000, 2)), rng.normal(top - 0.4, 0.02, 5000)])
+    brown = BROWN + rng.normal(0, 0.03, (8000, 3))
+    cloud = np.vstack([pts, soil, layer]), np.clip(np.vstack([col, brown]), 0, 1)
+    paper = fit_ground_and_rows(
+        *cloud, "maize", preset("maize", box_size=None, lower_ground_share=None), 0
+    )
+    assert abs(paper.ground_offset) == pytest.approx(top - 0.4, abs=0.05)  # in the canopy
+    fit = fit_ground_and_rows(*cloud, "maize", preset("maize", box_size=None), 0)
+    assert fit.diagnostics["ground_moved_down_from"] > fit.ground_inliers >= 2500
+    assert abs(fit.ground_offset) < 0.02 and fit.ground_normal[2] > 0.999
+    assert fit.diagnostics["canopy_top"] == pytest.approx(top, abs=0.05)
+    plain = make_cloud("maize", None, 0.0, seed=3, half=2.5, density=1000, region=MAIZE_REGION)
+    a = fit_ground_and_rows(*plain[:2], "maize", preset("maize", box_size=None), 0)
+    b = fit_ground_and_rows(
+        *plain[:2], "maize", preset("maize", box_size=None, lower_ground_share=None), 0
+    )
+    assert a.to_dict() == b.to_dict() and "ground_moved_down_from" not in a.diagnostics
+    with pytest.raises(ConfigError, match="lower_ground_share"):
+        preset("maize", lower_ground_share=0)
+
+
 def test_scale_fallback_with_a_single_row():
     lay = default_layout("soybean", plot_width=0.8)
     rng = np.random.default_rng(9)
@@ -955,6 +987,7 @@ def test_a_row_fit_failing_at_a_given_scale_names_where_the_scale_came_from():
     p = preset("soybean", box_size=None)
     for kw, source in (
         ({"metric_scale": 0.05, "metric_source": "camera_distance"}, "the camera distance given"),
+        ({"metric_scale": 0.05, "metric_source": "gps"}, "the photos' GPS positions"),
         ({"scale_hint": 0.05}, r"the scale given \(rowfit.scale\)"),
     ):
         with pytest.raises(RowFitError, match=f"; the scale came from {source}: if it is off"):

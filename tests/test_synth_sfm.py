@@ -1000,8 +1000,9 @@ def test_a_scene_made_again_in_its_folder_replaces_the_earlier_one(tmp_path):
         ({"resolution": (float("nan"), 48)}, "resolution must be two whole numbers"),
         ({"views": 2.7}, "whole number of views"),
         ({"vfov_deg": 120.0}, "vfov_deg 120.0 at 64x48 sees above the horizon"),
-        ({"drone_height_m": 300.0}, "drone height must be 1-120 m"),
+        ({"drone_height_m": 300.0, "trajectory": "drone"}, "drone height must be 1-120 m"),
         ({"gps_noise_m": -1.0}, "GPS noise must be 0-50 m"),
+        ({"drone_height_m": 20.0}, "a drone height is for the drone trajectory, not the walk"),
     ],
 )
 def test_make_scene_names_a_bad_setting(tmp_path, bad, match):

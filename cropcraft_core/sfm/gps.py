@@ -15,8 +15,15 @@ robustly (pycolmap's LO-RANSAC, :func:`pycolmap.estimate_sim3d_robust`), then me
 well the photos determine the scale: a *block jackknife* over contiguous runs of photos in
 capture order (so a drifting error shared by neighbouring photos counts as one, not as many
 independent ones) gives its relative standard error, and the scale is used only where that is
-at most :data:`MAX_RELATIVE_SE` and most photos agree with the fit. A GPS that cannot set the
-scale is said (``reason``) and the poses keep the scale they would have had without it.
+at most :data:`MAX_RELATIVE_SE` and most photos agree with the fit. A bias every block
+shares escapes the jackknife: a fix drifting steadily through a lawnmower flight (time runs
+across its lines) stretches the flight across them, and two flights merged, each with its own
+altitude offset, stretch it vertically; a similarity absorbs neither into its residual (a
+helper's audit: 8-15 % scale errors accepted at a reported 2-3 %). So the fixes must also be a
+similarity's and not a stretched one's: an affine fit's scale along each direction the
+cameras spread in must agree with the similarity's within :data:`MAX_ANISOTROPY`. A GPS that
+cannot set the scale is said (``reason``) and the poses keep the scale they would have had
+without it.
 """
 
 from __future__ import annotations
@@ -38,6 +45,13 @@ MIN_PHOTOS = 8
 MIN_INLIER_FRACTION = 0.8
 #: Contiguous blocks of photos in capture order for the jackknife (fewer with few photos).
 JACKKNIFE_BLOCKS = 8
+#: The most an affine fit of the fixes may stretch or shrink them, along any direction the
+#: cameras spread in, against the similarity (a drift or offset a similarity cannot show):
+#: an RTK flight read 0.1 %, a 1.5 m drift through an 8 m flight 15.8 % (its scale 8.5 % off),
+#: two merged flights with their own altitude offsets 15.4 % (11.6 % off). At 3 % the worst
+#: scale accepted over 1,350 simulated drifting flights (8-30 m, 0.5-2 m of drift) was 4.8 %
+#: off; at 6 %, 6.3 % (``/work/exp98/audit_gps/scripts/gps_drift.py``, session 98).
+MAX_ANISOTROPY = MAX_RELATIVE_SE
 #: LO-RANSAC inlier threshold (metres): a fix this far from where the fit puts its camera has
 #: jumped (multipath, a lost lock); consumer GPS's relative error over a flight is well under.
 OUTLIER_M = 5.0
@@ -60,6 +74,9 @@ class GpsScale:
     relative_se: float = math.nan
     """The scale's relative standard error: the block jackknife's, or the residual over the
     spread over the square root of the blocks where that is larger."""
+    anisotropy: float = math.nan
+    """The largest relative stretch of an affine fit against the similarity along a direction
+    the cameras spread in."""
     fitted_scale: float = math.nan
     """The similarity's scale whether or not it is used (NaN where no fit)."""
     reason: str = ""
@@ -78,6 +95,7 @@ class GpsScale:
             "residual_m": _finite_or_none(self.residual_m),
             "spread_m": _finite_or_none(self.spread_m),
             "relative_se": _finite_or_none(self.relative_se),
+            "anisotropy": _finite_or_none(self.anisotropy),
             "scale": _finite_or_none(self.fitted_scale),
         }
         if self.reason:
@@ -112,6 +130,18 @@ def _scale_of(src: np.ndarray, tgt: np.ndarray) -> float:
     return math.nan if sim is None else float(sim.scale)
 
 
+def _anisotropy(pred: np.ndarray, tgt: np.ndarray, min_share: float = 0.05) -> float:
+    """The largest |u'Bu - 1| of the affine fit ``tgt ≈ B pred + c`` over the principal
+    directions u of ``pred`` holding at least ``min_share`` of its largest variance (a nadir
+    flight's vertical holds none: its heights tell nothing of a stretch)."""
+    p0 = pred - pred.mean(axis=0)
+    t0 = tgt - tgt.mean(axis=0)
+    b, *_ = np.linalg.lstsq(p0, t0, rcond=None)  # t0 ≈ p0 @ b, so B = b.T
+    w, v = np.linalg.eigh(p0.T @ p0)
+    axes = v[:, w >= min_share * w.max()]
+    return float(max(abs(float(u @ b.T @ u) - 1.0) for u in axes.T))
+
+
 def gps_scale(
     centres: np.ndarray,
     lat_lon_alt: np.ndarray,
@@ -127,8 +157,10 @@ def gps_scale(
     in capture order, whose GPS positions are ``lat_lon_alt`` (n, 3; degrees, degrees, metres).
 
     Returns a :class:`GpsScale` whose ``scale`` is None, with the ``reason``, where there are
-    fewer than ``min_photos`` positions, the robust fit keeps under ``min_inlier_fraction`` of
-    them, or the block jackknife's relative standard error exceeds ``max_relative_se``.
+    fewer than ``min_photos`` positions, they are one position (a stale fix), the robust fit
+    keeps under ``min_inlier_fraction`` of them, the block jackknife's relative standard error
+    exceeds ``max_relative_se`` or the fixes are stretched against the cameras by more than
+    :data:`MAX_ANISOTROPY`.
     """
     c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
     lla = np.asarray(lat_lon_alt, dtype=np.float64).reshape(-1, 3)
@@ -140,6 +172,11 @@ def gps_scale(
             None, n, reason=f"{n} posed photos carry a GPS position; at least {min_photos} needed"
         )
     enu = to_enu(lla)
+    if float(np.sqrt(np.mean(np.sum((enu - enu.mean(axis=0)) ** 2, axis=1)))) < 0.01:
+        return GpsScale(
+            None, n, reason=f"all {n} photos carry the same GPS position (a stale or "
+            "placeholder fix): it cannot set the scale",
+        )  # fmt: skip
     import pycolmap
 
     opts = pycolmap.RANSACOptions()
@@ -147,6 +184,10 @@ def gps_scale(
     opts.random_seed = int(seed)
     found = pycolmap.estimate_sim3d_robust(c, enu, opts)
     if not found:
+        sv = np.linalg.svd(c - c.mean(axis=0), compute_uv=False)
+        if sv[1] <= 1e-9 * sv[0]:
+            return GpsScale(None, n, reason="the cameras lie on one line, which a similarity "
+                            "to their GPS positions cannot turn about")  # fmt: skip
         return GpsScale(None, n, reason="no similarity fits the cameras to their GPS positions")
     keep = np.asarray(found["inlier_mask"], dtype=bool)
     k = int(keep.sum())
@@ -176,7 +217,11 @@ def gps_scale(
         # jackknife of few blocks can read small by chance (measured on simulated flights with
         # drifting fixes: a 6 % error with a jackknife of 2.5 %)
         se = max(se, residual / max(spread, 1e-12) / math.sqrt(b))
-    facts = dict(n_inliers=k, residual_m=residual, spread_m=spread, relative_se=se, fitted_scale=s)
+    stretch = _anisotropy(pred, tgt)
+    facts = dict(
+        n_inliers=k, residual_m=residual, spread_m=spread, relative_se=se, anisotropy=stretch,
+        fitted_scale=s,
+    )  # fmt: skip
     if not (math.isfinite(s) and s > 0):
         return GpsScale(None, n, **facts, reason="the GPS positions give no positive scale")
     if not se <= max_relative_se:
@@ -184,6 +229,13 @@ def gps_scale(
             None, n, **facts,
             reason=f"the photos' GPS positions spread {spread:.2g} m and lie {residual:.2g} m "
             f"(RMS) from their cameras: the scale they give is uncertain by "
-            f"{100 * se:.0f} % (at most {100 * max_relative_se:g} % is used)",
+            f"{100 * se:.1f} % (at most {100 * max_relative_se:g} % is used)",
+        )  # fmt: skip
+    if not stretch <= MAX_ANISOTROPY:
+        return GpsScale(
+            None, n, **facts,
+            reason=f"the photos' GPS positions are stretched {100 * stretch:.1f} % along one "
+            f"direction against their cameras (at most {100 * MAX_ANISOTROPY:g} %): a fix "
+            "drifting through the flight, or flights merged with their own offsets",
         )  # fmt: skip
     return GpsScale(s, n, **facts)

@@ -341,12 +341,14 @@ def exif_focal_px(img: Image.Image) -> float | None:
 
 
 def _gps_degrees(dms, ref, negative: str) -> float:
-    """Degrees from EXIF's (degrees, minutes, seconds) rationals and their N/S or E/W ref."""
+    """Degrees from EXIF's (degrees, minutes, seconds) rationals and their N/S or E/W ref (a
+    camera writing signed degrees, SRATIONAL, gives the sign by them where the ref does not)."""
     d, m, sec = (float(v) for v in dms)
-    value = d + m / 60.0 + sec / 3600.0
+    value = abs(d) + m / 60.0 + sec / 3600.0
     if isinstance(ref, bytes):
         ref = ref.decode("ascii", "replace")
-    return -value if str(ref).strip().upper().startswith(negative) else value
+    ref = str(ref).strip("\x00 ").upper()
+    return -value if ref.startswith(negative) or (d < 0 and not ref) else value
 
 
 def exif_gps(img: Image.Image) -> list[float] | None:
@@ -361,9 +363,11 @@ def exif_gps(img: Image.Image) -> list[float] | None:
         lat = _gps_degrees(g[2], g.get(1, "N"), "S")
         lon = _gps_degrees(g[4], g.get(3, "E"), "W")
         alt = float(g[6])
-        below = g.get(5, 0)
+        below = g.get(5, 0)  # 1: below sea level; BYTE, UNDEFINED, SHORT or ASCII as written
         if isinstance(below, bytes):
-            below = below[:1] == b"\x01"
+            below = below[:1] in (b"\x01", b"1")
+        elif isinstance(below, str):
+            below = below.strip("\x00 ") == "1"
         if below:
             alt = -alt
     except Exception:  # PIL raises struct.error, TypeError, ZeroDivisionError... on bad EXIF

@@ -691,7 +691,7 @@ def make_scene(
     shadows: bool = True,
     metrics: bool = True,
     walk_arc_deg: float = 360.0,
-    drone_height_m: float = 13.0,
+    drone_height_m: float | None = None,
     gps_noise_m: float | None = None,
 ) -> dict:
     """Render a synthetic photo scene of a ``crop`` canopy into ``out_dir``; return its summary.
@@ -705,7 +705,8 @@ def make_scene(
     shadows: cast sun shadows.  metrics: compute ``truth/metrics.json`` (gap-fraction LAI
     included, a few seconds).  walk_arc_deg: how far around the plot the walk goes (360: once
     around; less gives small test scenes dense enough for SfM with few views).
-    drone_height_m: the drone's flying height above the ground (13 m, the issue's).
+    drone_height_m: the drone's flying height above the ground (None: 13 m, the issue's); a
+    drone trajectory's only.
     gps_noise_m: where given, every photo's EXIF carries the camera's GPS position
     (:data:`GPS_ORIGIN` at the world's origin, east along x, north along y), each fix off by
     this standard deviation (m) horizontally and 1.5 times it vertically, plus a slow drift (a
@@ -749,6 +750,10 @@ def make_scene(
         isinstance(walk_arc_deg, int | float) and 0 < walk_arc_deg <= 360
     ):
         raise ConfigError(f"walk arc must be in (0, 360] degrees, got {walk_arc_deg!r}")
+    if drone_height_m is not None and trajectory != "drone":
+        raise ConfigError(f"a drone height is for the drone trajectory, not the {trajectory}")
+    if drone_height_m is None:
+        drone_height_m = 13.0
     if not (isinstance(drone_height_m, int | float) and 1.0 <= drone_height_m <= 120.0):
         raise ConfigError(f"drone height must be 1-120 m, got {drone_height_m!r}")
     if gps_noise_m is not None and not (
