@@ -50,7 +50,7 @@ JACKKNIFE_BLOCKS = 8
 #: an RTK flight read 0.1 %, a 1.5 m drift through an 8 m flight 15.8 % (its scale 8.5 % off),
 #: two merged flights with their own altitude offsets 15.4 % (11.6 % off). At 3 % the worst
 #: scale accepted over 1,350 simulated drifting flights (8-30 m, 0.5-2 m of drift) was 4.8 %
-#: off; at 6 %, 6.3 % (``/work/exp98/audit_gps/scripts/gps_drift.py``, session 98).
+#: off; at 6 %, 6.3 % (benchmarks/RESULTS.md, *#gps-98*).
 MAX_ANISOTROPY = MAX_RELATIVE_SE
 #: LO-RANSAC inlier threshold (metres): a fix this far from where the fit puts its camera has
 #: jumped (multipath, a lost lock); consumer GPS's relative error over a flight is well under.
