@@ -218,10 +218,10 @@ def poses(
         is known rather than provisional; ``gps`` where the photos carry positions)."""
         scale = None
         positions = gps_positions(manifest) if config.get("gps", True) else {}
-        named = [n for n in found.names if n in positions]
         if positions and not metric and hint is None and distance is None:
             from cropcraft_core.sfm.gps import gps_scale
 
+            named = [n for n in found.names if n in positions]
             g = gps_scale(
                 np.array([found.camera(n).center for n in named]).reshape(-1, 3),
                 np.array([positions[n] for n in named]).reshape(-1, 3),

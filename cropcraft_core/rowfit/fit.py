@@ -474,7 +474,7 @@ def fit_ground_and_rows(
     normal, offset, g_in = ransac_plane(
         pts_m[ground], p.ground_threshold, p.ground_iterations, rng, p.ransac_score_points
     )
-    lower = _lower_ground(pts_m, ground, normal, offset, g_in, plant, p, copy.deepcopy(rng))
+    lower = _lower_ground(pts_m, ground, normal, offset, g_in, plant, p, rng)
     if lower is not None:
         diag["ground_moved_down_from"] = int(g_in.sum())
         normal, offset, g_in = lower
@@ -625,7 +625,7 @@ def _lower_ground(
     a parallel plane (:data:`LOWER_GROUND_MAX_ANGLE_DEG`) with at least ``p.lower_ground_share``
     of its inliers, and the one with the fewest plant points across it is the ground where it
     has at most half the first's. Returns (normal, offset, inliers over ``ground``'s points)
-    or None (``rng`` is a copy: the fit's own draws are as before)."""
+    or None. It draws from a copy of ``rng``, so the fit's own draws are as before."""
     share = p.lower_ground_share
     if share is None:
         return None
@@ -637,6 +637,7 @@ def _lower_ground(
     g = pts[ground]
     h = g @ normal + offset
     need = max(p.min_ground_points, share * int(inliers.sum()))
+    rng = copy.deepcopy(rng)
     best = None
     for side in (h > t, h < -t):
         if side.sum() < need:

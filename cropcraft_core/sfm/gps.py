@@ -122,6 +122,11 @@ def to_enu(lat_lon_alt: np.ndarray) -> np.ndarray:
     return np.asarray(t.ellipsoid_to_enu(lla, *map(float, ref)), dtype=np.float64)
 
 
+def _rms_spread(x: np.ndarray) -> float:
+    """RMS distance of the (n, 3) points ``x`` from their centroid."""
+    return float(np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1))))
+
+
 def _scale_of(src: np.ndarray, tgt: np.ndarray) -> float:
     """The least-squares similarity's scale, tgt ≈ s·R·src + t (NaN where degenerate)."""
     import pycolmap
@@ -172,7 +177,7 @@ def gps_scale(
             None, n, reason=f"{n} posed photos carry a GPS position; at least {min_photos} needed"
         )
     enu = to_enu(lla)
-    if float(np.sqrt(np.mean(np.sum((enu - enu.mean(axis=0)) ** 2, axis=1)))) < 0.01:
+    if _rms_spread(enu) < 0.01:
         return GpsScale(
             None, n, reason=f"all {n} photos carry the same GPS position (a stale or "
             "placeholder fix): it cannot set the scale",
@@ -205,7 +210,7 @@ def gps_scale(
     fitted = np.asarray(sim.matrix(), dtype=np.float64)
     pred = src @ fitted[:, :3].T + fitted[:, 3]
     residual = float(np.sqrt(np.mean(np.sum((pred - tgt) ** 2, axis=1))))
-    spread = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(axis=0)) ** 2, axis=1))))
+    spread = _rms_spread(tgt)
     b = max(2, min(int(blocks), k // 3))
     parts = np.array_split(np.arange(k), b)  # contiguous in capture order
     jack = np.array([_scale_of(np.delete(src, p, 0), np.delete(tgt, p, 0)) for p in parts])
